@@ -1,0 +1,104 @@
+"""The ``rasterserver`` command line: thin Typer commands over the services.
+
+Each command group lives in its own module under :mod:`rasterserver.commands` and adds itself
+to the app through a ``register(app)`` function, so this file only wires them together and
+turns :class:`~rasterserver.errors.RasterServerError` into a message and an exit code.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import click
+import typer
+
+from rasterserver import __version__
+from rasterserver.commands import COMMAND_MODULES
+from rasterserver.config import Settings
+from rasterserver.errors import RasterServerError
+
+app = typer.Typer(
+    name="rasterserver",
+    help=(
+        "Archive and process video rasterstereographs: ingest camera frames into a write-once "
+        "HDF5 archive with an SQL catalogue, verify it, and run the reconstruction pipeline.\n\n"
+        "Settings come from options or the environment: RASTERSERVER_ARCHIVE (archive folder, "
+        "default ./archive) and RASTERSERVER_DATABASE_URL (default: SQLite inside the archive)."
+    ),
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"rasterserver {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    ctx: typer.Context,
+    archive: Annotated[
+        Path | None,
+        typer.Option(help="Archive folder (overrides RASTERSERVER_ARCHIVE).", show_default=False),
+    ] = None,
+    database_url: Annotated[
+        str | None,
+        typer.Option(
+            help="SQLAlchemy URL of the catalogue (overrides RASTERSERVER_DATABASE_URL).",
+            show_default=False,
+        ),
+    ] = None,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show the version.")
+    ] = False,
+) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    ctx.obj = Settings.from_env(archive=archive, database_url=database_url)
+
+
+for _module in COMMAND_MODULES:
+    _module.register(app)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI and return its exit code.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments without the program name; defaults to ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        0 on success, the error's ``exit_code`` for a :class:`RasterServerError`.
+    """
+    try:
+        app(args=argv, prog_name="rasterserver", standalone_mode=False)
+    except RasterServerError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        return exc.exit_code
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except click.exceptions.Abort:
+        typer.echo("aborted", err=True)
+        return 130
+    return 0
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())
