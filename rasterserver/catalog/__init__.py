@@ -1,0 +1,30 @@
+"""The SQL catalogue: patients, visits, stations, rasters, calibrations, acquisitions, frames.
+
+Schema changes go only through the Alembic migrations in ``migrations/`` (installed as
+``rasterserver_migrations``); :mod:`rasterserver.catalog.migrate` runs them.
+"""
+
+from rasterserver.catalog.database import make_engine, session_factory
+from rasterserver.catalog.models import (
+    Acquisition,
+    Base,
+    Calibration,
+    Frame,
+    Patient,
+    Raster,
+    Station,
+    Visit,
+)
+
+__all__ = [
+    "Acquisition",
+    "Base",
+    "Calibration",
+    "Frame",
+    "Patient",
+    "Raster",
+    "Station",
+    "Visit",
+    "make_engine",
+    "session_factory",
+]

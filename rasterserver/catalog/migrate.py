@@ -1,0 +1,82 @@
+"""Run the Alembic migrations programmatically: the only way the schema changes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import Engine
+
+from rasterserver.errors import RasterServerError
+
+
+class SchemaError(RasterServerError):
+    """The catalogue's schema is not at the version this code expects."""
+
+    exit_code = 6
+    http_status = 503
+
+
+def alembic_config(engine: Engine) -> Config:
+    """Return an Alembic configuration for the migrations shipped with the package."""
+    cfg = Config()
+    import rasterserver_migrations
+
+    cfg.set_main_option("script_location", str(Path(rasterserver_migrations.__file__).parent))
+    cfg.set_main_option(
+        "sqlalchemy.url", engine.url.render_as_string(hide_password=False).replace("%", "%%")
+    )
+    return cfg
+
+
+def upgrade(engine: Engine, revision: str = "head") -> None:
+    """Migrate the catalogue at ``engine`` up to ``revision`` (creating it if empty).
+
+    Parameters
+    ----------
+    engine : sqlalchemy.Engine
+        The catalogue's engine.
+    revision : str, optional
+        Target revision, ``"head"`` by default.
+    """
+    cfg = alembic_config(engine)
+    with engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, revision)
+
+
+def downgrade(engine: Engine, revision: str) -> None:
+    """Migrate the catalogue at ``engine`` down to ``revision`` (``"base"`` empties it)."""
+    cfg = alembic_config(engine)
+    with engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        command.downgrade(cfg, revision)
+
+
+def current_revision(engine: Engine) -> str | None:
+    """Return the catalogue's current schema revision, or None for an empty database."""
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def head_revision(engine: Engine) -> str | None:
+    """Return the newest revision shipped with this version of rasterserver."""
+    return ScriptDirectory.from_config(alembic_config(engine)).get_current_head()
+
+
+def require_current(engine: Engine) -> None:
+    """Raise :class:`SchemaError` unless the catalogue is at the newest revision.
+
+    Services call this before touching the catalogue, so an old or empty database gets a
+    message that says what to run instead of an SQL error.
+    """
+    current, head = current_revision(engine), head_revision(engine)
+    if current != head:
+        state = "is empty" if current is None else f"is at revision {current}"
+        raise SchemaError(
+            f"the catalogue {state}, this rasterserver needs {head}: "
+            "run `rasterserver db upgrade`"
+        )

@@ -1,0 +1,212 @@
+"""SQLAlchemy 2.0 typed models of the catalogue.
+
+Times are stored in UTC. Pixel data never lives here: a :class:`Frame` row names the HDF5 file
+and dataset holding it, with the SHA-256 of its bytes so ``verify`` can prove the two agree.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    CheckConstraint,
+    Date,
+    DateTime,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Text,
+    UniqueConstraint,
+    event,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
+
+# Explicit constraint names keep migrations identical on SQLite and PostgreSQL and let
+# Alembic's batch mode (SQLite) find constraints it has to rebuild.
+NAMING_CONVENTION = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+SEXES = ("female", "male", "other", "unknown")
+FRAME_ROLES = ("raster", "projector-off", "projector-on", "dark", "other")
+ACQUISITION_KINDS = ("patient", "calibration", "test")
+
+
+def utcnow() -> dt.datetime:
+    """Return the current time in UTC (timezone-aware)."""
+    return dt.datetime.now(dt.UTC)
+
+
+class Base(DeclarativeBase):
+    """Declarative base of every catalogue table."""
+
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    type_annotation_map = {dict[str, Any]: JSON, dt.datetime: DateTime(timezone=True)}
+
+
+class Patient(Base):
+    """A patient, identified by the site's own identifier (unique within the site)."""
+
+    __tablename__ = "patient"
+    __table_args__ = (CheckConstraint(f"sex IN {SEXES!r}", name="sex"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    identifier: Mapped[str] = mapped_column(String(64), unique=True)
+    name: Mapped[str] = mapped_column(String(200), default="")
+    birth_date: Mapped[dt.date | None] = mapped_column(Date)
+    sex: Mapped[str] = mapped_column(String(8), default="unknown")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    visits: Mapped[list[Visit]] = relationship(back_populates="patient")
+    acquisitions: Mapped[list[Acquisition]] = relationship(back_populates="patient")
+
+
+class Visit(Base):
+    """One appointment of a patient; a visit may hold several acquisitions."""
+
+    __tablename__ = "visit"
+    __table_args__ = (UniqueConstraint("patient_id", "visit_date"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    patient_id: Mapped[int] = mapped_column(ForeignKey("patient.id", ondelete="RESTRICT"))
+    visit_date: Mapped[dt.date] = mapped_column(Date)
+    notes: Mapped[str] = mapped_column(Text, default="")
+
+    patient: Mapped[Patient] = relationship(back_populates="visits")
+
+
+class Station(Base):
+    """An acquisition set-up: one camera and one projector in a fixed arrangement."""
+
+    __tablename__ = "station"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    description: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    calibrations: Mapped[list[Calibration]] = relationship(back_populates="station")
+
+
+class Raster(Base):
+    """A raster diapositive: line positions and light/heavy kinds (``rasterserver.raster/1``).
+
+    ``sha256`` is the hash of the canonical JSON definition, so the same diapositive stored
+    twice is recognised.
+    """
+
+    __tablename__ = "raster"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    definition: Mapped[dict[str, Any]] = mapped_column(JSON)
+    sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+class Calibration(Base):
+    """An immutable, versioned calibration of a station (``rasterserver.calibration/1``).
+
+    Versions count up per station. Rows are never updated: a recalibration is a new version,
+    so every acquisition keeps the calibration it was taken with.
+    """
+
+    __tablename__ = "calibration"
+    __table_args__ = (UniqueConstraint("station_id", "version"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    station_id: Mapped[int] = mapped_column(ForeignKey("station.id", ondelete="RESTRICT"))
+    version: Mapped[int] = mapped_column(Integer)
+    raster_id: Mapped[int | None] = mapped_column(ForeignKey("raster.id", ondelete="RESTRICT"))
+    parameters: Mapped[dict[str, Any]] = mapped_column(JSON)
+    residuals: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    sha256: Mapped[str] = mapped_column(String(64))
+    valid_from: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    # The control-point frames it was computed from, archived like any acquisition.
+    source_acquisition_id: Mapped[int | None] = mapped_column(
+        ForeignKey("acquisition.id", ondelete="RESTRICT", use_alter=True)
+    )
+    notes: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    station: Mapped[Station] = relationship(back_populates="calibrations")
+    raster: Mapped[Raster | None] = relationship()
+
+
+class Acquisition(Base):
+    """One recording: the frames taken together of a patient (or a calibration body).
+
+    ``uid`` names the acquisition's HDF5 file; it is chosen at ingest and never reused.
+    """
+
+    __tablename__ = "acquisition"
+    __table_args__ = (
+        CheckConstraint(f"kind IN {ACQUISITION_KINDS!r}", name="kind"),
+        CheckConstraint("kind <> 'patient' OR patient_id IS NOT NULL", name="patient_required"),
+        Index("ix_acquisition_patient_time", "patient_id", "acquired_at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    uid: Mapped[str] = mapped_column(String(32), unique=True)
+    kind: Mapped[str] = mapped_column(String(16), default="patient")
+    patient_id: Mapped[int | None] = mapped_column(
+        ForeignKey("patient.id", ondelete="RESTRICT")
+    )
+    visit_id: Mapped[int | None] = mapped_column(ForeignKey("visit.id", ondelete="RESTRICT"))
+    station_id: Mapped[int | None] = mapped_column(ForeignKey("station.id", ondelete="RESTRICT"))
+    calibration_id: Mapped[int | None] = mapped_column(
+        ForeignKey("calibration.id", ondelete="RESTRICT")
+    )
+    acquired_at: Mapped[dt.datetime] = mapped_column(index=True)
+    operator: Mapped[str] = mapped_column(String(100), default="")
+    notes: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    patient: Mapped[Patient | None] = relationship(back_populates="acquisitions")
+    visit: Mapped[Visit | None] = relationship()
+    station: Mapped[Station | None] = relationship()
+    calibration: Mapped[Calibration | None] = relationship(foreign_keys=[calibration_id])
+    frames: Mapped[list[Frame]] = relationship(
+        back_populates="acquisition", order_by="Frame.index", cascade="all, delete-orphan"
+    )
+
+
+class Frame(Base):
+    """One raw camera frame of an acquisition, as stored in the acquisition's HDF5 file."""
+
+    __tablename__ = "frame"
+    __table_args__ = (UniqueConstraint("acquisition_id", "index"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    acquisition_id: Mapped[int] = mapped_column(
+        ForeignKey("acquisition.id", ondelete="CASCADE")
+    )
+    index: Mapped[int] = mapped_column(Integer)
+    role: Mapped[str] = mapped_column(String(32), default="raster")
+    height: Mapped[int] = mapped_column(Integer)
+    width: Mapped[int] = mapped_column(Integer)
+    dtype: Mapped[str] = mapped_column(String(16))
+    sha256: Mapped[str] = mapped_column(String(64))
+    store_path: Mapped[str] = mapped_column(String(255))
+    dataset: Mapped[str] = mapped_column(String(100))
+
+    acquisition: Mapped[Acquisition] = relationship(back_populates="frames")
+
+
+@event.listens_for(Session, "before_flush")
+def _calibrations_are_immutable(session: Session, _ctx: object, _instances: object) -> None:
+    """Refuse any change to a stored calibration: a recalibration is a new version."""
+    for obj in session.dirty:
+        if isinstance(obj, Calibration) and session.is_modified(obj):
+            raise ValueError(
+                f"calibration {obj.id} (version {obj.version}) is immutable; "
+                "store a new version instead"
+            )
