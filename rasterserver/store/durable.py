@@ -1,0 +1,122 @@
+"""Durable file publication: fsync, and a rename that never replaces an existing file.
+
+Shared by the raw store and the derived-results store. The recipe for a crash-safe
+write-once file is::
+
+    ensure_dir(folder)                 # new folders are fsynced into their parents
+    ... write folder/<name>.tmp-... ...
+    fsync_file(temp)                   # the data reach the disk before the name does
+    publish(temp, final)               # atomic, refuses to replace, fsyncs the folder
+
+After a crash, ``final`` either does not exist or is complete; a temp file may be left behind
+and is recognisable by its name.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+from rasterserver.errors import ConflictError
+
+__all__ = ["ensure_dir", "fsync_dir", "fsync_file", "publish"]
+
+# Filesystems without hard links (some SMB/FUSE mounts) answer link() with one of these.
+_NO_LINK_ERRNOS = frozenset(
+    {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS, errno.EMLINK}
+)
+
+
+def fsync_file(path: Path) -> None:
+    """Flush a closed file's data to stable storage.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    """
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_dir(path: Path) -> None:
+    """Flush a folder's entries (file creations, renames) to stable storage.
+
+    Parameters
+    ----------
+    path : Path
+        The folder.
+    """
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        # Some network filesystems refuse fsync on a directory; their rename is durable on
+        # return, so there is nothing more to do.
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
+
+
+def ensure_dir(path: Path) -> None:
+    """Create ``path`` and missing parents, fsyncing each new entry into its parent.
+
+    Parameters
+    ----------
+    path : Path
+        Folder to create if it does not exist.
+    """
+    missing: list[Path] = []
+    probe = path
+    while not probe.exists():
+        missing.append(probe)
+        probe = probe.parent
+    for folder in reversed(missing):
+        try:
+            folder.mkdir()
+        except FileExistsError:  # another writer created it meanwhile
+            continue
+        fsync_dir(folder.parent)
+
+
+def publish(temp: Path, final: Path) -> None:
+    """Give the complete file ``temp`` its final name, refusing to replace an existing file.
+
+    ``link()`` + ``unlink()`` is used because ``rename()`` silently replaces its target: two
+    writers racing for the same name would both "succeed". On filesystems without hard links
+    it falls back to check-then-rename, which is not atomic against a concurrent writer.
+
+    Parameters
+    ----------
+    temp : Path
+        Fully written and fsynced file, in the same folder as ``final``.
+    final : Path
+        Name to publish it under.
+
+    Raises
+    ------
+    ConflictError
+        ``final`` already exists; ``temp`` is removed.
+    """
+    try:
+        os.link(temp, final)
+    except FileExistsError:
+        temp.unlink(missing_ok=True)
+        raise ConflictError(f"{final.name} already exists; archive files are write-once") from None
+    except OSError as exc:
+        if exc.errno not in _NO_LINK_ERRNOS:
+            raise
+        if final.exists():
+            temp.unlink(missing_ok=True)
+            raise ConflictError(
+                f"{final.name} already exists; archive files are write-once"
+            ) from None
+        os.rename(temp, final)
+    else:
+        temp.unlink()
+    fsync_dir(final.parent)
