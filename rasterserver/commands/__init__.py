@@ -7,4 +7,6 @@ from __future__ import annotations
 
 from types import ModuleType
 
-COMMAND_MODULES: list[ModuleType] = []
+from rasterserver.commands import db, ingest, listing, patients, plugins, stations, verify
+
+COMMAND_MODULES: list[ModuleType] = [db, patients, stations, ingest, listing, verify, plugins]

@@ -1,0 +1,697 @@
+"""The archive service: patients, stations, calibrations, ingest, listing and verification.
+
+The CLI and the HTTP API both call this module; neither touches SQL or HDF5 directly.
+
+Ingest is ordered so that a crash at any point leaves the archive explainable: every frame is
+decoded and validated first (nothing is written for bad input), then the acquisition's HDF5
+file is written under a temporary name, fsynced and renamed, and only then is the SQL row
+committed. So there is never a row without its complete file; a crash between rename and
+commit leaves an *orphaned* file, and a crash before the rename a *temporary* file, both of
+which ``verify`` reports and explains.
+
+Patient data (identifier, name, birth date) is never written to the log; acquisitions are
+logged by their uid only.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import logging
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import Engine, func, select
+from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+from sqlalchemy.orm import Session, selectinload
+
+from rasterserver.catalog import migrate
+from rasterserver.catalog.database import make_engine, session_factory
+from rasterserver.catalog.models import (
+    ACQUISITION_KINDS,
+    FRAME_ROLES,
+    SEXES,
+    Acquisition,
+    Calibration,
+    Frame,
+    Patient,
+    Raster,
+    Station,
+    Visit,
+)
+from rasterserver.config import Settings
+from rasterserver.errors import ConflictError, InputError, NotFoundError
+from rasterserver.imageio import decode_frame_bytes, read_frame
+from rasterserver.store.raw import FrameToWrite, RawStore
+
+log = logging.getLogger(__name__)
+
+#: Called with the name of each ingest step as it completes; the crash tests kill the
+#: process from here. Steps: those of :class:`RawStore` and ``"committed"``.
+CrashHook = Callable[[str], None]
+#: Called with (done, total) while a long operation runs.
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class FrameSource:
+    """One frame to ingest.
+
+    Attributes
+    ----------
+    data : Path, bytes or numpy.ndarray
+        A file (PNG, TIFF, NPY, raw), its bytes (an upload), or an array already in memory.
+    role : str
+        What the frame shows: ``raster`` (projector on, a patient), ``projector-off``,
+        ``projector-on`` (calibration frames), ``dark`` or ``other``.
+    name : str
+        File name used in messages and to tell the format of ``bytes``; defaults to the
+        file's name.
+    """
+
+    data: Path | bytes | np.ndarray
+    role: str = "raster"
+    name: str = ""
+
+
+def canonical_json_sha256(document: Any) -> str:
+    """Return the SHA-256 of ``document`` serialised as canonical JSON (sorted keys)."""
+    text = json.dumps(document, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+class Archive:
+    """The archive at ``settings.archive`` with its catalogue at ``settings.database_url``.
+
+    Parameters
+    ----------
+    settings : Settings
+        Where the archive and the catalogue are.
+    crash_hook : CrashHook, optional
+        Test hook called after each durable ingest step.
+    check_schema : bool, default True
+        Refuse to work on a catalogue that is not migrated to the current revision.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        crash_hook: CrashHook | None = None,
+        check_schema: bool = True,
+    ) -> None:
+        self.settings = settings
+        self.engine: Engine = make_engine(settings.database_url)
+        self._sessions = session_factory(self.engine)
+        self._crash_hook = crash_hook
+        self.raw = RawStore(settings.archive, crash_hook=crash_hook)
+        if check_schema:
+            migrate.require_current(self.engine)
+
+    @classmethod
+    def create(cls, settings: Settings, **kwargs: Any) -> Archive:
+        """Open the archive, first migrating its catalogue to the newest schema."""
+        engine = make_engine(settings.database_url)
+        try:
+            migrate.upgrade(engine)
+        finally:
+            engine.dispose()
+        return cls(settings, **kwargs)
+
+    def close(self) -> None:
+        """Release the catalogue's connections."""
+        self.engine.dispose()
+
+    def __enter__(self) -> Archive:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextmanager
+    def session(self) -> Iterator[Session]:
+        """A catalogue session committed on success and rolled back on any error."""
+        with self._sessions() as session:
+            try:
+                yield session
+                session.commit()
+            except BaseException:
+                session.rollback()
+                raise
+
+    # -- patients, stations, rasters, calibrations ----------------------------------------
+
+    def add_patient(
+        self,
+        identifier: str,
+        *,
+        name: str = "",
+        birth_date: dt.date | None = None,
+        sex: str = "unknown",
+    ) -> Patient:
+        """Register a patient under the site's identifier.
+
+        Raises
+        ------
+        InputError
+            Empty identifier or unknown sex.
+        ConflictError
+            The identifier is already taken.
+        """
+        identifier = identifier.strip()
+        if not identifier or len(identifier) > 64:
+            raise InputError("a patient identifier must have 1 to 64 characters")
+        if sex not in SEXES:
+            raise InputError(f"sex must be one of {', '.join(SEXES)}")
+        patient = Patient(identifier=identifier, name=name, birth_date=birth_date, sex=sex)
+        try:
+            with self.session() as session:
+                session.add(patient)
+        except SQLIntegrityError:
+            raise ConflictError("a patient with this identifier exists already") from None
+        return patient
+
+    def patient(self, identifier: str, session: Session | None = None) -> Patient:
+        """Return the patient with ``identifier`` or raise :class:`NotFoundError`."""
+        with self._maybe_session(session) as s:
+            found = s.scalar(select(Patient).where(Patient.identifier == identifier))
+        if found is None:
+            raise NotFoundError(
+                "unknown patient: register it first with `rasterserver patient add`"
+            )
+        return found
+
+    def patients(self, *, limit: int = 100, offset: int = 0) -> list[Patient]:
+        """List patients by identifier."""
+        with self.session() as s:
+            return list(
+                s.scalars(select(Patient).order_by(Patient.identifier).limit(limit).offset(offset))
+            )
+
+    def add_station(self, name: str, *, description: str = "") -> Station:
+        """Register an acquisition station (a camera and projector set-up)."""
+        if not name.strip():
+            raise InputError("a station needs a name")
+        station = Station(name=name.strip(), description=description)
+        try:
+            with self.session() as session:
+                session.add(station)
+        except SQLIntegrityError:
+            raise ConflictError(f"station {name!r} exists already") from None
+        return station
+
+    def station(self, name: str, session: Session | None = None) -> Station:
+        """Return the station called ``name`` or raise :class:`NotFoundError`."""
+        with self._maybe_session(session) as s:
+            found = s.scalar(select(Station).where(Station.name == name))
+        if found is None:
+            raise NotFoundError(f"unknown station {name!r}")
+        return found
+
+    def stations(self) -> list[Station]:
+        """List every station by name."""
+        with self.session() as s:
+            return list(s.scalars(select(Station).order_by(Station.name)))
+
+    def add_raster(self, name: str, definition: dict[str, Any]) -> Raster:
+        """Store a raster diapositive definition; the same definition is stored once.
+
+        Returns the existing row when an identical definition is stored under the same name.
+        """
+        digest = canonical_json_sha256(definition)
+        with self.session() as s:
+            same = s.scalar(select(Raster).where(Raster.sha256 == digest))
+            if same is not None:
+                if same.name != name:
+                    raise ConflictError(
+                        f"this raster definition is stored already as {same.name!r}"
+                    )
+                return same
+            raster = Raster(name=name, definition=definition, sha256=digest)
+            s.add(raster)
+            try:
+                s.flush()
+            except SQLIntegrityError:
+                raise ConflictError(f"another raster is called {name!r}") from None
+        return raster
+
+    def raster(self, name: str) -> Raster:
+        """Return the raster called ``name`` or raise :class:`NotFoundError`."""
+        with self.session() as s:
+            found = s.scalar(select(Raster).where(Raster.name == name))
+        if found is None:
+            raise NotFoundError(f"unknown raster {name!r}")
+        return found
+
+    def add_calibration(
+        self,
+        station: str,
+        parameters: dict[str, Any],
+        *,
+        residuals: dict[str, Any] | None = None,
+        raster: str | None = None,
+        valid_from: dt.datetime | None = None,
+        source_acquisition: str | None = None,
+        notes: str = "",
+    ) -> Calibration:
+        """Store a new calibration version of ``station``.
+
+        Versions count up from 1 per station; a stored calibration is never changed.
+
+        Parameters
+        ----------
+        station : str
+            Station name.
+        parameters : dict
+            The calibration document (``rasterserver.calibration/1``).
+        residuals : dict, optional
+            Residuals of the adjustment (per point, per line, rms).
+        raster : str, optional
+            Name of the raster diapositive the calibration was made with.
+        valid_from : datetime, optional
+            From when the calibration applies; now by default.
+        source_acquisition : str, optional
+            uid of the acquisition holding the control-point frames.
+        notes : str
+            Free text.
+
+        Returns
+        -------
+        Calibration
+        """
+        if not isinstance(parameters, dict) or not parameters:
+            raise InputError("calibration parameters must be a non-empty JSON object")
+        with self.session() as s:
+            st = self.station(station, s)
+            raster_row = None
+            if raster is not None:
+                raster_row = s.scalar(select(Raster).where(Raster.name == raster))
+                if raster_row is None:
+                    raise NotFoundError(f"unknown raster {raster!r}")
+            source_id = None
+            if source_acquisition is not None:
+                source_id = self._acquisition_row(s, source_acquisition).id
+            version = (
+                s.scalar(
+                    select(func.max(Calibration.version)).where(Calibration.station_id == st.id)
+                )
+                or 0
+            ) + 1
+            cal = Calibration(
+                station_id=st.id,
+                version=version,
+                raster_id=raster_row.id if raster_row else None,
+                parameters=parameters,
+                residuals=residuals or {},
+                sha256=canonical_json_sha256(parameters),
+                valid_from=valid_from or dt.datetime.now(dt.UTC),
+                source_acquisition_id=source_id,
+                notes=notes,
+            )
+            s.add(cal)
+        return cal
+
+    def calibration(
+        self, station: str, version: int | None = None, session: Session | None = None
+    ) -> Calibration:
+        """Return a calibration of ``station``: the given version, or the newest one."""
+        with self._maybe_session(session) as s:
+            st = self.station(station, s)
+            query = select(Calibration).where(Calibration.station_id == st.id)
+            if version is None:
+                query = query.order_by(Calibration.version.desc()).limit(1)
+            else:
+                query = query.where(Calibration.version == version)
+            found = s.scalar(query)
+        if found is None:
+            which = "no calibration" if version is None else f"no calibration version {version}"
+            raise NotFoundError(f"station {station!r} has {which}")
+        return found
+
+    def calibrations(self, station: str) -> list[Calibration]:
+        """Return every calibration of ``station``, oldest version first."""
+        with self.session() as s:
+            st = self.station(station, s)
+            return list(
+                s.scalars(
+                    select(Calibration)
+                    .where(Calibration.station_id == st.id)
+                    .order_by(Calibration.version)
+                )
+            )
+
+    # -- ingest -----------------------------------------------------------------------------
+
+    def ingest(
+        self,
+        frames: Sequence[FrameSource],
+        *,
+        patient: str | None,
+        kind: str = "patient",
+        visit_date: dt.date | None = None,
+        station: str | None = None,
+        calibration_version: int | None = None,
+        acquired_at: dt.datetime | None = None,
+        operator: str = "",
+        notes: str = "",
+        shape: tuple[int, int] | None = None,
+        dtype: str | None = None,
+        convert_color: bool = False,
+    ) -> Acquisition:
+        """Validate and store one acquisition of one or several frames.
+
+        Nothing is stored unless every frame is valid and every reference exists.
+
+        Parameters
+        ----------
+        frames : sequence of FrameSource
+            The frames, stored in this order with indices 0, 1, ...
+        patient : str or None
+            The patient's identifier; required for ``kind="patient"``.
+        kind : {"patient", "calibration", "test"}
+            What was recorded.
+        visit_date : date, optional
+            The visit it belongs to (created on first use); defaults to the acquisition date.
+        station : str, optional
+            Station name; required to attach a calibration.
+        calibration_version : int, optional
+            Calibration version of ``station``; by default the newest one, if any.
+        acquired_at : datetime, optional
+            When the frames were taken (UTC); now by default.
+        operator, notes : str
+            Free text.
+        shape, dtype : optional
+            Shape and dtype of raw-bytes frames (and the expected ones for other formats).
+        convert_color : bool
+            Convert colour images to grey instead of refusing them.
+
+        Returns
+        -------
+        Acquisition
+            The committed row, with its frames.
+        """
+        if not frames:
+            raise InputError("an acquisition needs at least one frame")
+        if kind not in ACQUISITION_KINDS:
+            raise InputError(f"kind must be one of {', '.join(ACQUISITION_KINDS)}")
+        for source in frames:
+            if source.role not in FRAME_ROLES:
+                raise InputError(
+                    f"{source.name or 'frame'}: unknown role {source.role!r} "
+                    f"(one of {', '.join(FRAME_ROLES)})"
+                )
+        if kind == "patient" and not patient:
+            raise InputError("a patient acquisition needs --patient")
+        acquired_at = acquired_at or dt.datetime.now(dt.UTC)
+        if acquired_at.tzinfo is None:
+            raise InputError("acquisition time must carry a time zone (UTC)")
+
+        # References first: an unknown patient or calibration stores nothing.
+        with self.session() as s:
+            patient_row = self.patient(patient, s) if patient else None
+            station_row = self.station(station, s) if station else None
+            cal_row = None
+            if calibration_version is not None and station_row is None:
+                raise InputError("a calibration version needs --station")
+            if station_row is not None:
+                has_any = s.scalar(
+                    select(func.count()).where(Calibration.station_id == station_row.id)
+                )
+                if calibration_version is not None or has_any:
+                    cal_row = self.calibration(station_row.name, calibration_version, s)
+
+        arrays = [
+            self._decode(src, shape=shape, dtype=dtype, convert_color=convert_color)
+            for src in frames
+        ]
+        uid = uuid.uuid4().hex
+        stored = self.raw.write(
+            uid,
+            [
+                FrameToWrite(index=i, role=src.role, array=arr)
+                for i, (src, arr) in enumerate(zip(frames, arrays, strict=True))
+            ],
+        )
+        try:
+            with self.session() as s:
+                visit_id = None
+                if patient_row is not None:
+                    visit_id = self._visit(
+                        s, patient_row.id, visit_date or acquired_at.date()
+                    ).id
+                acq = Acquisition(
+                    uid=uid,
+                    kind=kind,
+                    patient_id=patient_row.id if patient_row else None,
+                    visit_id=visit_id,
+                    station_id=station_row.id if station_row else None,
+                    calibration_id=cal_row.id if cal_row else None,
+                    acquired_at=acquired_at,
+                    operator=operator,
+                    notes=notes,
+                )
+                acq.frames = [
+                    Frame(
+                        index=f.index,
+                        role=f.role,
+                        height=f.shape[0],
+                        width=f.shape[1],
+                        dtype=f.dtype,
+                        sha256=f.sha256,
+                        store_path=f.path,
+                        dataset=f.dataset,
+                    )
+                    for f in stored
+                ]
+                s.add(acq)
+        except BaseException:
+            # The row did not make it: the file would only be an orphan, so take it back.
+            # It was never part of the archive, so this is no breach of write-once.
+            self.raw.path_for(uid).unlink(missing_ok=True)
+            raise
+        if self._crash_hook is not None:
+            self._crash_hook("committed")
+        log.info("ingested acquisition %s (%d frames)", uid, len(stored))
+        return acq
+
+    def _decode(
+        self,
+        source: FrameSource,
+        *,
+        shape: tuple[int, int] | None,
+        dtype: str | None,
+        convert_color: bool,
+    ) -> np.ndarray:
+        limit = self.settings.max_frame_bytes
+        if isinstance(source.data, np.ndarray):
+            return _validate_array(source.data, source.name or "array", limit)
+        if isinstance(source.data, bytes):
+            return decode_frame_bytes(
+                source.data,
+                name=source.name or "upload",
+                shape=shape,
+                dtype=dtype,
+                convert_color=convert_color,
+                max_bytes=limit,
+            )
+        return read_frame(
+            Path(source.data),
+            shape=shape,
+            dtype=dtype,
+            convert_color=convert_color,
+            max_bytes=limit,
+        )
+
+    @staticmethod
+    def _visit(session: Session, patient_id: int, day: dt.date) -> Visit:
+        visit = session.scalar(
+            select(Visit).where(Visit.patient_id == patient_id, Visit.visit_date == day)
+        )
+        if visit is None:
+            visit = Visit(patient_id=patient_id, visit_date=day)
+            session.add(visit)
+            session.flush()
+        return visit
+
+    # -- reading ------------------------------------------------------------------------------
+
+    def acquisitions(
+        self,
+        *,
+        patient: str | None = None,
+        since: dt.datetime | None = None,
+        until: dt.datetime | None = None,
+        kind: str | None = None,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> list[Acquisition]:
+        """List acquisitions, newest first, optionally of one patient and in a time range.
+
+        ``since`` is inclusive and ``until`` exclusive.
+        """
+        query = select(Acquisition).options(
+            selectinload(Acquisition.frames), selectinload(Acquisition.patient)
+        )
+        with self.session() as s:
+            if patient is not None:
+                query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
+            if since is not None:
+                query = query.where(Acquisition.acquired_at >= since)
+            if until is not None:
+                query = query.where(Acquisition.acquired_at < until)
+            if kind is not None:
+                query = query.where(Acquisition.kind == kind)
+            query = query.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
+            return list(s.scalars(query.limit(limit).offset(offset)))
+
+    def acquisition(self, uid: str) -> Acquisition:
+        """Return the acquisition ``uid`` with its frames, or raise :class:`NotFoundError`."""
+        with self.session() as s:
+            return self._acquisition_row(s, uid)
+
+    @staticmethod
+    def _acquisition_row(session: Session, uid: str) -> Acquisition:
+        found = session.scalar(
+            select(Acquisition)
+            .options(selectinload(Acquisition.frames), selectinload(Acquisition.patient))
+            .where(Acquisition.uid == uid)
+        )
+        if found is None:
+            raise NotFoundError(f"unknown acquisition {uid}")
+        return found
+
+    def read_frame(self, uid: str, index: int = 0) -> np.ndarray:
+        """Return frame ``index`` of acquisition ``uid`` as a read-only array."""
+        acq = self.acquisition(uid)
+        if not any(f.index == index for f in acq.frames):
+            raise NotFoundError(f"acquisition {uid} has no frame {index}")
+        return self.raw.read(uid, index)
+
+    # -- verification -------------------------------------------------------------------------
+
+    def verify(self, *, progress: Progress | None = None) -> VerifyReport:
+        """Re-hash every stored frame and compare files with catalogue rows.
+
+        Returns
+        -------
+        VerifyReport
+            Missing, corrupt, orphaned and temporary files, with explanations.
+        """
+        report = VerifyReport()
+        with self.session() as s:
+            expected: dict[str, dict[int, str]] = {}
+            for uid, index, digest in s.execute(
+                select(Acquisition.uid, Frame.index, Frame.sha256).join(Frame)
+            ):
+                expected.setdefault(uid, {})[index] = digest
+            for (uid,) in s.execute(select(Acquisition.uid)):
+                expected.setdefault(uid, {})
+        found: dict[str, Path] = {}
+        for entry in self.raw.scan():
+            if entry.kind == "final" and entry.uid is not None:
+                found[entry.uid] = entry.path
+            elif entry.kind == "temp":
+                report.problems.append(
+                    Problem(
+                        "temporary",
+                        entry.uid,
+                        entry.path,
+                        "partial write left by an interrupted ingest (no catalogue row refers "
+                        "to it); safe to delete",
+                    )
+                )
+            else:
+                report.problems.append(
+                    Problem("stray", entry.uid, entry.path, "file not made by rasterserver")
+                )
+        total = len(expected) + len(set(found) - set(expected))
+        done = 0
+        for uid, hashes in sorted(expected.items()):
+            file_report = self.raw.check_file(uid, hashes)
+            report.frames_checked += len(file_report.hashes)
+            path = self.raw.path_for(uid)
+            if file_report.status == "missing":
+                report.problems.append(
+                    Problem("missing", uid, path, "catalogue row without its file")
+                )
+            else:
+                for problem in file_report.problems:
+                    kind = "unreadable" if file_report.status == "unreadable" else "corrupt"
+                    report.problems.append(Problem(kind, uid, path, problem.message))
+            done += 1
+            if progress:
+                progress(done, total)
+        for uid in sorted(set(found) - set(expected)):
+            report.problems.append(
+                Problem(
+                    "orphaned",
+                    uid,
+                    found[uid],
+                    "complete file without a catalogue row: an ingest stopped between "
+                    "writing the file and committing the row",
+                )
+            )
+            done += 1
+            if progress:
+                progress(done, total)
+        report.acquisitions_checked = len(expected)
+        return report
+
+    @contextmanager
+    def _maybe_session(self, session: Session | None) -> Iterator[Session]:
+        if session is not None:
+            yield session
+        else:
+            with self.session() as s:
+                yield s
+
+
+def _validate_array(array: np.ndarray, name: str, limit: int) -> np.ndarray:
+    """Apply the file decoder's checks to an in-memory array (one set of rules)."""
+    from io import BytesIO
+
+    buffer = BytesIO()
+    np.save(buffer, np.asarray(array), allow_pickle=False)
+    return decode_frame_bytes(buffer.getvalue(), name=f"{name}.npy", max_bytes=limit)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing ``verify`` found wrong.
+
+    Attributes
+    ----------
+    kind : str
+        ``missing``, ``corrupt``, ``unreadable``, ``orphaned``, ``temporary`` or ``stray``.
+    uid : str or None
+        The acquisition concerned.
+    path : Path or None
+        The file concerned.
+    detail : str
+        What is wrong and what it means.
+    """
+
+    kind: str
+    uid: str | None
+    path: Path | None
+    detail: str
+
+
+@dataclass
+class VerifyReport:
+    """Outcome of :meth:`Archive.verify`."""
+
+    acquisitions_checked: int = 0
+    frames_checked: int = 0
+    problems: list[Problem] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing is missing, corrupt, orphaned or left over."""
+        return not self.problems

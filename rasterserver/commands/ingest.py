@@ -1,0 +1,100 @@
+"""``rasterserver ingest``: store camera frames as one acquisition."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from rasterserver.archive import FrameSource
+from rasterserver.commands.common import open_archive, parse_date, parse_datetime
+from rasterserver.errors import InputError
+
+
+def _parse_shape(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        rows, cols = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--shape {text!r}: expected ROWSxCOLUMNS, e.g. 604x576") from None
+    return rows, cols
+
+
+def ingest(
+    ctx: typer.Context,
+    files: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Frame files: PNG, TIFF (8/16 bit), NPY, or raw bytes with --shape/--dtype.",
+            show_default=False,
+        ),
+    ],
+    patient: Annotated[
+        str | None, typer.Option(help="Patient identifier (registered with `patient add`).")
+    ] = None,
+    role: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Role of each frame, in order (raster, projector-off, projector-on, dark, "
+            "other); one value applies to all. Default: raster.",
+        ),
+    ] = None,
+    kind: Annotated[str, typer.Option(help="patient, calibration or test.")] = "patient",
+    station: Annotated[str | None, typer.Option(help="Station that took the frames.")] = None,
+    calibration: Annotated[
+        int | None,
+        typer.Option(help="Calibration version of the station (default: the newest)."),
+    ] = None,
+    visit_date: Annotated[
+        str | None, typer.Option(help="Visit date YYYY-MM-DD (default: acquisition date).")
+    ] = None,
+    acquired_at: Annotated[
+        str | None, typer.Option(help="When the frames were taken, ISO 8601 (default: now).")
+    ] = None,
+    operator: Annotated[str, typer.Option(help="Who took the frames.")] = "",
+    notes: Annotated[str, typer.Option(help="Free text.")] = "",
+    shape: Annotated[
+        str | None, typer.Option(help="ROWSxCOLUMNS of raw frames, e.g. 604x576.")
+    ] = None,
+    dtype: Annotated[str | None, typer.Option(help="uint8 or uint16, for raw frames.")] = None,
+    convert_color: Annotated[
+        bool, typer.Option(help="Convert colour images to grey instead of refusing them.")
+    ] = False,
+) -> None:
+    """Validate frames and store them as one acquisition (write-once HDF5 + catalogue row).
+
+    Every frame is checked before anything is written: a colour, empty, truncated, oversized
+    or non-image file, an unknown patient or an unknown calibration stores nothing.
+    """
+    roles = role or ["raster"]
+    if len(roles) == 1:
+        roles = roles * len(files)
+    if len(roles) != len(files):
+        raise InputError(f"{len(files)} files but {len(roles)} --role values")
+    sources = [
+        FrameSource(path, role=r, name=path.name)
+        for path, r in zip(files, roles, strict=True)
+    ]
+    with open_archive(ctx) as archive:
+        acq = archive.ingest(
+            sources,
+            patient=patient,
+            kind=kind,
+            station=station,
+            calibration_version=calibration,
+            visit_date=parse_date(visit_date, "--visit-date"),
+            acquired_at=parse_datetime(acquired_at, "--acquired-at"),
+            operator=operator,
+            notes=notes,
+            shape=_parse_shape(shape),
+            dtype=dtype,
+            convert_color=convert_color,
+        )
+    typer.echo(f"acquisition {acq.uid}: {len(acq.frames)} frame(s) stored")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``ingest`` command to ``app``."""
+    app.command("ingest")(ingest)

@@ -1,0 +1,58 @@
+"""``rasterserver list``: acquisitions in the catalogue."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+import typer
+
+from rasterserver.commands.common import open_archive, parse_datetime
+
+
+def list_acquisitions(
+    ctx: typer.Context,
+    patient: Annotated[str | None, typer.Option(help="Only this patient's.")] = None,
+    since: Annotated[
+        str | None, typer.Option(help="Taken at or after this date/time (ISO 8601).")
+    ] = None,
+    until: Annotated[str | None, typer.Option(help="Taken before this date/time.")] = None,
+    kind: Annotated[str | None, typer.Option(help="patient, calibration or test.")] = None,
+    limit: Annotated[int, typer.Option(min=1, help="Rows per page.")] = 100,
+    offset: Annotated[int, typer.Option(min=0, help="Rows to skip.")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line.")] = False,
+) -> None:
+    """List acquisitions, newest first."""
+    with open_archive(ctx) as archive:
+        rows = archive.acquisitions(
+            patient=patient,
+            since=parse_datetime(since, "--since"),
+            until=parse_datetime(until, "--until"),
+            kind=kind,
+            limit=limit,
+            offset=offset,
+        )
+    for acq in rows:
+        record = {
+            "uid": acq.uid,
+            "patient": acq.patient.identifier if acq.patient else None,
+            "kind": acq.kind,
+            "acquired_at": acq.acquired_at.isoformat(),
+            "frames": [
+                {"index": f.index, "role": f.role, "shape": [f.height, f.width], "dtype": f.dtype}
+                for f in acq.frames
+            ],
+        }
+        if as_json:
+            typer.echo(json.dumps(record))
+        else:
+            frames = ", ".join(f"{f.role} {f.height}x{f.width} {f.dtype}" for f in acq.frames)
+            typer.echo(
+                f"{acq.uid}\t{record['patient'] or '-'}\t{acq.kind}\t"
+                f"{acq.acquired_at:%Y-%m-%d %H:%M}\t{frames}"
+            )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``list`` command to ``app``."""
+    app.command("list")(list_acquisitions)
