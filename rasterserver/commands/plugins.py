@@ -1,0 +1,89 @@
+"""``rasterserver plugins``: list the installed stage plugins, broken ones included."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+import typer
+
+from rasterserver.registry import STAGE_GROUP, PluginInfo, Registry
+
+_HELP = (
+    "List every installed stage plugin: name, stage kind, algorithm version, input and output "
+    "record kinds, the package (name and version) that provides it, and its status.\n\n"
+    f"Stage plugins are found through the '{STAGE_GROUP}' entry-point group, built-in ones "
+    "included. A plugin that fails to import or is not a valid stage is shown as 'broken' "
+    "with the reason; it cannot be used but does not affect the others, and the command still "
+    "exits with 0."
+)
+
+_COLUMNS = ("NAME", "STAGE", "VERSION", "INPUT", "OUTPUT", "PACKAGE", "STATUS")
+
+
+def _row(info: PluginInfo) -> tuple[str, ...]:
+    package = " ".join(p for p in (info.package, info.package_version) if p) or "?"
+    return (
+        info.name,
+        info.stage or "?",
+        info.version or "?",
+        info.input_kind or "?",
+        info.output_kind or "?",
+        package,
+        info.status,
+    )
+
+
+def _table(infos: list[PluginInfo]) -> str:
+    # Plain aligned text rather than a rich table: rich wraps and truncates cells to the
+    # terminal width, which breaks long reasons and grep.
+    rows = [_COLUMNS, *(_row(info) for info in infos)]
+    widths = [max(len(row[i]) for row in rows) for i in range(len(_COLUMNS))]
+    lines = []
+    for info, row in zip([None, *infos], rows, strict=True):
+        lines.append("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip())
+        if info is not None and not info.ok:
+            lines.append(f"    reason: {info.error}")
+    return "\n".join(lines)
+
+
+def plugins(
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print a JSON list of objects instead of a table.")
+    ] = False,
+    stage: Annotated[
+        str | None,
+        typer.Option(
+            "--stage",
+            metavar="KIND",
+            help="Only plugins of this stage kind (peaks, lines, order, numbers, points, "
+            "surface, mesh, or any other).",
+            show_default=False,
+        ),
+    ] = None,
+) -> None:
+    registry = Registry().discover()
+    infos = registry.infos(stage)
+    if as_json:
+        typer.echo(json.dumps([info.to_dict() for info in infos], indent=2))
+    elif infos:
+        typer.echo(_table(infos))
+    elif stage is None:
+        typer.echo(f"no stage plugins installed (entry-point group {STAGE_GROUP})")
+    else:
+        kinds = ", ".join(registry.stage_kinds()) or "none"
+        typer.echo(f"no stage plugins of kind {stage!r} (installed kinds: {kinds})")
+    if stage is not None:
+        unknown = [info for info in registry.infos() if info.stage is None]
+        if unknown:
+            # Their kind is unknown because they did not load: say so rather than hide them.
+            typer.echo(
+                f"note: {len(unknown)} broken plugin(s) of unknown stage kind not shown "
+                f"({', '.join(info.name for info in unknown)}); run without --stage",
+                err=True,
+            )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``plugins`` command to ``app``."""
+    app.command("plugins", help=_HELP)(plugins)
