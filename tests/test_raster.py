@@ -1,0 +1,87 @@
+"""Raster diapositive definition: the window code and its JSON form."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rasterserver.raster import (
+    DEFAULT_CODE,
+    RASTER_FORMAT,
+    Raster,
+    code_min_distance,
+    default_raster,
+    generate_window_code,
+    get_raster,
+    make_raster,
+    window_code_position,
+)
+
+
+def test_default_raster_layout() -> None:
+    r = default_raster()
+    assert r.n_lines == 90
+    assert r.spacing == pytest.approx(10.0)
+    assert set(r.kinds) == {"light", "heavy"}
+    light = r.widths[r.code == 0]
+    heavy = r.widths[r.code == 1]
+    assert np.all(light / heavy[0] == pytest.approx(40 / 60))
+    assert r.numbers[0] == 1 and np.all(np.diff(r.numbers) == 1)
+    assert get_raster("default") is r
+
+
+def test_default_code_is_the_searched_one() -> None:
+    bits = generate_window_code(90, window=9, min_distance=2, seed=0)
+    assert "".join(map(str, bits)) == DEFAULT_CODE
+
+
+def test_code_windows_unique_with_distance_two() -> None:
+    r = default_raster()
+    assert r.window == 9 and r.min_distance == 2
+    assert code_min_distance(r.code, r.window) >= 2
+    for start in range(r.n_lines - r.window + 1):
+        window = list(r.kinds[start : start + r.window])
+        np.testing.assert_array_equal(window_code_position(r, window), [start])
+        # any single misread line yields no valid window: detected, never mis-numbered
+        for flip in range(r.window):
+            bad = r.code[start : start + r.window].copy()
+            bad[flip] ^= 1
+            assert window_code_position(r, bad).size == 0
+            assert start in window_code_position(r, bad, max_mismatches=1)
+
+
+def test_longest_run() -> None:
+    text = DEFAULT_CODE
+    assert "00000" not in text and "11111" not in text
+
+
+def test_raster_json_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    r = default_raster()
+    data = json.loads(r.to_json())
+    assert data["format"] == RASTER_FORMAT
+    assert data["lines"][0] == {
+        "number": 1,
+        "v": float(r.positions[0]),
+        "kind": r.kinds[0],
+        "width": float(r.widths[0]),
+    }
+    back = Raster.load(r.save(tmp_path / "raster.json"))
+    np.testing.assert_array_equal(back.positions, r.positions)
+    np.testing.assert_array_equal(back.numbers, r.numbers)
+    np.testing.assert_array_equal(back.widths, r.widths)
+    assert back.kinds == r.kinds and back.window == r.window and back.name == r.name
+
+
+def test_custom_raster_and_validation() -> None:
+    r = make_raster(30, window=7, min_distance=2, spacing=8.0, name="small")
+    assert r.n_lines == 30 and code_min_distance(r.code, 7) >= 2
+    with pytest.raises(ValueError, match="increasing"):
+        Raster("x", [1, 2], [5.0, 4.0], ("light", "heavy"), [1.0, 1.0], window=1)
+    with pytest.raises(ValueError, match="kinds"):
+        Raster("x", [1], [5.0], ("bold",), [1.0], window=1)
+    with pytest.raises(ValueError, match="format"):
+        Raster.from_dict({"format": "nope"})
+    with pytest.raises(KeyError):
+        get_raster("nope")
