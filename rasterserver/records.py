@@ -50,6 +50,8 @@ _SCALAR_DTYPES: dict[str, type[np.generic]] = {
     "float": np.float64,
 }
 
+_ARTICLE = {"bool": "a", "int": "an", "float": "a"}
+
 _RECORD_TYPES: dict[str, type[Record]] = {}
 
 
@@ -165,7 +167,7 @@ class Record:
             return bool(value)
         # bool is an int subclass: refuse it where a number is meant, it is always a mix-up.
         if isinstance(value, bool | np.bool_):
-            raise TypeError(f"{where} must be a {spec.kind}, not bool")
+            raise TypeError(f"{where} must be {_ARTICLE[spec.kind]} {spec.kind}, not bool")
         if spec.kind == "int":
             if not isinstance(value, int | np.integer):
                 raise TypeError(f"{where} must be an int, not {type(value).__name__}")
@@ -320,7 +322,7 @@ def _from_array(cls: type, spec: _FieldSpec, array: np.ndarray) -> Any:
         raise InputError(f"{where} must hold a string, got {array.dtype}")
     expected = {"bool": "b", "int": "iu", "float": "iuf"}[spec.kind]
     if array.dtype.kind not in expected:
-        raise InputError(f"{where} must hold a {spec.kind}, got {array.dtype}")
+        raise InputError(f"{where} must hold {_ARTICLE[spec.kind]} {spec.kind}, got {array.dtype}")
     return {"bool": bool, "int": int, "float": float}[spec.kind](item)
 
 
