@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
-import click
 import typer
 
 from rasterserver import __version__
@@ -84,18 +83,17 @@ def main(argv: list[str] | None = None) -> int:
         0 on success, the error's ``exit_code`` for a :class:`RasterServerError`.
     """
     try:
-        app(args=argv, prog_name="rasterserver", standalone_mode=False)
+        # Standalone mode lets Typer print usage errors and --help itself; it ends with
+        # SystemExit, whose code is the exit code.
+        app(args=argv, prog_name="rasterserver", standalone_mode=True)
+    except SystemExit as exc:
+        if exc.code is None or isinstance(exc.code, int):
+            return exc.code or 0
+        typer.echo(str(exc.code), err=True)
+        return 1
     except RasterServerError as exc:
         typer.echo(f"error: {exc}", err=True)
         return exc.exit_code
-    except click.exceptions.Exit as exc:
-        return exc.exit_code
-    except click.ClickException as exc:
-        exc.show()
-        return exc.exit_code
-    except click.exceptions.Abort:
-        typer.echo("aborted", err=True)
-        return 130
     return 0
 
 
