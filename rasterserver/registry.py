@@ -10,6 +10,7 @@ listed as broken with the reason and never affects the others.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
@@ -97,6 +98,11 @@ def _distribution(ep: EntryPoint) -> tuple[str | None, str | None]:
     return dist.name, dist.version
 
 
+def _normalize(distribution: str | None) -> str | None:
+    # PEP 503 normalisation: "Raster_Server" and "raster-server" are one distribution.
+    return None if distribution is None else re.sub(r"[-_.]+", "-", distribution).lower()
+
+
 def _listing_key(info: PluginInfo) -> tuple[int, str, str]:
     # The built-in chain in processing order, then other kinds, then the unloadable ones.
     if info.stage in BUILTIN_STAGE_KINDS:
@@ -116,14 +122,23 @@ class Registry:
     defaults : Mapping of str to str, optional
         Plugin name to use per stage kind, overriding the rule of :meth:`default_for`
         (this is where configuration plugs in).
+    builtin_distribution : str, optional
+        Distribution whose plugins :meth:`default_for` prefers; :data:`BUILTIN_DISTRIBUTION`.
 
     Notes
     -----
     Thread-safe: the HTTP server may resolve plugins from several threads.
     """
 
-    def __init__(self, group: str = STAGE_GROUP, *, defaults: Mapping[str, str] | None = None):
+    def __init__(
+        self,
+        group: str = STAGE_GROUP,
+        *,
+        defaults: Mapping[str, str] | None = None,
+        builtin_distribution: str = BUILTIN_DISTRIBUTION,
+    ) -> None:
         self.group = group
+        self.builtin_distribution = builtin_distribution
         self.defaults: dict[str, str] = dict(defaults or {})
         self._lock = threading.RLock()
         self._entry_points: dict[str, list[EntryPoint]] | None = None
@@ -375,7 +390,11 @@ class Registry:
             raise NotFoundError(
                 f"no working stage plugin implements stage {kind!r} (implemented: {kinds})"
             )
-        builtin = [info for info in candidates if info.package == BUILTIN_DISTRIBUTION]
+        builtin = [
+            info
+            for info in candidates
+            if _normalize(info.package) == _normalize(self.builtin_distribution)
+        ]
         chosen = min(builtin or candidates, key=lambda info: info.name)
         return self.get(chosen.name)
 
