@@ -7,6 +7,24 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from rasterserver.commands import db, ingest, listing, patients, plugins, stations, verify
+from rasterserver.commands import (
+    db,
+    demo,
+    ingest,
+    listing,
+    patients,
+    plugins,
+    stations,
+    verify,
+)
 
-COMMAND_MODULES: list[ModuleType] = [db, patients, stations, ingest, listing, verify, plugins]
+COMMAND_MODULES: list[ModuleType] = [
+    demo,
+    db,
+    patients,
+    stations,
+    ingest,
+    listing,
+    verify,
+    plugins,
+]
