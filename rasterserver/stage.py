@@ -31,6 +31,7 @@ import inspect
 import json
 import re
 import reprlib
+import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -357,6 +358,22 @@ def coerce_params(
         raise InputError(f"invalid parameters for stage plugin {stage.name!r}: {detail}") from None
 
 
+_declarations_ok: weakref.WeakSet[type] = weakref.WeakSet()
+
+
+def _check_declarations(stage: object) -> None:
+    # The registry checks what it loads, but run_stage is also called on classes straight from
+    # tests and notebooks; check each class once, not on every call in a Dask worker loop.
+    cls = type(stage)
+    if cls in _declarations_ok:
+        return
+    problems = stage_problems(stage)
+    if problems:
+        name = getattr(stage, "name", cls.__qualname__)
+        raise TypeError(f"{name!r} is not a valid stage plugin: {'; '.join(problems)}")
+    _declarations_ok.add(cls)
+
+
 def run_stage(
     stage: Stage[InT, OutT] | type[Stage[InT, OutT]],
     data: InT,
@@ -387,10 +404,12 @@ def run_stage(
         When the input record has the wrong type, the parameters are invalid, or the context
         lacks something the stage requires.
     TypeError
-        When the stage returns something other than its ``output_type`` (a plugin bug).
+        When the stage's declarations are invalid (see :func:`stage_problems`) or it returns
+        something other than its ``output_type``: both are plugin bugs.
     """
     if isinstance(stage, type):
         stage = stage()
+    _check_declarations(stage)
     input_type = stage.input_type
     if not isinstance(data, input_type):
         raise InputError(

@@ -298,3 +298,19 @@ def test_stage_problems_lists_every_problem() -> None:
     assert stage_problems(object()) == [
         "builtins.object is not a subclass of rasterserver.stage.Stage"
     ]
+
+
+def test_run_stage_refuses_an_invalid_stage() -> None:
+    class NoVersion(Stage[Image, Image]):
+        """Forgot its version."""
+
+        name = "test.no-version"
+        stage = "check"
+        input_type = Image
+        output_type = Image
+
+        def run(self, data: Image, params: StageParams, context: StageContext) -> Image:
+            return data
+
+    with pytest.raises(TypeError, match=r"'test\.no-version' is not a valid stage plugin: version"):
+        run_stage(NoVersion(), _image())
