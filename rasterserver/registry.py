@@ -124,6 +124,9 @@ class Registry:
         (this is where configuration plugs in).
     builtin_distribution : str, optional
         Distribution whose plugins :meth:`default_for` prefers; :data:`BUILTIN_DISTRIBUTION`.
+    warn_broken : bool, optional
+        Log a warning for each broken plugin when it is loaded (default); off for callers
+        that report broken plugins themselves, like ``rasterserver plugins``.
 
     Notes
     -----
@@ -136,8 +139,10 @@ class Registry:
         *,
         defaults: Mapping[str, str] | None = None,
         builtin_distribution: str = BUILTIN_DISTRIBUTION,
+        warn_broken: bool = True,
     ) -> None:
         self.group = group
+        self.warn_broken = warn_broken
         self.builtin_distribution = builtin_distribution
         self.defaults: dict[str, str] = dict(defaults or {})
         self._lock = threading.RLock()
@@ -193,7 +198,8 @@ class Registry:
 
     def _broken(self, ep: EntryPoint, reason: str) -> _Loaded:
         package, package_version = _distribution(ep)
-        logger.warning("stage plugin %s (%s) is broken: %s", ep.name, ep.value, reason)
+        if self.warn_broken:
+            logger.warning("stage plugin %s (%s) is broken: %s", ep.name, ep.value, reason)
         info = PluginInfo(
             name=ep.name,
             entry_point=ep.value,

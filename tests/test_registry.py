@@ -315,3 +315,16 @@ def test_shared_registry_caches_until_discover(
 
     monkeypatch.undo()  # take the distribution off sys.path again
     assert "thirdparty.invert" not in get_registry().discover().names()
+
+
+def test_broken_plugins_are_logged_unless_reported_by_the_caller(
+    thirdparty: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level("WARNING", logger="rasterserver.registry"):
+        Registry().discover().info("thirdparty.needs-libfoo")
+    assert "stage plugin thirdparty.needs-libfoo" in caplog.text
+    assert "needs libfoo" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="rasterserver.registry"):
+        Registry(warn_broken=False).discover().infos()
+    assert caplog.text == ""

@@ -62,7 +62,7 @@ def plugins(
         ),
     ] = None,
 ) -> None:
-    registry = Registry().discover()
+    registry = Registry(warn_broken=False).discover()  # listed below instead
     infos = registry.infos(stage)
     if as_json:
         typer.echo(json.dumps([info.to_dict() for info in infos], indent=2))
