@@ -15,9 +15,11 @@ Root attributes:
 
 One dataset per frame, ``/frames/<index>`` (``index`` in decimal, no padding): a plain 2-D
 ``uint8`` or little-endian ``uint16`` dataset, rows x columns, as the camera delivered it.
-Datasets are chunked in row bands of about 1 MiB and compressed with a standard HDF5 filter
-(``gzip``/deflate, optionally ``shuffle``; ``lzf`` is h5py-specific and therefore not the
-default), or stored contiguous when compression is ``"none"``. Dataset attributes:
+By default (compression ``"none"``, see BENCHMARKS.md for why) datasets are contiguous, so
+any reader can even memory-map them. With compression they are chunked in row bands of about
+1 MiB and use a standard HDF5 filter: ``gzip`` (deflate, optionally with ``shuffle``) is built
+into every HDF5 library; ``lzf`` is h5py's own and needs h5py (or its plugin) to read.
+Dataset attributes:
 
 ``index``   frame index within the acquisition (integer, equals the dataset name)
 ``role``    what the frame shows, e.g. ``"raster"`` or ``"projector-off"`` (string)
@@ -76,8 +78,10 @@ FORMAT_NAME = "rasterserver-raw"
 FORMAT_VERSION = 1
 AREA = "raw"
 SUFFIX = ".h5"
-# Chosen from benchmarks/store_compression.py; see BENCHMARKS.md, "Raw store compression".
-DEFAULT_COMPRESSION = "gzip-1"
+# Chosen from benchmarks/store_compression.py (BENCHMARKS.md, "Raw store compression"):
+# deflate saves ~25 % on 8-bit frames but writes 4-5x slower, below the ingest target of
+# 200 frames/s on a 2-CPU server; camera noise makes frames nearly incompressible.
+DEFAULT_COMPRESSION = "none"
 
 _CHUNK_TARGET_BYTES = 1024 * 1024
 _ACCEPTED_DTYPES = (np.dtype("uint8"), np.dtype("uint16"))
@@ -221,7 +225,9 @@ def parse_compression(spec: str) -> dict[str, Any]:
         Unknown specification.
     """
     match = _COMPRESSION.fullmatch(spec)
-    if match is None or (match["level"] and match["codec"] != "gzip"):
+    if match is None or (match["level"] and match["codec"] != "gzip") or (
+        match["shuffle"] and match["codec"] == "none"
+    ):
         raise InputError(
             f"unknown compression {spec!r}: use none, lzf, gzip-<level> or shuffle+<codec>"
         )
