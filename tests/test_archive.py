@@ -254,3 +254,39 @@ def test_verify_finds_corrupt_missing_orphaned_and_temporary(
     assert any(p.kind == "temporary" for p in report.problems)
     assert all(p.uid != _ok.uid for p in report.problems)
     assert not report.ok
+
+
+def test_ingest_many_is_all_or_nothing(archive: Archive, tmp_path: Path) -> None:
+    from rasterserver.archive import AcquisitionSpec
+
+    np.save(tmp_path / "f.npy", _frame(12, shape=(30, 20)))
+    good = AcquisitionSpec(frames=[FrameSource(tmp_path / "f.npy")], patient="P001")
+    rows = archive.ingest_many([good] * 5, workers=3)
+    assert len({r.uid for r in rows}) == 5 and archive.verify().ok
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    bad = AcquisitionSpec(frames=[FrameSource(tmp_path / "bad.png")], patient="P001")
+    with pytest.raises(InputError):
+        archive.ingest_many([good, good, bad], workers=2)
+    unknown = AcquisitionSpec(frames=[FrameSource(tmp_path / "f.npy")], patient="NOBODY")
+    with pytest.raises(NotFoundError):
+        archive.ingest_many([good, unknown])
+    assert len(archive.acquisitions()) == 5
+    assert archive.verify().ok  # no file left behind by the refused batches
+
+
+def test_concurrent_ingests_share_the_visit(archive: Archive) -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    frame = _frame(13, shape=(30, 20))
+    when = dt.datetime(2025, 6, 1, 9, tzinfo=dt.UTC)
+
+    def one(i: int) -> str:
+        acq = archive.ingest([FrameSource(frame, name=f"f{i}")], patient="P001", acquired_at=when)
+        return acq.uid
+
+    with ThreadPoolExecutor(8) as pool:
+        uids = list(pool.map(one, range(16)))
+    rows = archive.acquisitions(patient="P001")
+    assert sorted(a.uid for a in rows) == sorted(uids)
+    assert len({a.visit_id for a in rows}) == 1
+    assert archive.verify().ok
