@@ -70,7 +70,11 @@ def distort_normalized(
     """
     k1, k2, p1, p2, k3 = (float(c) for c in dist)
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    # the common one-term lens takes fewer passes over the renderer's big arrays
+    one_term = k2 == 0.0 and k3 == 0.0
+    radial = 1.0 + k1 * r2 if one_term else 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if p1 == 0.0 and p2 == 0.0:
+        return x * radial, y * radial
     xy = x * y
     xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy
@@ -187,13 +191,17 @@ class PinholeDevice:
 
     def to_device(self, points_world: np.ndarray) -> np.ndarray:
         """World points ``(N, 3)`` → device coordinates ``(N, 3)`` (mm)."""
-        return _as_points(points_world, 3, "points") @ self.R.T + self.t
+        pts = _as_points(points_world, 3, "points")
+        if np.array_equal(self.R, np.eye(3)):
+            return pts + self.t
+        return pts @ self.R.T + self.t
 
     # ---------------------------------------------------------------- intrinsics
     def normalized_to_image(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distorted normalised coordinates → image coordinates ``(N, 2)`` via ``K``."""
-        k = self.K
-        return np.stack([k[0, 0] * x + k[0, 1] * y + k[0, 2], k[1, 1] * y + k[1, 2]], axis=-1)
+        # python floats keep float32 inputs float32 (NEP 50)
+        fx, s, cx, fy, cy = (float(c) for c in self.K[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]])
+        return np.stack([fx * x + s * y + cx, fy * y + cy], axis=-1)
 
     def image_to_normalized(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Image coordinates ``(N, 2)`` → distorted normalised coordinates via ``K⁻¹``."""
@@ -209,7 +217,8 @@ class PinholeDevice:
         Parameters
         ----------
         points_world : numpy.ndarray
-            ``(N, 3)`` points in world mm.
+            ``(N, 3)`` points in world mm. Computed in float64, or in float32 if the points
+            are float32 (fast, ~1e-4 px).
 
         Returns
         -------
@@ -217,12 +226,23 @@ class PinholeDevice:
             ``(N, 2)`` image coordinates ``(u, v)`` (column, row); NaN for points on or
             behind the device's focal plane.
         """
-        pc = self.to_device(points_world)
-        z = pc[:, 2]
+        pts = np.asarray(points_world)
+        if pts.dtype == np.float32 and pts.ndim == 2 and pts.shape[1] == 3:
+            # single precision on request (the renderer's millions of samples): ~1e-4 units
+            t = [float(c) for c in self.t]
+            if np.array_equal(self.R, np.eye(3)):
+                xc, yc, zc = pts[:, 0] + t[0], pts[:, 1] + t[1], pts[:, 2] + t[2]
+            else:
+                pc = pts @ self.R.T.astype(np.float32) + self.t.astype(np.float32)
+                xc, yc, zc = pc[:, 0], pc[:, 1], pc[:, 2]
+        else:
+            pc = self.to_device(pts)
+            xc, yc, zc = pc[:, 0], pc[:, 1], pc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            z_safe = np.where(z > 0, z, np.nan)
-            x = pc[:, 0] / z_safe
-            y = pc[:, 1] / z_safe
+            inv_z = 1.0 / zc
+            inv_z[~(zc > 0)] = np.nan
+            x = xc * inv_z
+            y = yc * inv_z
         xd, yd = distort_normalized(x, y, self.dist)
         return self.normalized_to_image(xd, yd)
 

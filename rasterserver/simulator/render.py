@@ -1,0 +1,609 @@
+"""Render a scene as the station's camera sees it under the projector's line raster.
+
+Physics, per camera sub-sample (``supersampling`` x ``supersampling`` per pixel):
+
+1. the camera ray hits the nearest surface (open3d ``RaycastingScene``);
+2. the hit point's diapositive coordinate ``v`` gives the blurred raster transmission
+   (:class:`~rasterserver.simulator.illumination.RasterLight`);
+3. a shadow ray towards the projector centre decides whether the raster light arrives;
+4. Lambertian shading: projector irradiance ``x max(0, n.l)`` ``x (d_ref/d)**2`` (optional),
+   plus uniform ambient light, times the object's albedo at the point, gives expected
+   photo-electrons;
+5. the sub-sampled electron image is blurred by the camera PSF (Gaussian) and box-averaged to
+   pixels (which is the pixel's area integral), then digitised with shot noise, read noise,
+   saturation and quantisation (:mod:`rasterserver.simulator.noise`).
+
+Ground truth is traced separately at the exact pixel centres (points, normals, object,
+raster line, shadows) and, per column, the exact rows of all visible line centres
+(:func:`rasterserver.simulator.ground_truth.find_line_rows`).
+
+All randomness comes from ``numpy.random.default_rng(seed)``: one seed, one image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from rasterserver.optics import Camera, Station, undistort_normalized
+from rasterserver.simulator.ground_truth import LineRows, find_line_rows
+from rasterserver.simulator.illumination import RasterLight
+from rasterserver.simulator.noise import expose
+from rasterserver.simulator.scene import Scene
+from rasterserver.simulator.tracing import Hits, Tracer
+
+__all__ = ["RenderSettings", "Rendering", "render"]
+
+_MAX_BAND_RAYS = 1 << 22  # rays per ray-casting batch: bounds memory for large sensors
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to render: optics, light levels and the sensor.
+
+    Attributes
+    ----------
+    supersampling : int
+        Sub-samples per pixel along each axis (3: 3 x 3, on a regular grid).
+    projector_defocus : float
+        Gaussian sigma of the projector blur in diapositive units (~mm on the back).
+    camera_blur : float
+        Gaussian sigma of the camera PSF in pixels (0: none).
+    projector_electrons : float
+        Photo-electrons per pixel from a fully transparent diapositive on a surface of albedo
+        1 facing the projector at the reference distance (projector centre to world origin).
+    ambient_electrons : float
+        Photo-electrons per pixel from ambient light on albedo 1 (not shadowed).
+    background_electrons : float
+        Photo-electrons where no surface is hit (far wall).
+    inverse_square : bool
+        Projector irradiance falls with the squared distance from the projector.
+    smooth_normals : bool
+        Interpolate vertex normals where meshes have them.
+    shadow_epsilon : float
+        Shadow-ray start offset along the normal (mm).
+    shadow_threshold : float
+        Shadow rays are cast only where the raster transmission exceeds this (elsewhere the
+        projector's contribution is below ``threshold x projector_electrons`` anyway).
+    full_well : float
+        Electrons at saturation.
+    gain : float
+        DN per electron.
+    offset : float
+        Black level (DN).
+    read_noise : float
+        Read noise (electrons rms).
+    shot_noise : bool
+        Poisson photo-electron noise.
+    noise : bool
+        False renders noise-free (deterministic rounding only).
+    bit_depth : int
+        8 (uint8) or 10-16 (uint16).
+    line_rows : bool
+        Compute the exact per-column line rows (ground truth); costs ~0.1 s.
+    """
+
+    supersampling: int = 3
+    projector_defocus: float = 0.6
+    camera_blur: float = 0.5
+    projector_electrons: float = 30000.0
+    ambient_electrons: float = 800.0
+    background_electrons: float = 0.0
+    inverse_square: bool = True
+    smooth_normals: bool = True
+    shadow_epsilon: float = 0.05
+    shadow_threshold: float = 1e-4
+    full_well: float = 20000.0
+    gain: float = 0.0125
+    offset: float = 6.0
+    read_noise: float = 12.0
+    shot_noise: bool = True
+    noise: bool = True
+    bit_depth: int = 8
+    line_rows: bool = True
+
+    def __post_init__(self) -> None:
+        if self.supersampling < 1:
+            raise ValueError("supersampling must be >= 1")
+        if self.camera_blur < 0 or self.projector_defocus < 0:
+            raise ValueError("blur sigmas must be >= 0")
+
+    def replace(self, **changes: Any) -> RenderSettings:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
+class Rendering:
+    """A simulated camera frame with its exact ground truth.
+
+    Attributes
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` uint8 or uint16 digitised frame.
+    electrons : numpy.ndarray
+        ``(H, W)`` float32 expected photo-electrons (noise-free, after camera blur, before
+        saturation): the "float image".
+    points : numpy.ndarray
+        ``(H, W, 3)`` float64 surface point (world mm) seen at each pixel centre; NaN where
+        nothing is hit.
+    normals : numpy.ndarray
+        ``(H, W, 3)`` float32 unit normals facing the camera (0 where nothing is hit).
+    object_index : numpy.ndarray
+        ``(H, W)`` int16 index into ``object_names`` (-1: nothing).
+    object_names : list of str
+        Scene object names.
+    line_number : numpy.ndarray
+        ``(H, W)`` int32 absolute number of the raster line whose centre is nearest (in
+        ``v``) to the pixel-centre point; -1 where not lit by the raster (nothing hit, shadow,
+        outside the raster's extent).
+    diapositive : numpy.ndarray
+        ``(H, W, 2)`` float64 diapositive coordinates ``(u, v)`` of the pixel-centre point.
+    visible : numpy.ndarray
+        ``(H, W)`` bool: a surface is hit at the pixel centre.
+    shadow : numpy.ndarray
+        ``(H, W)`` bool: visible but not reached by projector light (cast shadow, surface
+        turned away from the projector, or outside the diapositive).
+    line_rows : LineRows
+        Exact rows of visible line centres per column.
+    settings : RenderSettings
+    seed : int
+    timings : dict
+        Seconds per phase.
+    """
+
+    image: np.ndarray
+    electrons: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    object_index: np.ndarray
+    object_names: list[str]
+    line_number: np.ndarray
+    diapositive: np.ndarray
+    visible: np.ndarray
+    shadow: np.ndarray
+    line_rows: LineRows
+    settings: RenderSettings
+    seed: int
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def expected_dn(self) -> np.ndarray:
+        """Noise-free float image in DN: ``gain * electrons + offset`` (no clipping)."""
+        return self.settings.gain * self.electrons.astype(np.float64) + self.settings.offset
+
+    def settings_dict(self) -> dict[str, Any]:
+        """Settings as a JSON-ready dict."""
+        return dataclasses.asdict(self.settings)
+
+
+# ---------------------------------------------------------------------- camera rays
+_IDEAL_GRID_CACHE: dict[tuple[str, int], np.ndarray] = {}
+
+
+def _ideal_grid(camera: Camera, pad: int = 1) -> np.ndarray:
+    """Ideal normalised coordinates at pixel centres ``-pad .. W-1+pad`` (and rows alike).
+
+    Shape ``(H + 2 pad, W + 2 pad, 2)``, exact (Newton) undistortion.
+    """
+    key = (camera.key(), pad)
+    grid = _IDEAL_GRID_CACHE.get(key)
+    if grid is None:
+        w, h = camera.width, camera.height
+        u, v = np.meshgrid(
+            np.arange(-pad, w + pad, dtype=np.float64), np.arange(-pad, h + pad, dtype=np.float64)
+        )
+        xd, yd = camera.image_to_normalized(np.column_stack([u.ravel(), v.ravel()]))
+        x, y = undistort_normalized(xd, yd, camera.dist)
+        grid = np.stack([x, y], axis=-1).reshape(h + 2 * pad, w + 2 * pad, 2)
+        if len(_IDEAL_GRID_CACHE) >= 2:
+            _IDEAL_GRID_CACHE.pop(next(iter(_IDEAL_GRID_CACHE)))
+        _IDEAL_GRID_CACHE[key] = grid
+    return grid
+
+
+_RAY_CACHE: dict[tuple[str, int, int, int, int], np.ndarray] = {}
+_RAY_CACHE_MAX_BYTES = 160 * 2**20
+
+
+def _band_rays(camera: Camera, s: int, row0: int, row1: int, margin: int) -> np.ndarray:
+    """Float32 ``(N, 6)`` camera rays of the sub-samples of extended pixel rows ``row0:row1``.
+
+    The extended image has ``margin`` extra pixels on every side (extended row ``i`` is
+    image row ``i - margin``).
+
+    Cached per camera for small sensors: the rays of a camera never change, and building
+    them costs as much as casting them.
+    """
+    key = (camera.key(), s, row0, row1, margin)
+    rays = _RAY_CACHE.get(key)
+    if rays is None:
+        dirs = _band_directions(camera, s, row0, row1, margin)
+        rays = np.empty((dirs.shape[0], 6), dtype=np.float32)
+        rays[:, :3] = camera.centre.astype(np.float32)[None, :]
+        rays[:, 3:] = dirs
+        if rays.nbytes <= _RAY_CACHE_MAX_BYTES:
+            while _RAY_CACHE and (
+                sum(r.nbytes for r in _RAY_CACHE.values()) + rays.nbytes > _RAY_CACHE_MAX_BYTES
+            ):
+                _RAY_CACHE.pop(next(iter(_RAY_CACHE)))
+            _RAY_CACHE[key] = rays
+    return rays
+
+
+def _subsample_offsets(s: int) -> np.ndarray:
+    return (np.arange(s) + 0.5) / s - 0.5
+
+
+def _band_directions(camera: Camera, s: int, row0: int, row1: int, margin: int) -> np.ndarray:
+    """World unit directions of the sub-samples of extended pixel rows ``row0:row1``.
+
+    The undistortion is exact at pixel centres and bilinearly interpolated in between:
+    the interpolation error is ~1e-5 px for the distortions of real lenses (it scales with
+    the second derivative of the distortion, ~6 k1 x / f**2 per px**2).
+    """
+    grid = _ideal_grid(camera, margin + 1)
+    w = camera.width + 2 * margin
+    n = row1 - row0
+    out = np.empty((n * s, w * s, 2), dtype=np.float64)
+    offs = _subsample_offsets(s)
+    for a, oy in enumerate(offs):
+        by = row0 + (0 if oy < 0 else 1)  # padded index of the upper neighbour
+        fy = oy + 1.0 if oy < 0 else oy
+        for b, ox in enumerate(offs):
+            bx = 0 if ox < 0 else 1
+            fx = ox + 1.0 if ox < 0 else ox
+            g00 = grid[by : by + n, bx : bx + w]
+            g01 = grid[by : by + n, bx + 1 : bx + 1 + w]
+            g10 = grid[by + 1 : by + 1 + n, bx : bx + w]
+            g11 = grid[by + 1 : by + 1 + n, bx + 1 : bx + 1 + w]
+            out[a::s, b::s] = (1 - fy) * ((1 - fx) * g00 + fx * g01) + fy * (
+                (1 - fx) * g10 + fx * g11
+            )
+    d = np.empty((n * s, w * s, 3), dtype=np.float32)
+    d[..., :2] = out
+    d[..., 2] = 1.0
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    if not np.allclose(camera.R, np.eye(3)):
+        d = d @ camera.R.astype(np.float32)
+    return d.reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------- shading
+@dataclass
+class _Shaded:
+    electrons: np.ndarray  # (N,) float32 expected electrons
+    v: np.ndarray  # (N,) float32 diapositive v (NaN where not lit)
+    lit: np.ndarray  # (N,) bool lit by the projector
+
+
+def _albedo(scene: Scene, obj: np.ndarray, points: np.ndarray) -> np.ndarray:
+    out = np.zeros(obj.shape, dtype=np.float32)
+    for index, so in enumerate(scene.objects):
+        sel = obj == index
+        if not np.any(sel):
+            continue
+        if callable(so.albedo):
+            out[sel] = np.asarray(so.albedo(points[sel].astype(np.float64)), dtype=np.float32)
+        else:
+            out[sel] = float(so.albedo)
+    return out
+
+
+def _shade(
+    scene: Scene,
+    tracer: Tracer,
+    station: Station,
+    light: RasterLight,
+    settings: RenderSettings,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    hits: Hits,
+    *,
+    always_test: np.ndarray | None,
+) -> tuple[_Shaded, dict[str, float]]:
+    """Expected electrons of every ray; ``always_test`` forces shadow rays (ground truth)."""
+    t0 = time.perf_counter()
+    n = hits.t.size
+    electrons = np.full(n, settings.background_electrons, dtype=np.float32)
+    v_all = np.full(n, np.nan, dtype=np.float32)
+    lit_all = np.zeros(n, dtype=bool)
+    sel = np.flatnonzero(hits.hit)
+    if sel.size == 0:
+        return _Shaded(electrons, v_all, lit_all), {"shading": time.perf_counter() - t0}
+    o = origins if origins.shape[0] == 1 else origins[sel]
+    p = o + hits.t[sel, None] * directions[sel]
+    nrm = hits.normals[sel]
+    projector = station.projector
+    uv = projector.project(p)
+    centre = projector.centre.astype(np.float32)
+    to_proj = centre[None, :] - p
+    d2 = np.einsum("ij,ij->i", to_proj, to_proj)
+    cos = np.einsum("ij,ij->i", nrm, to_proj) / np.sqrt(d2)
+    trans = light.transmission_fast(uv[:, 1])
+    inside = projector.in_bounds(uv)
+    facing = cos > 0
+    candidate = facing & inside
+    test = candidate & (trans > settings.shadow_threshold)
+    if always_test is not None:
+        test |= candidate & always_test[sel]
+    t1 = time.perf_counter()
+    idx = np.flatnonzero(test)
+    blocked = np.zeros(sel.size, dtype=bool)
+    blocked[idx] = tracer.occluded(p[idx], nrm[idx], centre, epsilon=settings.shadow_epsilon)
+    t2 = time.perf_counter()
+    lit = candidate & ~blocked
+    irr = trans * np.maximum(cos, 0.0)
+    if settings.inverse_square:
+        d_ref2 = float(np.dot(projector.centre, projector.centre))
+        irr *= np.float32(d_ref2) / d2
+    irr = np.where(lit, irr, np.float32(0.0))
+    albedo = _albedo(scene, hits.object_index[sel], p)
+    electrons[sel] = albedo * (
+        np.float32(settings.ambient_electrons) + np.float32(settings.projector_electrons) * irr
+    )
+    v_all[sel] = np.where(lit, uv[:, 1], np.nan)
+    lit_all[sel] = lit
+    t3 = time.perf_counter()
+    return _Shaded(electrons, v_all, lit_all), {
+        "shading": (t1 - t0) + (t3 - t2),
+        "shadow_rays": t2 - t1,
+    }
+
+
+# ---------------------------------------------------------------------- truth at pixels
+_PIXEL_DIRECTIONS_CACHE: dict[str, np.ndarray] = {}
+
+
+def _pixel_directions(camera: Camera) -> np.ndarray:
+    """Exact float64 world unit directions through the pixel centres, ``(H * W, 3)``."""
+    key = camera.key()
+    d = _PIXEL_DIRECTIONS_CACHE.get(key)
+    if d is None:
+        grid = _ideal_grid(camera, 0).reshape(-1, 2)
+        d = np.column_stack([grid, np.ones(grid.shape[0])])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        if not np.array_equal(camera.R, np.eye(3)):
+            d = d @ camera.R
+        _PIXEL_DIRECTIONS_CACHE.clear()
+        _PIXEL_DIRECTIONS_CACHE[key] = d
+    return d
+
+
+def _pixel_truth(
+    tracer: Tracer,
+    station: Station,
+    light: RasterLight,
+    hits: Hits,
+    lit: np.ndarray,
+    v: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Ground-truth maps from the pixel-centre rays' hits and lighting."""
+    camera = station.camera
+    h, w = camera.shape
+    d = _pixel_directions(camera)
+    o = np.broadcast_to(camera.centre, d.shape)
+    points = tracer.exact_points(o, d, hits.triangle)
+    uv = station.projector.project(points)
+    raster = light.raster
+    j = light.nearest(uv[:, 1])
+    half = light.min_spacing / 2.0
+    with np.errstate(invalid="ignore"):
+        in_raster = (uv[:, 1] >= raster.positions[0] - half) & (
+            uv[:, 1] <= raster.positions[-1] + half
+        )
+    number = np.where(lit & in_raster, raster.numbers[j], -1)
+    visible = hits.hit
+    return {
+        "points": points.reshape(h, w, 3),
+        "normals": hits.normals.reshape(h, w, 3),
+        "object_index": hits.object_index.reshape(h, w),
+        "line_number": number.astype(np.int32).reshape(h, w),
+        "diapositive": uv.reshape(h, w, 2),
+        "visible": visible.reshape(h, w),
+        "shadow": (visible & ~lit).reshape(h, w),
+        "v": v.reshape(h, w),
+    }
+
+
+def _take_hits(hits: Hits, index: np.ndarray) -> Hits:
+    return Hits(
+        t=hits.t[index],
+        hit=hits.hit[index],
+        object_index=hits.object_index[index],
+        triangle=hits.triangle[index],
+        normals=hits.normals[index],
+    )
+
+
+def _concat_hits(parts: list[Hits]) -> Hits:
+    return Hits(
+        t=np.concatenate([p.t for p in parts]),
+        hit=np.concatenate([p.hit for p in parts]),
+        object_index=np.concatenate([p.object_index for p in parts]),
+        triangle=np.concatenate([p.triangle for p in parts]),
+        normals=np.concatenate([p.normals for p in parts]),
+    )
+
+
+# ---------------------------------------------------------------------- render
+def render(
+    scene: Scene,
+    station: Station,
+    *,
+    settings: RenderSettings | None = None,
+    seed: int = 0,
+) -> Rendering:
+    """Render one camera frame of ``scene`` with its ground truth.
+
+    Parameters
+    ----------
+    scene : Scene
+        Surfaces in world mm.
+    station : Station
+        Camera, projector and raster.
+    settings : RenderSettings, optional
+        Defaults to ``RenderSettings()``.
+    seed : int
+        Seed of the noise; the same seed gives the same image bit for bit.
+
+    Returns
+    -------
+    Rendering
+    """
+    settings = settings or RenderSettings()
+    t_start = time.perf_counter()
+    timings = dict.fromkeys(("rays", "ray_casting", "shadow_rays", "shading"), 0.0)
+    camera = station.camera
+    h, w = camera.shape
+    s = settings.supersampling
+    light = RasterLight(station.raster_definition, defocus=settings.projector_defocus)
+    t0 = time.perf_counter()
+    tracer = Tracer(scene, smooth_normals=settings.smooth_normals)
+    timings["scene_setup"] = time.perf_counter() - t0
+
+    # the camera PSF reaches beyond the sensor's edge: render a margin of real scene around
+    # the image instead of mirroring it (a mirrored slanted line biases edge centroids)
+    m = int(np.ceil(4.0 * settings.camera_blur)) + 1 if settings.camera_blur > 0 else 0
+    he, we = h + 2 * m, w + 2 * m
+    fine = np.empty((he * s, we * s), dtype=np.float32)
+    # with odd s the middle sub-sample of every pixel is its exact centre: the ground truth
+    # (per pixel, and along the column lines x = c) reuses those rays
+    c = s // 2 if s % 2 == 1 else None
+    col_v = np.full((he * s, w), np.nan, dtype=np.float32)
+    col_obj = np.full((he * s, w), -1, dtype=np.int16)
+    centre_hits: list[Hits] = []
+    centre_lit: list[np.ndarray] = []
+    centre_v: list[np.ndarray] = []
+    band_rows = max(1, _MAX_BAND_RAYS // (we * s * s))
+    for row0 in range(0, he, band_rows):
+        row1 = min(he, row0 + band_rows)
+        n = row1 - row0
+        t0 = time.perf_counter()
+        rays = _band_rays(camera, s, row0, row1, m)
+        t1 = time.perf_counter()
+        hits = tracer.cast_rays(rays)
+        t2 = time.perf_counter()
+        always = None
+        if c is not None:
+            grid = np.arange(rays.shape[0]).reshape(n * s, we * s)
+            column_samples = grid[:, m * s + c : (m + w) * s : s].ravel()
+            in_image = slice(max(m - row0, 0) * s + c, max(min(m + h - row0, n), 0) * s, s)
+            centre_samples = grid[in_image, m * s + c : (m + w) * s : s].ravel()
+            always = np.zeros(rays.shape[0], dtype=bool)
+            always[column_samples] = True
+        shaded, tt = _shade(
+            scene,
+            tracer,
+            station,
+            light,
+            settings,
+            rays[:1, :3],
+            rays[:, 3:],
+            hits,
+            always_test=always,
+        )
+        fine[row0 * s : row1 * s] = shaded.electrons.reshape(n * s, we * s)
+        if c is not None:
+            col_v[row0 * s : row1 * s] = shaded.v[column_samples].reshape(n * s, w)
+            col_obj[row0 * s : row1 * s] = hits.object_index[column_samples].reshape(n * s, w)
+            centre_hits.append(_take_hits(hits, centre_samples))
+            centre_lit.append(shaded.lit[centre_samples])
+            centre_v.append(shaded.v[centre_samples])
+        timings["rays"] += t1 - t0
+        timings["ray_casting"] += t2 - t1
+        timings["shading"] += tt["shading"]
+        timings["shadow_rays"] += tt.get("shadow_rays", 0.0)
+
+    t0 = time.perf_counter()
+    if settings.camera_blur > 0:
+        sigma = settings.camera_blur * s
+        radius = int(np.ceil(4.0 * sigma))
+        fine = cv2.GaussianBlur(
+            fine,
+            (2 * radius + 1, 2 * radius + 1),
+            sigmaX=sigma,
+            sigmaY=sigma,
+            borderType=cv2.BORDER_REFLECT,
+        )
+    fine = fine[m * s : (m + h) * s, m * s : (m + w) * s]
+    electrons = fine.reshape(h, s, w, s).mean(axis=(1, 3), dtype=np.float32)
+    image = expose(
+        electrons,
+        rng=np.random.default_rng(seed),
+        gain=settings.gain,
+        offset=settings.offset,
+        read_noise=settings.read_noise,
+        full_well=settings.full_well,
+        bit_depth=settings.bit_depth,
+        shot_noise=settings.shot_noise,
+        noise=settings.noise,
+    )
+    timings["blur_noise"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if c is not None:
+        p_hits = _concat_hits(centre_hits)
+        p_lit = np.concatenate(centre_lit)
+        p_v = np.concatenate(centre_v)
+    else:
+        d = _pixel_directions(camera)
+        o = np.broadcast_to(camera.centre, d.shape)
+        p_hits = tracer.cast(o, d)
+        shaded, _ = _shade(
+            scene,
+            tracer,
+            station,
+            light,
+            settings,
+            camera.centre.astype(np.float32)[None, :],
+            d.astype(np.float32),
+            p_hits,
+            always_test=np.ones(d.shape[0], dtype=bool),
+        )
+        p_lit, p_v = shaded.lit, shaded.v
+    truth = _pixel_truth(tracer, station, light, p_hits, p_lit, p_v)
+    timings["pixel_truth"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if settings.line_rows:
+        if c is not None:
+            sample_rows = np.arange(he * s) / s + (0.5 / s - 0.5) - m
+            v_cols, obj_cols = col_v, col_obj
+        else:
+            sample_rows = np.arange(h, dtype=np.float64)
+            v_cols, obj_cols = truth["v"], truth["object_index"]
+        line_rows = find_line_rows(
+            tracer,
+            station,
+            sample_rows=sample_rows,
+            v=v_cols,
+            object_index=obj_cols,
+            light=light,
+            shadow_epsilon=settings.shadow_epsilon,
+        )
+    else:
+        line_rows = LineRows.empty()
+    timings["line_rows"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    return Rendering(
+        image=image,
+        electrons=electrons,
+        points=truth["points"],
+        normals=truth["normals"],
+        object_index=truth["object_index"],
+        object_names=list(tracer.object_names),
+        line_number=truth["line_number"],
+        diapositive=truth["diapositive"],
+        visible=truth["visible"],
+        shadow=truth["shadow"],
+        line_rows=line_rows,
+        settings=settings,
+        seed=seed,
+        timings=timings,
+    )
