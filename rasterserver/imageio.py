@@ -324,6 +324,8 @@ def _tiff_header(data: bytes, name: str) -> tuple[int, int, int, int, int]:
 
 def _imdecode(data: bytes, name: str, fmt: str, convert_color: bool) -> np.ndarray:
     buffer = np.frombuffer(data, dtype=np.uint8)
+    # IMREAD_UNCHANGED keeps the bit depth and the channels and ignores EXIF orientation:
+    # the pixels come back exactly as stored, never rotated or reduced to 8 bits.
     try:
         image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED)
     except cv2.error:

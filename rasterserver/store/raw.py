@@ -25,8 +25,9 @@ Dataset attributes:
 ``role``    what the frame shows, e.g. ``"raster"`` or ``"projector-off"`` (string)
 ``sha256``  hex SHA-256 of the pixels: the array's bytes in C order, little-endian
 
-Strings are HDF5 variable-length UTF-8. Any HDF5 reader (h5py, HDFView, MATLAB ``h5read``,
-the HDF5 C library) can read these files without rasterserver.
+Strings are HDF5 variable-length UTF-8. Files use the earliest on-disk format versions
+(superblock 0), so HDF5 1.8 and later can read them: h5py, HDFView, MATLAB ``h5read`` or
+the HDF5 C library read these files without rasterserver.
 
 Durability and write-once
 -------------------------
@@ -329,7 +330,9 @@ class RawStore:
         temp = temp_path(final)
         stored: list[StoredFrame] = []
         try:
-            with h5py.File(temp, "w-", locking=False) as h5:
+            # libver="earliest": the oldest on-disk format that can hold the file, so that
+            # HDF5 1.8 readers (old MATLAB, HDFView) open it too.
+            with h5py.File(temp, "w-", libver="earliest", locking=False) as h5:
                 h5.attrs["format"] = FORMAT_NAME
                 h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
                 h5.attrs["uid"] = uid
