@@ -278,7 +278,7 @@ def _band_directions(camera: Camera, s: int, row0: int, row1: int, margin: int) 
 @dataclass
 class _Shaded:
     electrons: np.ndarray  # (N,) float32 expected electrons
-    v: np.ndarray  # (N,) float32 diapositive v (NaN where not lit)
+    v: np.ndarray  # (N,) float32 diapositive v (NaN: facing away or outside the diapositive)
     lit: np.ndarray  # (N,) bool lit by the projector
 
 
@@ -316,9 +316,15 @@ def _shade(
     sel = np.flatnonzero(hits.hit)
     if sel.size == 0:
         return _Shaded(electrons, v_all, lit_all), {"shading": time.perf_counter() - t0}
-    o = origins if origins.shape[0] == 1 else origins[sel]
-    p = o + hits.t[sel, None] * directions[sel]
-    nrm = hits.normals[sel]
+    everything = sel.size == n  # common (a back filling the frame): skip the gathers
+
+    def pick(a: np.ndarray) -> np.ndarray:
+        return a if everything else a[sel]
+
+    o = origins if origins.shape[0] == 1 else pick(origins)
+    p = pick(hits.t)[:, None] * pick(directions)
+    p += o
+    nrm = pick(hits.normals)
     projector = station.projector
     uv = projector.project(p)
     centre = projector.centre.astype(np.float32)
@@ -331,7 +337,7 @@ def _shade(
     candidate = facing & inside
     test = candidate & (trans > settings.shadow_threshold)
     if always_test is not None:
-        test |= candidate & always_test[sel]
+        test |= candidate & pick(always_test)
     t1 = time.perf_counter()
     idx = np.flatnonzero(test)
     blocked = np.zeros(sel.size, dtype=bool)
@@ -343,12 +349,16 @@ def _shade(
         d_ref2 = float(np.dot(projector.centre, projector.centre))
         irr *= np.float32(d_ref2) / d2
     irr = np.where(lit, irr, np.float32(0.0))
-    albedo = _albedo(scene, hits.object_index[sel], p)
-    electrons[sel] = albedo * (
-        np.float32(settings.ambient_electrons) + np.float32(settings.projector_electrons) * irr
-    )
-    v_all[sel] = np.where(lit, uv[:, 1], np.nan)
-    lit_all[sel] = lit
+    albedo = _albedo(scene, pick(hits.object_index), p)
+    irr *= np.float32(settings.projector_electrons)
+    irr += np.float32(settings.ambient_electrons)
+    irr *= albedo
+    # v wherever the raster can reach (cast shadows are decided per crossing later)
+    v = np.where(candidate, uv[:, 1], np.float32(np.nan))
+    if everything:
+        electrons, v_all, lit_all = irr, v, lit
+    else:
+        electrons[sel], v_all[sel], lit_all[sel] = irr, v, lit
     t3 = time.perf_counter()
     return _Shaded(electrons, v_all, lit_all), {
         "shading": (t1 - t0) + (t3 - t2),
@@ -496,7 +506,7 @@ def render(
             in_image = slice(max(m - row0, 0) * s + c, max(min(m + h - row0, n), 0) * s, s)
             centre_samples = grid[in_image, m * s + c : (m + w) * s : s].ravel()
             always = np.zeros(rays.shape[0], dtype=bool)
-            always[column_samples] = True
+            always[centre_samples] = True  # the shadow mask needs every pixel centre
         shaded, tt = _shade(
             scene,
             tracer,
