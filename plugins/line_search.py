@@ -1,0 +1,411 @@
+"""Line search: join the peaks of neighbouring columns into raster lines, hierarchically.
+
+The seed's method, vectorised:
+
+1. **Links.** A peak links to the nearest peak of the next column when that peak's nearest
+   peak in the previous column is it (mutual nearest neighbours) and the row step is within
+   ``max_step``. Each peak has at most one link on each side, so the links form *chains*.
+2. **Corners.** The body is smooth, so its raster lines are smooth: a link whose row step
+   departs from the steps around it by more than ``corner`` pixels (a sharp corner, the
+   second difference of the row along the chain) joins two different lines and is cut.
+3. **Hierarchy.** Lines are built from the brightest parts first. At each of a few falling
+   area thresholds, the runs of chained peaks above the threshold are examined: a run without
+   a line becomes a new line if it is long enough; a run touching one line extends it
+   (dilation); a run touching several lines is split between them at its weakest peak, so
+   two existing lines are never merged. A pronounced intensity minimum along a chain (the
+   shoulder blade, the arm/trunk boundary) therefore separates two lines seeded on either
+   side of it.
+
+Chains are laid out once in chain order (a permutation computed without sorting), so every
+level is a few passes over 1-D arrays; the only Python loop is over the threshold levels.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from rasterserver.records_lines import Lines, Peaks
+from rasterserver.stage import Stage, StageContext, StageParams
+
+__all__ = ["HierarchicalLineSearch", "link_peaks", "search_lines"]
+
+DEFAULT_LEVELS: tuple[float, ...] = (2.0, 1.4, 1.0, 0.7, 0.5, 0.35, 0.0)
+
+
+def _nearest_in_column(
+    key: np.ndarray, col: np.ndarray, row: np.ndarray, target_col: np.ndarray, span: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index of and distance to the nearest peak in ``target_col`` for every peak (-1, inf)."""
+    n = key.size
+    j = np.searchsorted(key, target_col * span + row)
+    best = np.full(n, -1, dtype=np.int64)
+    dist = np.full(n, np.inf)
+    for cand in (j - 1, j):
+        valid = (cand >= 0) & (cand < n)
+        c = np.clip(cand, 0, max(n - 1, 0))
+        dd = np.where(valid & (col[c] == target_col), np.abs(row[c] - row), np.inf)
+        better = dd < dist
+        best[better] = c[better]
+        dist[better] = dd[better]
+    return best, dist
+
+
+def link_peaks(
+    col: np.ndarray, row: np.ndarray, *, max_step: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual-nearest-neighbour links between peaks of adjacent columns.
+
+    Parameters
+    ----------
+    col, row : numpy.ndarray
+        Peak columns and rows, sorted by ``(col, row)``.
+    max_step : float
+        Largest row step of a link (px).
+
+    Returns
+    -------
+    right, left : numpy.ndarray
+        ``(N,)`` int64 index of the linked peak in the next / previous column, -1 for none.
+    """
+    n = col.size
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    col64 = col.astype(np.int64)
+    span = float(np.ceil(row.max() - min(row.min(), 0.0))) + 2.0 * max_step + 2.0
+    key = col64 * span + row
+    nxt, dn = _nearest_in_column(key, col64, row, col64 + 1, span)
+    prv, _ = _nearest_in_column(key, col64, row, col64 - 1, span)
+    ok = (nxt >= 0) & (dn <= max_step)
+    ok[ok] = prv[nxt[ok]] == np.flatnonzero(ok)
+    right = np.where(ok, nxt, -1)
+    left = np.full(n, -1, dtype=np.int64)
+    left[right[ok]] = np.flatnonzero(ok)
+    return right, left
+
+
+def _chain_layout(left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chain order of peaks: ``perm`` (position → peak) and each position's chain head.
+
+    Pointer jumping finds every peak's chain head and its depth along the chain in
+    ``log2(longest chain)`` gathers; positions then follow from the chain lengths, no sort.
+    """
+    n = left.size
+    idx = np.arange(n, dtype=np.int64)
+    parent = np.where(left >= 0, left, idx)
+    depth = (left >= 0).astype(np.int64)
+    while True:
+        grand = parent[parent]
+        if np.array_equal(grand, parent):
+            break
+        depth = depth + depth[parent]
+        parent = grand
+    head = parent
+    length = np.bincount(head, minlength=n)
+    start = np.cumsum(length) - length
+    pos = start[head] + depth
+    perm = np.empty(n, dtype=np.int64)
+    perm[pos] = idx
+    return perm, head[perm]
+
+
+def _corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray:
+    """Links (by position ``k``: between ``k - 1`` and ``k``) that make a sharp corner."""
+    n = r.size
+    step = np.zeros(n)
+    step[1:] = r[1:] - r[:-1]
+    step[~linked] = np.nan
+    prev_step = np.full(n, np.nan)
+    prev_step[1:] = step[:-1]
+    next_step = np.full(n, np.nan)
+    next_step[:-1] = step[1:]
+    with np.errstate(invalid="ignore"):
+        around = np.where(
+            np.isnan(prev_step),
+            next_step,
+            np.where(np.isnan(next_step), prev_step, 0.5 * (prev_step + next_step)),
+        )
+        dev = np.abs(step - around)
+        dev = np.where(np.isnan(dev), 0.0, dev)
+    # Only the worst link of a kink: its neighbours see half the jump as well.
+    prev_dev = np.zeros(n)
+    prev_dev[1:] = dev[:-1]
+    next_dev = np.zeros(n)
+    next_dev[:-1] = dev[1:]
+    return (dev > corner) & (dev >= prev_dev) & (dev >= next_dev)
+
+
+def _nearest_labels(label: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest label >= 0 on the left and on the right within each segment (-1 if none).
+
+    ``start[k]`` is True where element ``k`` begins a new segment. Running max/min of the
+    indices of labelled elements, compared with the segment bounds, need no loop.
+    """
+    n = label.size
+    idx = np.arange(n, dtype=np.int32)
+    labelled = label >= 0
+    prev = np.where(labelled, idx, -1)
+    np.maximum.accumulate(prev, out=prev)
+    nxt = np.where(labelled, idx, n)
+    nxt = np.minimum.accumulate(nxt[::-1])[::-1]
+    seg_first = np.where(start, idx, 0)
+    np.maximum.accumulate(seg_first, out=seg_first)
+    starts = np.flatnonzero(start)
+    seg_last = np.empty(starts.size, dtype=np.int32)
+    seg_last[:-1] = starts[1:] - 1
+    seg_last[-1] = n - 1
+    seg_last = seg_last[np.cumsum(start) - 1]
+    ext = np.append(label, -1)
+    fwd = np.where(prev >= seg_first, ext[prev], -1)
+    bwd = np.where(nxt <= seg_last, ext[nxt], -1)
+    return fwd, bwd
+
+
+def _smooth_along(a: np.ndarray, head: np.ndarray, half: int) -> np.ndarray:
+    """Mean of ``a`` over ``±half`` positions of the same chain (chain-ordered arrays)."""
+    n = a.size
+    total = a.copy()
+    count = np.ones(n)
+    for j in range(1, half + 1):
+        for shift in (-j, j):
+            src = np.arange(n) + shift
+            ok = (src >= 0) & (src < n)
+            ok[ok] = head[src[ok]] == head[ok]
+            total[ok] += a[src[ok]]
+            count[ok] += 1.0
+    return total / count
+
+
+def _side_max(
+    a: np.ndarray, head: np.ndarray, at: np.ndarray, step: int, window: int
+) -> np.ndarray:
+    """Largest ``a`` within ``window`` positions from ``at`` in direction ``step``, same chain."""
+    src = at[:, None] + step * np.arange(1, window + 1)[None, :]
+    np.clip(src, 0, a.size - 1, out=src)
+    same = head[src] == head[at][:, None]
+    return np.where(same, a[src], 0.0).max(axis=1)
+
+
+def _union_roots(parent: np.ndarray) -> np.ndarray:
+    """Root of every label in a union-find parent array (labels are few: plain loop)."""
+    root = parent.copy()
+    for i in range(root.size):
+        r = i
+        while root[r] != r:
+            r = root[r]
+        root[i] = r
+    return root
+
+
+def search_lines(
+    col: np.ndarray,
+    row: np.ndarray,
+    area: np.ndarray,
+    *,
+    max_step: float = 4.0,
+    corner: float = 1.5,
+    levels: tuple[float, ...] = DEFAULT_LEVELS,
+    dip: float = 0.6,
+    dip_window: int = 20,
+    smooth: int = 2,
+    min_seed: int = 8,
+    min_length: int = 3,
+) -> np.ndarray:
+    """Line id of every peak (-1: in no line), by hierarchical line search.
+
+    Parameters
+    ----------
+    col, row, area : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    max_step : float
+        Largest row step between peaks of adjacent columns (px).
+    corner : float
+        Largest departure of a link's row step from the steps around it (px); sharper
+        corners are cut.
+    levels : tuple of float
+        Area thresholds, as multiples of the median peak area, highest first. A last level
+        of 0 lets every remaining chained peak join a line.
+    dip : float
+        A run joining two lines is split at its weakest peak when that peak's (smoothed)
+        area is below ``dip`` times the smaller of the two lines' largest areas within
+        ``dip_window`` peaks of the run: a pronounced intensity minimum. Shallower minima
+        come from noise or shading around a threshold, and the two lines are one.
+    dip_window : int
+        Peaks on each side of a run searched for the lines' areas.
+    smooth : int
+        Half-width (peaks) of the running mean of the area along the chains; per-peak noise
+        must not make or hide a minimum.
+    min_seed : int
+        Least number of peaks of a new line started at any level but the last.
+    min_length : int
+        Least number of peaks of a line; shorter ones are dropped (-1).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` int32 line ids, ``0 .. L - 1`` numbered by the line's first peak (lowest
+        column, then row), -1 for peaks in no line.
+    """
+    n = col.size
+    if n == 0:
+        return np.zeros(0, dtype=np.int32)
+    _, left = link_peaks(col, row, max_step=max_step)
+    perm, head = _chain_layout(left)
+    r = row[perm]
+    linked = np.zeros(n, dtype=bool)
+    linked[1:] = head[1:] == head[:-1]
+    linked &= ~_corner_cuts(r, linked, corner)
+    # Chains cut at corners are separate chains from here on.
+    head = perm[np.maximum.accumulate(np.where(linked, 0, np.arange(n)))]
+    a = area[perm].astype(np.float64)
+    if smooth > 0:
+        a = _smooth_along(a, head, smooth)
+    label = np.full(n, -1, dtype=np.int64)
+    parent = np.zeros(0, dtype=np.int64)
+    scale = float(np.median(a))
+    for li, factor in enumerate(levels):
+        last = li == len(levels) - 1
+        active = (label >= 0) | (a >= factor * scale)
+        joined = np.zeros(n, dtype=bool)
+        joined[1:] = linked[1:] & active[1:] & active[:-1]
+        start = ~joined
+        seg = np.cumsum(start) - 1
+        fwd, bwd = _nearest_labels(label, start)
+        free = active & (label < 0)
+        new_label = np.where(fwd >= 0, fwd, bwd)
+        conflict = free & (fwd >= 0) & (bwd >= 0) & (fwd != bwd)
+        if np.any(conflict):
+            ci = np.flatnonzero(conflict)
+            first = np.ones(ci.size, dtype=bool)
+            first[1:] = ci[1:] != ci[:-1] + 1
+            gid = np.cumsum(first) - 1
+            g_start = ci[first]
+            g_end = ci[np.r_[first[1:], True]]
+            # weakest peak of each gap
+            o = np.lexsort((a[ci], gid))
+            lowest = np.ones(o.size, dtype=bool)
+            lowest[1:] = gid[o[1:]] != gid[o[:-1]]
+            cut_at = ci[o[lowest]]
+            side = np.minimum(
+                _side_max(a, head, g_start, -1, dip_window),
+                _side_max(a, head, g_end, 1, dip_window),
+            )
+            pronounced = a[cut_at] < dip * side
+            cut = np.where(pronounced[gid], cut_at[gid], -1)
+            new_label[ci] = np.where(pronounced[gid], np.where(ci < cut, fwd[ci], bwd[ci]), fwd[ci])
+            # the weakest peak of a pronounced minimum belongs to neither line
+            new_label[cut_at[pronounced]] = -1
+            merge = ~pronounced
+            if np.any(merge):
+                for x, y in zip(fwd[g_start[merge]], bwd[g_end[merge]], strict=True):
+                    rx, ry = int(x), int(y)
+                    while parent[rx] != rx:
+                        rx = int(parent[rx])
+                    while parent[ry] != ry:
+                        ry = int(parent[ry])
+                    if rx != ry:
+                        parent[max(rx, ry)] = min(rx, ry)
+                root = _union_roots(parent)
+                label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
+                new_label = np.where(new_label >= 0, root[np.maximum(new_label, 0)], -1)
+        grow = free & (new_label >= 0)
+        label[grow] = new_label[grow]
+        # Runs of free peaks touching no line: new lines, if long enough.
+        lonely = free & (fwd < 0) & (bwd < 0)
+        if np.any(lonely):
+            seg_len = np.bincount(seg[lonely], minlength=int(seg[-1]) + 1)
+            need = min_length if last else max(min_seed, min_length)
+            seeds = lonely & (seg_len[seg] >= need)
+            if np.any(seeds):
+                uniq, inv = np.unique(seg[seeds], return_inverse=True)
+                label[seeds] = parent.size + inv
+                parent = np.concatenate([parent, parent.size + np.arange(uniq.size)])
+    return _compact(label, perm, min_length)
+
+
+def _compact(label: np.ndarray, perm: np.ndarray, min_length: int) -> np.ndarray:
+    """Labels back in peak order, short lines dropped, ids ranked by each line's first peak."""
+    n = label.size
+    out = np.full(n, -1, dtype=np.int64)
+    out[perm] = label
+    valid = out >= 0
+    if not np.any(valid):
+        return np.full(n, -1, dtype=np.int32)
+    _uniq, inv, counts = np.unique(out[valid], return_inverse=True, return_counts=True)
+    keep = counts[inv] >= min_length
+    where = np.flatnonzero(valid)
+    out[where[~keep]] = -1
+    valid = out >= 0
+    if not np.any(valid):
+        return np.full(n, -1, dtype=np.int32)
+    # np.unique's first occurrences in peak order give each line's first peak
+    _, first, inv = np.unique(out[valid], return_index=True, return_inverse=True)
+    rank = np.empty(first.size, dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(first.size)
+    result = np.full(n, -1, dtype=np.int32)
+    result[valid] = rank[inv]
+    return result
+
+
+class HierarchicalLineSearch(Stage[Peaks, Lines]):
+    """Peaks joined into raster lines, brightest parts first, never merging two lines.
+
+    Mutual-nearest-neighbour links between adjacent columns form chains; sharp corners cut
+    them; lines are seeded at falling area thresholds and grow by dilation, and a run that
+    would join two lines is split at its intensity minimum.
+    """
+
+    name: ClassVar[str] = "lines.hierarchical"
+    stage: ClassVar[str] = "lines"
+    version: ClassVar[str] = "1"
+    input_type = Peaks
+    output_type = Lines
+
+    class Params(StageParams):
+        """Parameters of :class:`HierarchicalLineSearch` (pixels, or multiples of areas)."""
+
+        max_step: float = Field(
+            4.0, gt=0, description="Largest row step between adjacent columns (px)."
+        )
+        corner: float = Field(
+            1.5, gt=0, description="Largest change of the row step at a link (px)."
+        )
+        levels: tuple[float, ...] = Field(
+            DEFAULT_LEVELS,
+            min_length=1,
+            description="Area thresholds as multiples of the median area, highest first.",
+        )
+        dip: float = Field(
+            0.6, gt=0, le=1, description="Area ratio of a pronounced minimum that splits lines."
+        )
+        dip_window: int = Field(20, ge=1, description="Peaks searched for the lines' areas.")
+        smooth: int = Field(2, ge=0, description="Half-width of the area's running mean.")
+        min_seed: int = Field(8, ge=1, description="Least peaks of a line started early.")
+        min_length: int = Field(3, ge=1, description="Least peaks of a line.")
+
+    def run(self, data: Peaks, params: Params, context: StageContext) -> Lines:
+        """Search the lines of ``data``; no peaks give no lines."""
+        line_id = search_lines(
+            data.col,
+            data.row,
+            data.area,
+            max_step=params.max_step,
+            corner=params.corner,
+            levels=tuple(sorted(params.levels, reverse=True)),
+            dip=params.dip,
+            dip_window=params.dip_window,
+            smooth=params.smooth,
+            min_seed=params.min_seed,
+            min_length=params.min_length,
+        )
+        return Lines(
+            col=data.col,
+            row=data.row,
+            area=data.area,
+            height=data.height,
+            width=data.width,
+            image_shape=data.image_shape,
+            line_id=line_id,
+        )

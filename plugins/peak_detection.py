@@ -1,0 +1,262 @@
+"""Peak detection: the sub-pixel rows where raster lines cross each pixel column.
+
+The seed's method, vectorised over the whole frame (no loop over columns or peaks):
+
+1. each column is lightly smoothed (``[1, 2, 1] / 4``) only to *find* extrema, so that a
+   noise wiggle on a flank does not split a peak; the moments use the raw grey values;
+2. a maximum is where the (plateau-filled) slope turns from positive to negative; its pixels
+   run from the nearest minimum on its left to the nearest minimum on its right (column ends
+   count as minima), found for all maxima at once with a running max/min of minimum indices;
+3. the peak is kept when the rise and the fall are high enough (``min_height``) and steep
+   enough (``min_slope``, the steepest single-pixel step on each flank);
+4. a bias is subtracted: the larger of the two bounding minima, raised by ``bias_fraction``
+   of the peak's height, which keeps background noise (always positive after clipping) out of
+   the moment; only the contiguous run of pixels above the bias around the maximum counts;
+5. row = first moment (intensity-weighted mean row) of the bias-subtracted pixels,
+   area = their sum.
+
+All pixels of all peaks are gathered into one ``(peaks, window)`` array for steps 3-5.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from rasterserver.records import Image
+from rasterserver.records_lines import Peaks
+from rasterserver.stage import Stage, StageContext, StageParams
+
+__all__ = ["FirstMomentPeaks", "PeakArrays", "detect_peaks"]
+
+BiasMode = Literal["max-minimum", "min-minimum", "none"]
+
+_SMOOTH = np.array([0.25, 0.5, 0.25], dtype=np.float32)
+_ONE = np.array([1.0], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class PeakArrays:
+    """Per-peak arrays as :func:`detect_peaks` returns them (the fields of :class:`Peaks`)."""
+
+    col: np.ndarray
+    row: np.ndarray
+    area: np.ndarray
+    height: np.ndarray
+    width: np.ndarray
+
+    def to_record(self, image_shape: tuple[int, int]) -> Peaks:
+        """Wrap the arrays in a :class:`~rasterserver.records_lines.Peaks` record."""
+        return Peaks(
+            col=self.col,
+            row=self.row,
+            area=self.area,
+            height=self.height,
+            width=self.width,
+            image_shape=np.asarray(image_shape, dtype=np.int64),
+        )
+
+
+def _empty() -> PeakArrays:
+    return PeakArrays(
+        col=np.zeros(0, np.int32),
+        row=np.zeros(0, np.float64),
+        area=np.zeros(0, np.float32),
+        height=np.zeros(0, np.float32),
+        width=np.zeros(0, np.int16),
+    )
+
+
+def _extrema(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices of the maxima and minima of every row of ``s`` (a column per row).
+
+    Zero slopes are skipped, so a plateau belongs to the flank it continues: a flat top
+    (saturation) gives one maximum at its last pixel, a flat background one minimum at its
+    last pixel. A positive sentinel slope after each row's last pixel makes that pixel a
+    minimum when the row ends falling, and keeps a peak cut by the image edge from pairing
+    with the next row.
+    """
+    w, h = s.shape
+    d = np.empty((w, h), dtype=np.float32)
+    np.subtract(s[:, 1:], s[:, :-1], out=d[:, :-1])
+    d[:, -1] = 1.0
+    flat = d.ravel()
+    nz = np.flatnonzero(flat)
+    up = flat[nz] > 0
+    after = nz[1:]
+    maxima = after[up[:-1] & ~up[1:]]
+    minima = after[~up[:-1] & up[1:]]
+    return maxima.astype(np.int64), minima.astype(np.int64)
+
+
+def detect_peaks(
+    image: np.ndarray,
+    *,
+    min_height: float = 8.0,
+    min_slope: float = 3.0,
+    bias: BiasMode = "max-minimum",
+    bias_fraction: float = 0.1,
+    min_width: int = 2,
+    max_width: int = 25,
+    smooth: bool = True,
+) -> PeakArrays:
+    """Find the raster-line peaks in every column of ``image``.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` grey values, any real dtype; raster lines run across the columns.
+    min_height : float
+        Least rise and fall (DN, on the smoothed column) from the bounding minima to the
+        maximum.
+    min_slope : float
+        Least mean slope (DN/px) of each flank above the bias: the peak's height over the
+        number of pixels from the maximum to the flank's end. Scale it down for sensors
+        whose peaks span more pixels.
+    bias : {"max-minimum", "min-minimum", "none"}
+        Base level subtracted before the moments: the larger or the smaller of the two
+        bounding minima, or zero.
+    bias_fraction : float
+        Fraction of the peak's height above the base added to the bias.
+    min_width : int
+        Least number of contiguous pixels above the bias (rejects hot pixels).
+    max_width : int
+        Largest window considered around a maximum; longer runs of background are clipped
+        to ``max_width // 2`` pixels each side. Set it to ~2.5 line spacings in pixels.
+    smooth : bool
+        Smooth the columns with ``[1, 2, 1] / 4`` to find the extrema.
+
+    Returns
+    -------
+    PeakArrays
+        Sorted by column, then row.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image must be 2-D, got shape {img.shape}")
+    h, w = img.shape
+    if h < 3 or w < 1:
+        return _empty()
+    # Columns as contiguous rows of the transposed image: every pass below then streams
+    # through memory, and a flat index walks column by column.
+    t = np.ascontiguousarray(img.T, dtype=np.float32)
+    s = cv2.sepFilter2D(t, -1, _SMOOTH, _ONE, borderType=cv2.BORDER_REPLICATE) if smooth else t
+    maxima, minima = _extrema(s)
+    if maxima.size == 0:
+        return _empty()
+    tf = t.ravel()
+    sf = s.ravel()
+    # Bounding minima: the nearest minimum on each side within the same column (column
+    # ends count as minima).
+    col_start = (maxima // h) * h
+    i = np.searchsorted(minima, maxima)
+    lo = np.maximum(minima[np.maximum(i - 1, 0)], col_start)
+    lo = np.where(i > 0, lo, col_start)
+    hi = np.minimum(minima[np.minimum(i, minima.size - 1)], col_start + (h - 1))
+    hi = np.where(i < minima.size, hi, col_start + (h - 1))
+    top = sf[maxima]
+    ok = (top - sf[lo] >= min_height) & (top - sf[hi] >= min_height)
+    m, lo, hi = maxima[ok], lo[ok], hi[ok]
+    if m.size == 0:
+        return _empty()
+    half = max(1, max_width // 2)
+    lo = np.maximum(lo, m - half)
+    hi = np.minimum(hi, m + half)
+    if bias == "max-minimum":
+        base = np.maximum(tf[lo], tf[hi])
+    elif bias == "min-minimum":
+        base = np.minimum(tf[lo], tf[hi])
+    else:
+        base = np.zeros(m.size, dtype=np.float32)
+    # The raw maximum may sit one pixel off the smoothed one.
+    peak = np.maximum(np.maximum(tf[m - 1], tf[m]), tf[m + 1])
+    level = base + np.float32(bias_fraction) * (peak - base)
+    # Moments over the contiguous run of pixels above the bias around the maximum, walking
+    # outwards one offset at a time over the peaks whose run has not ended yet: a
+    # neighbouring bump inside [lo, hi] is never counted, and the loop is over offsets
+    # (a handful), not peaks.
+    centre = np.maximum(tf[m] - level, 0.0)
+    s0 = centre.astype(np.float64)
+    s1 = np.zeros(m.size, dtype=np.float64)
+    extent = np.zeros((2, m.size), dtype=np.int16)
+    for side, sign in ((0, -1), (1, 1)):
+        active = np.flatnonzero(centre > 0)
+        bound = lo if sign < 0 else hi
+        for j in range(1, half + 1):
+            pos = m[active] + sign * j
+            v = tf[pos] - level[active]
+            keep = (v > 0) & (pos * sign <= bound[active] * sign)
+            active = active[keep]
+            if active.size == 0:
+                break
+            v = v[keep]
+            s0[active] += v
+            s1[active] += (sign * j) * v
+            extent[side, active] = j
+    height = peak - level
+    ok = s0 > 0
+    # Mean slope of each flank above the bias (see min_slope).
+    ok &= height >= min_slope * np.maximum(extent[0], 1)
+    ok &= height >= min_slope * np.maximum(extent[1], 1)
+    ok &= extent[0] + extent[1] + 1 >= min_width
+    m, lo, hi, s0, s1, height = m[ok], lo[ok], hi[ok], s0[ok], s1[ok], height[ok]
+    return PeakArrays(
+        col=(m // h).astype(np.int32),
+        row=(m % h).astype(np.float64) + s1 / s0,
+        area=s0.astype(np.float32),
+        height=height.astype(np.float32),
+        width=(hi - lo + 1).astype(np.int16),
+    )
+
+
+class FirstMomentPeaks(Stage[Image, Peaks]):
+    """Raster-line peaks per pixel column, located by the first moment of the intensities.
+
+    The seed's peak detection: a peak is a rise then a fall of sufficient height and slope;
+    its pixels run from the minimum left of the maximum to the minimum right of it; a bias is
+    subtracted and the row is the intensity-weighted mean row, the area the intensity sum.
+    """
+
+    name: ClassVar[str] = "peaks.first-moment"
+    stage: ClassVar[str] = "peaks"
+    version: ClassVar[str] = "1"
+    input_type = Image
+    output_type = Peaks
+
+    class Params(StageParams):
+        """Parameters of :class:`FirstMomentPeaks` (grey values in DN of the input)."""
+
+        min_height: float = Field(8.0, ge=0, description="Least rise and fall of a peak (DN).")
+        min_slope: float = Field(
+            3.0, ge=0, description="Least steepest single-pixel step on each flank (DN/px)."
+        )
+        bias: BiasMode = Field(
+            "max-minimum", description="Base subtracted: larger/smaller bounding minimum or 0."
+        )
+        bias_fraction: float = Field(
+            0.1, ge=0, lt=1, description="Fraction of the peak height added to the base."
+        )
+        min_width: int = Field(2, ge=1, description="Least contiguous pixels above the bias.")
+        max_width: int = Field(
+            25, ge=3, description="Largest window around a maximum (px, ~2.5 line spacings)."
+        )
+        smooth: bool = Field(True, description="Find extrema on [1, 2, 1]-smoothed columns.")
+
+    def run(self, data: Image, params: Params, context: StageContext) -> Peaks:
+        """Detect the peaks of ``data.pixels``; an image without peaks gives empty arrays."""
+        pixels = data.pixels
+        found = detect_peaks(
+            pixels,
+            min_height=params.min_height,
+            min_slope=params.min_slope,
+            bias=params.bias,
+            bias_fraction=params.bias_fraction,
+            min_width=params.min_width,
+            max_width=params.max_width,
+            smooth=params.smooth,
+        )
+        return found.to_record((int(pixels.shape[0]), int(pixels.shape[1])))

@@ -1,0 +1,139 @@
+"""Line search against the simulator's ground truth and on constructed peak patterns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from image_truth import back, truth_of_peaks, wall
+from rasterserver_plugins.line_search import HierarchicalLineSearch, link_peaks, search_lines
+from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+from rasterserver.records import Image
+from rasterserver.records_lines import Lines, Peaks
+from rasterserver.stage import run_stage
+
+
+def _peaks(col: np.ndarray, row: np.ndarray, area: np.ndarray | None = None) -> Peaks:
+    order = np.lexsort((row, col))
+    col, row = np.asarray(col)[order], np.asarray(row, dtype=np.float64)[order]
+    area = np.full(col.size, 100.0) if area is None else np.asarray(area)[order]
+    n = col.size
+    return Peaks(
+        col=col.astype(np.int32),
+        row=row,
+        area=area.astype(np.float32),
+        height=np.full(n, 40.0, np.float32),
+        width=np.full(n, 7, np.int16),
+        image_shape=np.array([600, 600]),
+    )
+
+
+def _lines(peaks: Peaks, **params: object) -> Lines:
+    return run_stage(HierarchicalLineSearch, peaks, params)
+
+
+def _impurity(line_id: np.ndarray, number: np.ndarray) -> tuple[int, int]:
+    """Lines holding peaks of more than one true line; peaks not of their line's majority."""
+    impure = wrong = 0
+    for line in np.unique(line_id[line_id >= 0]):
+        truth = number[(line_id == line) & (number >= 0)]
+        if truth.size == 0:
+            continue
+        _, counts = np.unique(truth, return_counts=True)
+        if counts.size > 1:
+            impure += 1
+            wrong += int(truth.size - counts.max())
+    return impure, wrong
+
+
+@pytest.mark.parametrize("name", ["normal", "severe"])
+def test_simulated_back_lines_are_pure(name: str) -> None:
+    r = back(name)
+    peaks = run_stage(FirstMomentPeaks, Image(r.image))
+    lines = _lines(peaks)
+    number, _ = truth_of_peaks(lines.col, lines.row, r.line_rows)
+    assert _impurity(lines.line_id, number) == (0, 0)
+    in_line = lines.line_id >= 0
+    assert in_line[number >= 0].mean() > 0.99
+    # lines are long: most peaks are in lines of 40 columns or more
+    sizes = np.bincount(lines.line_id[in_line])
+    assert np.mean(sizes[lines.line_id[in_line]] >= 40) > 0.9
+
+
+def test_flat_wall_gives_one_line_per_raster_line() -> None:
+    r = wall()
+    peaks = run_stage(FirstMomentPeaks, Image(r.image))
+    lines = _lines(peaks)
+    number, _ = truth_of_peaks(lines.col, lines.row, r.line_rows)
+    assert _impurity(lines.line_id, number) == (0, 0)
+    width = int(peaks.image_shape[1])
+    sizes = np.bincount(lines.line_id[lines.line_id >= 0])
+    full = sizes >= 0.95 * width
+    assert full.sum() >= np.unique(r.line_rows.number).size - 2
+
+
+def test_sharp_corner_cuts_a_line() -> None:
+    col = np.arange(100)
+    # a smooth line whose right half is displaced by 3 px: a false interconnection
+    row = 100.0 + 0.1 * col + np.where(col >= 50, 3.0, 0.0)
+    lines = _lines(_peaks(col, row))
+    ids = lines.line_id[np.argsort(lines.col)]
+    assert ids[0] != ids[-1]
+    assert np.all(ids[:49] == ids[0]) and np.all(ids[51:] == ids[-1])
+
+
+def test_intensity_minimum_cuts_a_smooth_line() -> None:
+    # Smooth and continuous, but the intensity falls to a pronounced minimum at column 60:
+    # the shoulder-blade case.
+    col = np.arange(120)
+    row = 200.0 + 5.0 * np.sin(col / 40.0)
+    area = 200.0 * (1.0 - 0.8 * np.exp(-0.5 * ((col - 60) / 4.0) ** 2))
+    lines = _lines(_peaks(col, row, area))
+    ids = lines.line_id[np.argsort(lines.col)]
+    assert ids[0] >= 0 and ids[-1] >= 0 and ids[0] != ids[-1]
+    assert np.all(ids[:50] == ids[0]) and np.all(ids[70:] == ids[-1])
+
+
+def test_gradual_shading_keeps_one_line() -> None:
+    col = np.arange(300)
+    row = 150.0 + 0.02 * (col - 150.0) ** 2 / 10.0
+    area = np.linspace(400.0, 40.0, col.size)
+    lines = _lines(_peaks(col, row, area))
+    assert np.unique(lines.line_id).tolist() == [0]
+
+
+def test_parallel_lines_stay_apart() -> None:
+    col = np.tile(np.arange(80), 5)
+    row = np.repeat(np.arange(5) * 9.0 + 50.0, 80) + 0.4 * np.sin(col / 9.0)
+    lines = _lines(_peaks(col, row))
+    assert lines.n_lines == 5
+    for k in range(5):
+        sel = np.abs(lines.row - (50.0 + 9.0 * k)) < 2
+        assert np.unique(lines.line_id[sel]).size == 1
+
+
+def test_links_are_mutual() -> None:
+    col = np.array([0, 1, 1])
+    row = np.array([10.0, 9.0, 10.5])
+    right, left = link_peaks(col, row)
+    assert right.tolist() == [2, -1, -1]
+    assert left.tolist() == [-1, -1, 0]
+
+
+def test_empty_and_tiny_inputs() -> None:
+    assert _lines(_peaks(np.zeros(0, int), np.zeros(0))).n_lines == 0
+    assert _lines(_peaks(np.array([3]), np.array([5.0]))).line_id.tolist() == [-1]
+    # one column: no links, no lines
+    one = _lines(_peaks(np.zeros(4, int), np.arange(4) * 10.0))
+    assert np.all(one.line_id == -1)
+    # one row of columns carrying a single line
+    row_line = search_lines(np.arange(6), np.full(6, 0.2), np.ones(6))
+    assert row_line.tolist() == [0] * 6
+
+
+def test_output_keeps_the_peaks() -> None:
+    peaks = _peaks(np.arange(20), np.full(20, 30.0))
+    lines = _lines(peaks)
+    for name in ("col", "row", "area", "height", "width", "image_shape"):
+        assert np.array_equal(getattr(lines, name), getattr(peaks, name))
+    assert lines.line_id.dtype == np.int32

@@ -1,0 +1,144 @@
+"""Peak detection against exact line centres: synthetic lines and simulated backs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from image_truth import back, synthetic_lines, truth_of_peaks, wall
+from rasterserver_plugins.peak_detection import FirstMomentPeaks, detect_peaks
+
+from rasterserver.records import Image
+from rasterserver.records_lines import Peaks
+from rasterserver.stage import run_stage
+
+
+def _run(pixels: np.ndarray, **params: object) -> Peaks:
+    return run_stage(FirstMomentPeaks, Image(pixels), params)
+
+
+def _match(peaks: Peaks, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Row error of the peak nearest to each exact centre in its column."""
+    errors = np.full(rows.size, np.inf)
+    for c in np.unique(cols):
+        found = peaks.row[peaks.col == c]
+        if found.size:
+            exact = rows[cols == c]
+            d = found[None, :] - exact[:, None]
+            errors[cols == c] = d[np.arange(exact.size), np.abs(d).argmin(axis=1)]
+    return errors
+
+
+def test_synthetic_lines_noise_free() -> None:
+    image, cols, rows = synthetic_lines(sigma=1.0, tilt=0.05)
+    peaks = _run(image)
+    assert peaks.n_peaks == rows.size
+    err = _match(peaks, cols, rows)
+    # only 8-bit rounding: far below the seed's 0.05 px
+    assert np.sqrt(np.mean(err**2)) < 0.02
+    assert np.all(peaks.area > 0) and np.all(peaks.height > 0)
+    assert np.all(peaks.width >= 3)
+
+
+def test_synthetic_lines_with_noise() -> None:
+    image, cols, rows = synthetic_lines(sigma=1.2, noise=1.5, seed=4)
+    peaks = _run(image)
+    err = _match(peaks, cols, rows)
+    assert np.mean(np.abs(err) < 0.5) > 0.99
+    assert np.sqrt(np.mean(err[np.abs(err) < 0.5] ** 2)) < 0.05
+
+
+def test_area_tells_heavy_from_light() -> None:
+    light, _cols, _rows = synthetic_lines(sigma=1.0, amplitude=80.0)
+    heavy, _, _ = synthetic_lines(sigma=1.5, amplitude=80.0)
+    a_light = np.median(_run(light).area)
+    a_heavy = np.median(_run(heavy).area)
+    assert 1.3 < a_heavy / a_light < 1.8
+
+
+def test_saturated_lines_keep_their_centre() -> None:
+    image, cols, rows = synthetic_lines(sigma=1.5, amplitude=600.0)
+    assert (image == 255).sum() > 100
+    peaks = _run(image)
+    err = _match(peaks, cols, rows)
+    assert np.sqrt(np.mean(err**2)) < 0.1
+
+
+def test_simulated_back_accuracy_and_count() -> None:
+    r = back("normal", supersampling=3)
+    peaks = _run(r.image)
+    assert peaks.n_peaks > 20_000  # the seed: ~25,000 for a medium-sized subject
+    number, exact = truth_of_peaks(peaks.col, peaks.row, r.line_rows)
+    matched = number >= 0
+    # nearly every detected peak is a line centre, nearly every line centre is detected
+    assert matched.mean() > 0.995
+    assert matched.sum() > 0.97 * len(r.line_rows)
+    err = peaks.row[matched] - exact[matched]
+    assert np.sqrt(np.mean(err**2)) < 0.05  # the seed's figure
+    assert abs(np.mean(err)) < 0.01
+
+
+def test_flat_wall() -> None:
+    r = wall()
+    peaks = _run(r.image)
+    number, exact = truth_of_peaks(peaks.col, peaks.row, r.line_rows)
+    assert (number >= 0).mean() > 0.99
+    assert peaks.n_peaks > 0.97 * len(r.line_rows)
+    err = peaks.row[number >= 0] - exact[number >= 0]
+    assert np.sqrt(np.mean(err**2)) < 0.06
+
+
+def test_output_is_sorted_and_typed() -> None:
+    image, _, _ = synthetic_lines()
+    peaks = _run(image)
+    assert peaks.col.dtype == np.int32 and peaks.row.dtype == np.float64
+    assert peaks.area.dtype == np.float32 and peaks.width.dtype == np.int16
+    assert tuple(peaks.image_shape) == image.shape
+    key = peaks.col * 1000.0 + peaks.row
+    assert np.all(np.diff(key) > 0)
+
+
+@pytest.mark.parametrize(
+    "pixels",
+    [
+        np.zeros((604, 576), np.uint8),
+        np.full((604, 576), 255, np.uint8),
+        np.full((604, 576), 90, np.uint8),
+        np.full((50, 40), 4000, np.uint16),
+        np.zeros((1, 576), np.uint8),
+        np.zeros((604, 1), np.uint8),
+        np.zeros((2, 2), np.uint8),
+        np.zeros((1, 1), np.uint8),
+    ],
+    ids=["black", "saturated", "uniform", "uniform-16bit", "1-row", "1-col", "2x2", "1x1"],
+)
+def test_degenerate_images_give_no_peaks(pixels: np.ndarray) -> None:
+    peaks = _run(pixels)
+    assert peaks.n_peaks == 0
+    assert tuple(peaks.image_shape) == pixels.shape
+
+
+def test_pure_noise_gives_few_peaks() -> None:
+    rng = np.random.default_rng(7)
+    pixels = np.clip(rng.normal(20.0, 1.5, (604, 576)), 0, 255).astype(np.uint8)
+    assert _run(pixels).n_peaks < 10
+
+
+def test_one_column_image_with_lines() -> None:
+    image, _cols, rows = synthetic_lines((120, 1), tilt=0.0)
+    peaks = _run(image)
+    assert peaks.n_peaks == rows.size
+    assert np.allclose(np.sort(peaks.row), np.sort(rows), atol=0.05)
+
+
+def test_hot_pixel_is_not_a_peak() -> None:
+    pixels = np.full((60, 5), 10, np.uint8)
+    pixels[30, 2] = 200
+    assert detect_peaks(pixels).col.size == 0
+
+
+def test_sixteen_bit_input() -> None:
+    image, _cols, _rows = synthetic_lines()
+    peaks8 = _run(image)
+    peaks16 = _run(image.astype(np.uint16) * 16, min_height=128.0, min_slope=48.0)
+    assert peaks16.n_peaks == peaks8.n_peaks
+    assert np.allclose(peaks16.row, peaks8.row, atol=1e-6)
