@@ -281,8 +281,9 @@ class PinholeDevice:
         """JSON-ready description (see ``docs/formats.md``)."""
         return {
             "model": "opencv-pinhole",
-            "width": float(self.width),
-            "height": float(self.height),
+            # integers for a camera's pixels, floats for a diapositive's extent
+            "width": self.width if isinstance(self.width, int) else float(self.width),
+            "height": self.height if isinstance(self.height, int) else float(self.height),
             "K": self.K.tolist(),
             "distortion": self.dist.tolist(),
             "R": self.R.tolist(),
