@@ -497,6 +497,32 @@ class Station:
         """Stereo base: distance between camera and projector centres (mm)."""
         return float(np.linalg.norm(self.projector.centre - self.camera.centre))
 
+    def triangulate(
+        self, pixels: np.ndarray, v: np.ndarray | float, *, tol: float = 1e-9
+    ) -> np.ndarray:
+        """3-D points from image points and the diapositive ``v`` of their raster line.
+
+        The camera ray through each image point is intersected with the light surface of
+        its ``v`` (:meth:`Projector.light_surface_intersection`): the reconstruction of the
+        seed, in one call.
+
+        Parameters
+        ----------
+        pixels : numpy.ndarray
+            ``(N, 2)`` image coordinates ``(column, row)`` of raster line points.
+        v : float or numpy.ndarray
+            Diapositive ``v`` of each point's line (scalar or ``(N,)``).
+        tol : float
+            Newton tolerance in diapositive units (distorted projector only).
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(N, 3)`` world points in mm (NaN where the ray misses the light surface).
+        """
+        origins, directions = self.camera.rays(pixels)
+        return self.projector.light_surface_intersection(origins, directions, v, tol=tol)
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready calibration (format ``rasterserver.calibration/1``)."""
         from rasterserver.raster import Raster

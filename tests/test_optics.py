@@ -155,3 +155,15 @@ def test_bad_inputs() -> None:
         Station.from_dict({"format": "something/9"})
     with pytest.raises(ValueError, match="shape"):
         default_station().camera.project(np.zeros((4, 2)))
+
+
+def test_triangulate_recovers_surface_points() -> None:
+    st = default_station()
+    rng = np.random.default_rng(5)
+    pts = np.column_stack(
+        [rng.uniform(-250, 250, 500), rng.uniform(-280, 280, 500), rng.uniform(-150, 150, 500)]
+    )
+    pixels = st.camera.project(pts)
+    v = st.projector.diapositive_coordinates(pts)[:, 1]
+    back = st.triangulate(pixels, v)
+    assert np.max(np.linalg.norm(back - pts, axis=1)) < 1e-6
