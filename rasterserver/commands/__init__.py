@@ -14,6 +14,7 @@ from rasterserver.commands import (
     listing,
     patients,
     plugins,
+    simulate,
     stations,
     verify,
 )
@@ -27,4 +28,5 @@ COMMAND_MODULES: list[ModuleType] = [
     listing,
     verify,
     plugins,
+    simulate,
 ]
