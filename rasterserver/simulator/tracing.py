@@ -110,18 +110,26 @@ class Tracer:
         out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
         t = out["t_hit"].numpy()
         hit = np.isfinite(t)
-        gid = out["geometry_ids"].numpy().astype(np.int64)
-        gid[~hit] = -1  # INVALID_ID is uint max
-        obj = self._gid_to_object[gid]  # -1 maps to the trailing -1 slot
-        obj[~hit] = -1
-        prim = out["primitive_ids"].numpy().astype(np.int64)
-        tri = np.where(hit, self.triangle_offsets[np.maximum(obj, 0)] + prim, -1)
+        everything = bool(hit.all())
+        prim = out["primitive_ids"].numpy()
+        if len(self.object_names) == 1:
+            # one mesh (the common case): no id mapping needed
+            obj = np.zeros(t.size, dtype=np.int16)
+            tri = prim.astype(np.int64)
+        else:
+            gid = np.minimum(out["geometry_ids"].numpy(), self._gid_to_object.size - 1)
+            obj = self._gid_to_object[gid]  # INVALID_ID (uint max) → the trailing -1 slot
+            tri = self.triangle_offsets[np.maximum(obj, 0)] + prim
+        if not everything:
+            obj[~hit] = -1
+            tri[~hit] = -1
         normals = out["primitive_normals"].numpy()
         normals = self._smooth(normals, out["primitive_uvs"].numpy(), obj, tri, hit)
         # face the viewer: meshes may be oriented either way
-        facing = np.einsum("ij,ij->i", normals, rays[:, 3:6]) > 0
-        normals[facing] *= -1.0
-        normals[~hit] = 0.0
+        flip = np.einsum("ij,ij->i", normals, rays[:, 3:6]) > 0
+        normals[flip] *= -1.0
+        if not everything:
+            normals[~hit] = 0.0
         return Hits(t=t, hit=hit, object_index=obj, triangle=tri, normals=normals)
 
     def _smooth(
@@ -138,13 +146,18 @@ class Tracer:
             sel = np.flatnonzero(hit & (obj == index))
             if sel.size == 0:
                 continue
-            local = tri[sel] - self.triangle_offsets[index]
-            c = np.take(cn, local, axis=0)
-            u = uvs[sel, 0:1]
-            v = uvs[sel, 1:2]
-            n = (1.0 - u - v) * c[:, 0:3] + u * c[:, 3:6] + v * c[:, 6:9]
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-            normals[sel] = n
+            everything = sel.size == obj.size
+            local = (tri if everything else tri[sel]) - self.triangle_offsets[index]
+            c = np.take(cn, local, axis=0).reshape(-1, 3, 3)
+            weights = np.empty((sel.size, 3), dtype=np.float32)  # barycentric
+            weights[:, 1:] = uvs if everything else uvs[sel]
+            weights[:, 0] = 1.0 - weights[:, 1] - weights[:, 2]
+            n = np.einsum("nj,njk->nk", weights, c)
+            n *= (1.0 / np.sqrt(np.maximum(np.einsum("ij,ij->i", n, n), 1e-24)))[:, None]
+            if everything:
+                normals = n
+            else:
+                normals[sel] = n
         return normals
 
     def occluded(
