@@ -1,0 +1,105 @@
+"""Triangle mesh of a gridded surface: two triangles per fully measured grid cell.
+
+The grid is already organised, so it is triangulated by index, not reconstructed (no Poisson
+or ball pivoting, which would invent surface over holes): every cell whose four corners hold
+a depth becomes two triangles, split along the shorter 3-D diagonal (the split that follows
+a ridge or furrow instead of cutting across it). Vertices of no triangle are dropped.
+Triangles are wound so that normals face the camera (``-Z``); vertex normals are open3d's
+area-weighted averages of the adjacent triangle normals.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import open3d as o3d
+from pydantic import Field
+
+from rasterserver.records_surface import MeshRecord, Surface
+from rasterserver.stage import Stage, StageContext, StageParams
+
+__all__ = ["GridMesh", "grid_triangles"]
+
+
+def grid_triangles(valid: np.ndarray, z: np.ndarray | None = None) -> np.ndarray:
+    """Triangles over the cells of a grid whose four corners are valid.
+
+    Parameters
+    ----------
+    valid : numpy.ndarray
+        ``(ny, nx)`` bool.
+    z : numpy.ndarray, optional
+        ``(ny, nx)`` depths; when given each cell is split along its shorter diagonal in 3-D
+        (with equal x and y steps only the depth difference decides), otherwise always along
+        the diagonal from its top-right to its bottom-left corner.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(M, 3)`` int64 flat grid indices ``i * nx + j``, wound clockwise in the image
+        (x right, y down), i.e. with normals towards ``-Z``.
+    """
+    ny, nx = valid.shape
+    if ny < 2 or nx < 2:
+        return np.zeros((0, 3), dtype=np.int64)
+    cell = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+    i, j = np.nonzero(cell)
+    v00 = i * nx + j
+    v01 = v00 + 1
+    v10 = v00 + nx
+    v11 = v10 + 1
+    if z is None:
+        main = np.zeros(i.size, dtype=bool)
+    else:
+        # split along 00-11 when that diagonal is the shorter one
+        main = np.abs(z[i, j] - z[i + 1, j + 1]) < np.abs(z[i, j + 1] - z[i + 1, j])
+    # normal of (a, b, c) = (b - a) x (c - a); with x right and y down, (v00, v10, v01) has a
+    # z component -spacing², i.e. it faces the camera
+    t1 = np.where(main[:, None], np.column_stack([v00, v10, v11]), np.column_stack([v00, v10, v01]))
+    t2 = np.where(main[:, None], np.column_stack([v00, v11, v01]), np.column_stack([v01, v10, v11]))
+    return np.concatenate([t1, t2])
+
+
+class GridMesh(Stage[Surface, MeshRecord]):
+    """Two triangles per fully measured grid cell, with vertex normals (no surface fitting)."""
+
+    name: ClassVar[str] = "mesh.grid"
+    stage: ClassVar[str] = "mesh"
+    version: ClassVar[str] = "1"
+    input_type = Surface
+    output_type = MeshRecord
+
+    class Params(StageParams):
+        """Parameters of :class:`GridMesh`."""
+
+        shorter_diagonal: bool = Field(
+            True, description="Split each cell along its shorter 3-D diagonal (else fixed)."
+        )
+
+    def run(self, data: Surface, params: Params, context: StageContext) -> MeshRecord:
+        """Triangulate the valid cells of ``data``."""
+        valid = data.valid
+        triangles = grid_triangles(valid, data.z if params.shorter_diagonal else None)
+        if triangles.size == 0:
+            why = "no grid cell has four measured corners"
+            return MeshRecord.empty(f"{why}; {data.reason}" if data.reason else why)
+        ny, nx = data.shape
+        used = np.zeros(ny * nx, dtype=bool)
+        used[triangles.ravel()] = True
+        new_index = np.cumsum(used) - 1
+        flat = np.flatnonzero(used)
+        i, j = np.divmod(flat, nx)
+        xs, ys = data.coordinates()
+        vertices = np.column_stack([xs[j], ys[i], data.z.ravel()[flat]])
+        tri = new_index[triangles].astype(np.int32)
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(tri)
+        )
+        mesh.compute_vertex_normals()
+        return MeshRecord(
+            vertices=vertices,
+            triangles=tri,
+            normals=np.asarray(mesh.vertex_normals, dtype=np.float64),
+            reason=data.reason,
+        )
