@@ -1,0 +1,173 @@
+"""Line numbering against the simulator's ground truth, with misread and short components."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from image_truth import back, rendering_raster, truth_lines, truth_of_peaks, wall
+from rasterserver_plugins.line_numbering import CodeWindowNumbering
+from rasterserver_plugins.line_search import HierarchicalLineSearch
+from rasterserver_plugins.line_sequence import HierarchicalLineOrder
+from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+from rasterserver.errors import InputError
+from rasterserver.records import Image
+from rasterserver.records_lines import NumberedLines, OrderedLines
+from rasterserver.stage import StageContext, run_stage
+
+
+def _context() -> StageContext:
+    return StageContext(raster=rendering_raster())
+
+
+def _chain(pixels: np.ndarray) -> NumberedLines:
+    peaks = run_stage(FirstMomentPeaks, Image(pixels))
+    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+    return run_stage(CodeWindowNumbering, ordered, context=_context())
+
+
+def _ordered_truth(
+    col: np.ndarray, row: np.ndarray, area: np.ndarray, number: np.ndarray
+) -> OrderedLines:
+    """Ordered lines straight from the truth: one line per raster line, one component."""
+    numbers, line_id = np.unique(number, return_inverse=True)
+    order = (numbers - numbers.min()).astype(np.int32)
+    n = col.size
+    return OrderedLines(
+        col=col,
+        row=row,
+        area=area,
+        height=np.full(n, 40.0, np.float32),
+        width=np.full(n, 7, np.int16),
+        image_shape=np.array([604, 576]),
+        line_id=line_id.astype(np.int32),
+        order=order[line_id],
+        line_order=order,
+        line_component=np.zeros(numbers.size, np.int32),
+    )
+
+
+def _wrong_and_numbered(result: NumberedLines, number: np.ndarray) -> tuple[int, int]:
+    wrong = numbered = 0
+    for line in range(result.line_order.size):
+        truth = number[(result.line_id == line) & (number >= 0)]
+        if result.line_number[line] >= 0 and truth.size:
+            numbered += 1
+            wrong += int(np.bincount(truth).argmax() != result.line_number[line])
+    return wrong, numbered
+
+
+@pytest.mark.parametrize("name", ["normal", "severe"])
+def test_simulated_back_is_numbered_correctly(name: str) -> None:
+    r = back(name)
+    result = _chain(r.image)
+    number, _ = truth_of_peaks(result.col, result.row, r.line_rows)
+    wrong, numbered = _wrong_and_numbered(result, number)
+    assert wrong == 0
+    assert numbered > 100
+    # coverage: peaks on true lines that got a number
+    assert np.mean(result.number[number >= 0] >= 0) > 0.98
+    # and the numbers are the true ones, peak by peak
+    both = (number >= 0) & (result.number >= 0)
+    assert np.array_equal(result.number[both], number[both])
+    assert result.confidence > 0.5
+
+
+def test_flat_wall_is_numbered_correctly() -> None:
+    r = wall()
+    result = _chain(r.image)
+    number, _ = truth_of_peaks(result.col, result.row, r.line_rows)
+    wrong, numbered = _wrong_and_numbered(result, number)
+    assert wrong == 0 and numbered >= 55
+    assert result.reason == "" or "too few lines" in result.reason
+
+
+def test_observed_kinds_follow_the_code() -> None:
+    r = back("normal")
+    result = _chain(r.image)
+    raster = rendering_raster()
+    numbered = result.line_number >= 0
+    expected = raster.code[result.line_number[numbered] - raster.numbers[0]]
+    observed = result.kind_observed[numbered]
+    known = observed >= 0
+    assert known.mean() > 0.9
+    assert np.mean(observed[known] == expected[known]) > 0.97
+
+
+def test_truth_lines_are_numbered() -> None:
+    col, row, area, number = truth_lines(back("normal"))
+    result = run_stage(
+        CodeWindowNumbering, _ordered_truth(col, row, area, number), context=_context()
+    )
+    assert np.array_equal(result.number, number)
+    assert result.reason == ""
+
+
+@pytest.mark.parametrize("which", [5, 20, 40])
+def test_one_swapped_kind_still_numbers_correctly(which: int) -> None:
+    col, row, area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    target = numbers[which]
+    raster = rendering_raster()
+    heavy = raster.code[raster.index_of(int(target))] == 1
+    # misread: the line's intensity as if it were of the other kind
+    area = np.where(number == target, area / 1.5 if heavy else area * 1.5, area).astype(np.float32)
+    result = run_stage(
+        CodeWindowNumbering, _ordered_truth(col, row, area, number), context=_context()
+    )
+    assert np.array_equal(result.number, number)
+    line = np.flatnonzero(np.unique(number) == target)[0]
+    assert result.kind_observed[line] in (-1, 0 if heavy else 1)
+
+
+def test_component_too_short_to_be_unique_is_left_unnumbered() -> None:
+    col, row, area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    keep = np.isin(number, numbers[20:26])  # 6 lines, fewer than the window of 9
+    result = run_stage(
+        CodeWindowNumbering,
+        _ordered_truth(col[keep], row[keep], area[keep], number[keep]),
+        context=_context(),
+    )
+    assert np.all(result.number == -1) and np.all(result.line_number == -1)
+    assert result.confidence == 0.0
+    assert "too few lines" in result.reason
+
+
+def test_ambiguous_component_is_refused() -> None:
+    col, row, _area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    keep = np.isin(number, numbers[10:22])  # 12 lines ...
+    flat = np.full(int(keep.sum()), 100.0, np.float32)  # ... all of one apparent kind
+    result = run_stage(
+        CodeWindowNumbering,
+        _ordered_truth(col[keep], row[keep], flat, number[keep]),
+        context=_context(),
+    )
+    assert np.all(result.number == -1)
+    assert result.reason
+
+
+@pytest.mark.parametrize(
+    "pixels",
+    [
+        np.zeros((604, 576), np.uint8),
+        np.full((604, 576), 255, np.uint8),
+        np.zeros((1, 1), np.uint8),
+    ],
+    ids=["black", "saturated", "1x1"],
+)
+def test_degenerate_images_give_an_empty_result_with_a_reason(pixels: np.ndarray) -> None:
+    result = _chain(pixels)
+    assert result.n_peaks == 0 and result.line_number.size == 0
+    assert result.reason and result.confidence == 0.0
+
+
+def test_raster_is_required() -> None:
+    ordered = _ordered_truth(
+        np.arange(3, dtype=np.int32), np.ones(3), np.ones(3, np.float32), np.ones(3, np.int64)
+    )
+    with pytest.raises(InputError, match="raster"):
+        run_stage(CodeWindowNumbering, ordered)
+    with pytest.raises(InputError, match="Raster"):
+        run_stage(CodeWindowNumbering, ordered, context=StageContext(raster="default"))

@@ -1,0 +1,154 @@
+"""Line sequence analysis against the simulator's ground truth and constructed line sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from image_truth import back, truth_of_peaks, wall
+from rasterserver_plugins.line_search import HierarchicalLineSearch
+from rasterserver_plugins.line_sequence import HierarchicalLineOrder, line_neighbours, order_lines
+from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+from rasterserver.records import Image
+from rasterserver.records_lines import Lines, OrderedLines
+from rasterserver.stage import run_stage
+
+
+def _lines(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> Lines:
+    o = np.lexsort((row, col))
+    n = col.size
+    return Lines(
+        col=np.asarray(col)[o].astype(np.int32),
+        row=np.asarray(row, dtype=np.float64)[o],
+        area=np.full(n, 100.0, np.float32),
+        height=np.full(n, 40.0, np.float32),
+        width=np.full(n, 7, np.int16),
+        image_shape=np.array([600, 600]),
+        line_id=np.asarray(line_id)[o].astype(np.int32),
+    )
+
+
+def _order(lines: Lines, **params: object) -> OrderedLines:
+    return run_stage(HierarchicalLineOrder, lines, params)
+
+
+def _grid(n_lines: int, cols: np.ndarray, spacing: float = 10.0, top: float = 50.0):
+    col = np.tile(cols, n_lines)
+    line = np.repeat(np.arange(n_lines), cols.size)
+    row = top + spacing * line + 0.3 * np.sin(col / 20.0)
+    return col, row, line
+
+
+def _wrong_lines(ordered: OrderedLines, number: np.ndarray) -> int:
+    """Lines whose order disagrees with the truth, relative to their component's majority."""
+    wrong = 0
+    for c in np.unique(ordered.line_component):
+        offsets = []
+        for line in np.flatnonzero(ordered.line_component == c):
+            truth = number[(ordered.line_id == line) & (number >= 0)]
+            if truth.size:
+                offsets.append(int(np.bincount(truth).argmax()) - int(ordered.line_order[line]))
+        if offsets:
+            _, counts = np.unique(offsets, return_counts=True)
+            wrong += len(offsets) - int(counts.max())
+    return wrong
+
+
+@pytest.mark.parametrize("name", ["normal", "severe"])
+def test_simulated_back_order_matches_the_truth(name: str) -> None:
+    r = back(name)
+    lines = run_stage(HierarchicalLineSearch, run_stage(FirstMomentPeaks, Image(r.image)))
+    ordered = _order(lines)
+    number, _ = truth_of_peaks(ordered.col, ordered.row, r.line_rows)
+    assert _wrong_lines(ordered, number) == 0
+    # nearly all peaks end up in the largest component
+    comp = ordered.line_component[ordered.line_id[ordered.line_id >= 0]]
+    assert np.mean(comp == 0) > 0.95
+    # per-peak order is the per-line order
+    inl = ordered.line_id >= 0
+    assert np.array_equal(ordered.order[inl], ordered.line_order[ordered.line_id[inl]])
+    assert np.all(ordered.order[~inl] == -1)
+
+
+def test_flat_wall_is_one_component() -> None:
+    r = wall()
+    lines = run_stage(HierarchicalLineSearch, run_stage(FirstMomentPeaks, Image(r.image)))
+    ordered = _order(lines)
+    number, _ = truth_of_peaks(ordered.col, ordered.row, r.line_rows)
+    assert _wrong_lines(ordered, number) == 0
+    big = np.bincount(ordered.line_component[ordered.line_id[ordered.line_id >= 0]])
+    assert big[0] > 0.99 * (ordered.line_id >= 0).sum()
+
+
+def test_parallel_lines_in_order() -> None:
+    col, row, line = _grid(6, np.arange(40))
+    ordered = _order(_lines(col, row, line))
+    assert ordered.line_order.tolist() == [0, 1, 2, 3, 4, 5]
+    assert np.all(ordered.line_component == 0)
+
+
+def test_fragments_of_one_line_share_its_order() -> None:
+    col, row, line = _grid(4, np.arange(60))
+    # line 1 broken into two fragments (ids 1 and 4), with a hole between them
+    line = np.where((line == 1) & (col >= 30), 4, line)
+    keep = ~((line == 1) & (col >= 27))
+    ordered = _order(_lines(col[keep], row[keep], line[keep]))
+    assert ordered.line_order[1] == ordered.line_order[4] == 1
+    assert len(set(ordered.line_component.tolist())) == 1
+
+
+def test_missing_line_is_not_a_neighbourhood() -> None:
+    # Line 2 is missing over columns 0-29: there, lines 1 and 3 are two spacings apart
+    # and must not be taken for neighbours.
+    col, row, line = _grid(5, np.arange(60))
+    keep = ~((line == 2) & (col < 30))
+    ordered = _order(_lines(col[keep], row[keep], line[keep]))
+    assert ordered.line_order.tolist() == [0, 1, 2, 3, 4]
+    up, low, _ = line_neighbours(col[keep], row[keep], line[keep], 5)
+    assert (1, 3) not in set(zip(up.tolist(), low.tolist(), strict=True))
+
+
+def test_unlinked_groups_are_separate_components() -> None:
+    c1, r1, l1 = _grid(3, np.arange(0, 40))
+    c2, r2, l2 = _grid(3, np.arange(100, 140), top=300.0)
+    ordered = _order(
+        _lines(np.r_[c1, c2], np.r_[r1, r2], np.r_[l1, l2 + 3]),
+    )
+    comp = ordered.line_component
+    assert len(set(comp[:3].tolist())) == 1 and len(set(comp[3:].tolist())) == 1
+    assert comp[0] != comp[3]
+    assert ordered.line_order.tolist() == [0, 1, 2, 0, 1, 2]
+
+
+def test_short_contradiction_is_rejected() -> None:
+    # Lines 0..3 in order over 50 columns; a stub of line 3's id also appears directly
+    # below line 0 in two columns (a false neighbourhood): the long relations win.
+    col, row, line = _grid(4, np.arange(50))
+    stub_col = np.array([60, 61, 62])
+    col = np.r_[col, stub_col, stub_col]
+    row = np.r_[row, [50.0, 50.0, 50.0], [60.0, 60.0, 60.0]]
+    line = np.r_[line, [0, 0, 0], [3, 3, 3]]
+    result = order_lines(*_sorted(col, row, line))
+    assert result.order.tolist() == [0, 1, 2, 3]
+    assert result.rejected == 3
+
+
+def _sorted(col: np.ndarray, row: np.ndarray, line: np.ndarray):
+    o = np.lexsort((row, col))
+    return col[o], row[o], line[o]
+
+
+def test_no_lines() -> None:
+    empty = _lines(np.zeros(0, int), np.zeros(0), np.zeros(0, int))
+    ordered = _order(empty)
+    assert ordered.line_order.size == 0 and ordered.order.size == 0
+    unlined = _lines(np.arange(5), np.full(5, 3.0), np.full(5, -1))
+    ordered = _order(unlined)
+    assert ordered.line_order.size == 0
+    assert ordered.order.tolist() == [-1] * 5
+
+
+def test_single_line() -> None:
+    ordered = _order(_lines(np.arange(10), np.full(10, 4.0), np.zeros(10, int)))
+    assert ordered.line_order.tolist() == [0]
+    assert ordered.line_component.tolist() == [0]
