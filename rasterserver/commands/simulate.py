@@ -15,6 +15,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
 from rasterserver.errors import InputError
@@ -112,7 +113,9 @@ def _render_settings(
     )
     if not projector:
         # Projector off: the room light alone shows the plates and their dark holes.
-        settings = settings.replace(projector_electrons=0.0, ambient_electrons=15000.0)
+        settings = settings.replace(
+            projector_electrons=0.0, ambient_electrons=15000.0, line_rows=False
+        )
     return settings
 
 
@@ -430,6 +433,7 @@ def calibration_body(
         make_calibration_body,
         write_control_points,
     )
+    from rasterserver.simulator.ground_truth import LineRows
     from rasterserver.simulator.render import render
 
     station = _station(width, height)
@@ -442,6 +446,15 @@ def calibration_body(
             supersample=supersample, noise=noise, bit_depth=bit_depth, projector=on
         )
         rendering = render(scene, station, settings=settings, seed=seed + i)
+        if not on:
+            # The renderer's ground truth is geometric; with the projector off no raster
+            # line reaches the plates, so say so instead of listing the lines' positions.
+            rendering = dataclasses.replace(
+                rendering,
+                line_number=np.full_like(rendering.line_number, -1),
+                line_rows=LineRows.empty(),
+                shadow=rendering.visible.copy(),
+            )
         _write(
             out,
             rendering,
