@@ -213,3 +213,93 @@ def _calibrations_are_immutable(session: Session, _ctx: object, _instances: obje
                 f"calibration {obj.id} (version {obj.version}) is immutable; "
                 "store a new version instead"
             )
+
+
+# --- pipeline provenance -----------------------------------------------------------------------
+
+RUN_STATUSES = ("running", "done", "failed")
+
+
+class PipelineRun(Base):
+    """One request to process an acquisition through a chain of stages.
+
+    ``chain`` lists, per stage in order, the kind, plugin, algorithm version and parameters
+    hash used. A run that reuses every stored result still gets a row (``computed = 0``), so
+    the log of who asked for what is complete.
+    """
+
+    __tablename__ = "pipeline_run"
+    __table_args__ = (
+        CheckConstraint(f"status IN {RUN_STATUSES!r}", name="status"),
+        Index("ix_pipeline_run_acquisition_started", "acquisition_id", "started_at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    acquisition_id: Mapped[int] = mapped_column(
+        ForeignKey("acquisition.id", ondelete="RESTRICT")
+    )
+    calibration_id: Mapped[int | None] = mapped_column(
+        ForeignKey("calibration.id", ondelete="RESTRICT")
+    )
+    chain: Mapped[list[dict[str, Any]]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(16), default="running")
+    started_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column()
+    error: Mapped[str] = mapped_column(Text, default="")
+    host: Mapped[str] = mapped_column(String(255), default="")
+    package_version: Mapped[str] = mapped_column(String(64), default="")
+    computed: Mapped[int] = mapped_column(Integer, default=0)
+    reused: Mapped[int] = mapped_column(Integer, default=0)
+
+    acquisition: Mapped[Acquisition] = relationship()
+    calibration: Mapped[Calibration | None] = relationship()
+
+
+class StageResult(Base):
+    """One stored stage output of an acquisition, with everything needed to trust and reuse it.
+
+    ``chain_key`` is the SHA-256 over the frame's checksum and, for this stage and every one
+    before it, the plugin name, algorithm version, parameters hash and (for stages that use
+    them) the calibration and raster checksums: asking for the same computation again finds
+    this row instead of recomputing. Rows are never updated; reprocessing with other plugins,
+    parameters or a new calibration adds rows beside the old ones.
+    """
+
+    __tablename__ = "stage_result"
+    __table_args__ = (
+        UniqueConstraint("acquisition_id", "chain_key"),
+        Index("ix_stage_result_acquisition_stage", "acquisition_id", "stage"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    acquisition_id: Mapped[int] = mapped_column(
+        ForeignKey("acquisition.id", ondelete="RESTRICT")
+    )
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("pipeline_run.id", ondelete="RESTRICT"))
+    parent_id: Mapped[int | None] = mapped_column(
+        ForeignKey("stage_result.id", ondelete="RESTRICT")
+    )
+    calibration_id: Mapped[int | None] = mapped_column(
+        ForeignKey("calibration.id", ondelete="RESTRICT")
+    )
+    frame_index: Mapped[int] = mapped_column(Integer)
+    stage: Mapped[str] = mapped_column(String(32))
+    plugin: Mapped[str] = mapped_column(String(100))
+    plugin_version: Mapped[str] = mapped_column(String(32))
+    plugin_package: Mapped[str] = mapped_column(String(200), default="")
+    params: Mapped[dict[str, Any]] = mapped_column(JSON)
+    params_hash: Mapped[str] = mapped_column(String(64))
+    chain_key: Mapped[str] = mapped_column(String(64))
+    input_checksum: Mapped[str] = mapped_column(String(64))
+    output_checksum: Mapped[str] = mapped_column(String(64))
+    record_kind: Mapped[str] = mapped_column(String(32))
+    store_path: Mapped[str] = mapped_column(String(255))
+    reason: Mapped[str] = mapped_column(Text, default="")
+    package_version: Mapped[str] = mapped_column(String(64), default="")
+    host: Mapped[str] = mapped_column(String(255), default="")
+    duration_s: Mapped[float] = mapped_column(default=0.0)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    acquisition: Mapped[Acquisition] = relationship()
+    calibration: Mapped[Calibration | None] = relationship()
+    run: Mapped[PipelineRun | None] = relationship()
