@@ -275,11 +275,15 @@ def _band_directions(camera: Camera, s: int, row0: int, row1: int, margin: int) 
 
 
 # ---------------------------------------------------------------------- shading
+_TEST, _KNOWN_LIT, _KNOWN_BLOCKED = 0, 1, 2
+
+
 @dataclass
 class _Shaded:
     electrons: np.ndarray  # (N,) float32 expected electrons
     v: np.ndarray  # (N,) float32 diapositive v (NaN: facing away or outside the diapositive)
     lit: np.ndarray  # (N,) bool lit by the projector
+    candidate: np.ndarray  # (N,) bool facing the projector inside the diapositive
 
 
 def _albedo(scene: Scene, obj: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -305,17 +309,23 @@ def _shade(
     directions: np.ndarray,
     hits: Hits,
     *,
-    always_test: np.ndarray | None,
+    shadow_hint: np.ndarray | None,
 ) -> tuple[_Shaded, dict[str, float]]:
-    """Expected electrons of every ray; ``always_test`` forces shadow rays (ground truth)."""
+    """Expected electrons of every ray.
+
+    ``shadow_hint`` (per ray, optional): ``_KNOWN_LIT`` / ``_KNOWN_BLOCKED`` skip the shadow
+    ray; ``_TEST`` casts one where raster light could arrive. Without hints every such ray
+    is tested, whatever the transmission (the ground truth's shadow mask needs that).
+    """
     t0 = time.perf_counter()
     n = hits.t.size
     electrons = np.full(n, settings.background_electrons, dtype=np.float32)
     v_all = np.full(n, np.nan, dtype=np.float32)
     lit_all = np.zeros(n, dtype=bool)
+    cand_all = np.zeros(n, dtype=bool)
     sel = np.flatnonzero(hits.hit)
     if sel.size == 0:
-        return _Shaded(electrons, v_all, lit_all), {"shading": time.perf_counter() - t0}
+        return _Shaded(electrons, v_all, lit_all, cand_all), {"shading": time.perf_counter() - t0}
     everything = sel.size == n  # common (a back filling the frame): skip the gathers
 
     def pick(a: np.ndarray) -> np.ndarray:
@@ -332,15 +342,16 @@ def _shade(
     d2 = np.einsum("ij,ij->i", to_proj, to_proj)
     cos = np.einsum("ij,ij->i", nrm, to_proj) / np.sqrt(d2)
     trans = light.transmission_fast(uv[:, 1])
-    inside = projector.in_bounds(uv)
-    facing = cos > 0
-    candidate = facing & inside
-    test = candidate & (trans > settings.shadow_threshold)
-    if always_test is not None:
-        test |= candidate & pick(always_test)
+    candidate = (cos > 0) & projector.in_bounds(uv)
+    blocked = np.zeros(sel.size, dtype=bool)
+    if shadow_hint is None:
+        test = candidate
+    else:
+        hint = pick(shadow_hint)
+        test = candidate & (hint == _TEST) & (trans > settings.shadow_threshold)
+        blocked |= hint == _KNOWN_BLOCKED
     t1 = time.perf_counter()
     idx = np.flatnonzero(test)
-    blocked = np.zeros(sel.size, dtype=bool)
     blocked[idx] = tracer.occluded(p[idx], nrm[idx], centre, epsilon=settings.shadow_epsilon)
     t2 = time.perf_counter()
     lit = candidate & ~blocked
@@ -356,26 +367,48 @@ def _shade(
     # v wherever the raster can reach (cast shadows are decided per crossing later)
     v = np.where(candidate, uv[:, 1], np.float32(np.nan))
     if everything:
-        electrons, v_all, lit_all = irr, v, lit
+        electrons, v_all, lit_all, cand_all = irr, v, lit, candidate
     else:
-        electrons[sel], v_all[sel], lit_all[sel] = irr, v, lit
+        electrons[sel], v_all[sel], lit_all[sel], cand_all[sel] = irr, v, lit, candidate
     t3 = time.perf_counter()
-    return _Shaded(electrons, v_all, lit_all), {
+    return _Shaded(electrons, v_all, lit_all, cand_all), {
         "shading": (t1 - t0) + (t3 - t2),
         "shadow_rays": t2 - t1,
     }
 
 
+def _shadow_hints(hit: np.ndarray, shaded: _Shaded) -> np.ndarray:
+    """Per extended pixel: is the whole pixel surely lit, surely shadowed, or to be tested?
+
+    A pixel whose 3 x 3 neighbourhood of pixel centres is all lit (or all in cast shadow)
+    is taken to be so over its whole area; sub-samples elsewhere get their own shadow ray.
+    Only a shadow (or a gap in one) narrower than about a pixel can slip through; it spares
+    most of the sub-sample shadow rays.
+    """
+    lit = (hit & shaded.lit).astype(np.uint8)
+    dark = (hit & shaded.candidate & ~shaded.lit).astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    sure_lit = cv2.erode(lit, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    sure_dark = cv2.erode(dark, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    hints = np.full(lit.shape, _TEST, dtype=np.uint8)
+    hints[sure_lit.astype(bool)] = _KNOWN_LIT
+    hints[sure_dark.astype(bool)] = _KNOWN_BLOCKED
+    return hints
+
+
 # ---------------------------------------------------------------------- truth at pixels
-_PIXEL_DIRECTIONS_CACHE: dict[str, np.ndarray] = {}
+_PIXEL_DIRECTIONS_CACHE: dict[tuple[str, int], np.ndarray] = {}
 
 
-def _pixel_directions(camera: Camera) -> np.ndarray:
-    """Exact float64 world unit directions through the pixel centres, ``(H * W, 3)``."""
-    key = camera.key()
+def _pixel_directions(camera: Camera, margin: int = 0) -> np.ndarray:
+    """Exact float64 world unit directions through the (extended) pixel centres.
+
+    ``(H + 2 margin) * (W + 2 margin)`` rows, row-major.
+    """
+    key = (camera.key(), margin)
     d = _PIXEL_DIRECTIONS_CACHE.get(key)
     if d is None:
-        grid = _ideal_grid(camera, 0).reshape(-1, 2)
+        grid = _ideal_grid(camera, margin).reshape(-1, 2)
         d = np.column_stack([grid, np.ones(grid.shape[0])])
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         if not np.array_equal(camera.R, np.eye(3)):
@@ -389,16 +422,15 @@ def _pixel_truth(
     tracer: Tracer,
     station: Station,
     light: RasterLight,
+    directions: np.ndarray,
     hits: Hits,
     lit: np.ndarray,
-    v: np.ndarray,
 ) -> dict[str, np.ndarray]:
     """Ground-truth maps from the pixel-centre rays' hits and lighting."""
     camera = station.camera
     h, w = camera.shape
-    d = _pixel_directions(camera)
-    o = np.broadcast_to(camera.centre, d.shape)
-    points = tracer.exact_points(o, d, hits.triangle)
+    o = np.broadcast_to(camera.centre, directions.shape)
+    points = tracer.exact_points(o, directions, hits.triangle)
     uv = station.projector.project(points)
     raster = light.raster
     j = light.nearest(uv[:, 1])
@@ -417,7 +449,6 @@ def _pixel_truth(
         "diapositive": uv.reshape(h, w, 2),
         "visible": visible.reshape(h, w),
         "shadow": (visible & ~lit).reshape(h, w),
-        "v": v.reshape(h, w),
     }
 
 
@@ -428,16 +459,6 @@ def _take_hits(hits: Hits, index: np.ndarray) -> Hits:
         object_index=hits.object_index[index],
         triangle=hits.triangle[index],
         normals=hits.normals[index],
-    )
-
-
-def _concat_hits(parts: list[Hits]) -> Hits:
-    return Hits(
-        t=np.concatenate([p.t for p in parts]),
-        hit=np.concatenate([p.hit for p in parts]),
-        object_index=np.concatenate([p.object_index for p in parts]),
-        triangle=np.concatenate([p.triangle for p in parts]),
-        normals=np.concatenate([p.normals for p in parts]),
     )
 
 
@@ -476,37 +497,53 @@ def render(
     t0 = time.perf_counter()
     tracer = Tracer(scene, smooth_normals=settings.smooth_normals)
     timings["scene_setup"] = time.perf_counter() - t0
-
     # the camera PSF reaches beyond the sensor's edge: render a margin of real scene around
     # the image instead of mirroring it (a mirrored slanted line biases edge centroids)
     m = int(np.ceil(4.0 * settings.camera_blur)) + 1 if settings.camera_blur > 0 else 0
     he, we = h + 2 * m, w + 2 * m
+    origin = camera.centre.astype(np.float32)[None, :]
+
+    # pass 1, pixel centres (of the extended image): exact shadows for the ground truth and
+    # shadow hints that spare most sub-sample shadow rays
+    t0 = time.perf_counter()
+    centre_dirs = _pixel_directions(camera, m)
+    t1 = time.perf_counter()
+    centre_hits = tracer.cast(np.broadcast_to(origin, centre_dirs.shape), centre_dirs)
+    t2 = time.perf_counter()
+    centre_shaded, tt = _shade(
+        scene,
+        tracer,
+        station,
+        light,
+        settings,
+        origin,
+        centre_dirs.astype(np.float32),
+        centre_hits,
+        shadow_hint=None,
+    )
+    hints = _shadow_hints(centre_hits.hit.reshape(he, we), _reshape(centre_shaded, he, we))
+    timings["rays"] += t1 - t0
+    timings["ray_casting"] += t2 - t1
+    timings["shading"] += tt["shading"]
+    timings["shadow_rays"] += tt.get("shadow_rays", 0.0)
+
+    # pass 2, all sub-samples, in bands of rows
     fine = np.empty((he * s, we * s), dtype=np.float32)
-    # with odd s the middle sub-sample of every pixel is its exact centre: the ground truth
-    # (per pixel, and along the column lines x = c) reuses those rays
+    # with odd s the middle sub-sample column of every pixel lies on x = c exactly: the
+    # exact line rows are bracketed on those samples
     c = s // 2 if s % 2 == 1 else None
     col_v = np.full((he * s, w), np.nan, dtype=np.float32)
     col_obj = np.full((he * s, w), -1, dtype=np.int16)
-    centre_hits: list[Hits] = []
-    centre_lit: list[np.ndarray] = []
-    centre_v: list[np.ndarray] = []
     band_rows = max(1, _MAX_BAND_RAYS // (we * s * s))
     for row0 in range(0, he, band_rows):
         row1 = min(he, row0 + band_rows)
         n = row1 - row0
         t0 = time.perf_counter()
         rays = _band_rays(camera, s, row0, row1, m)
+        band_hint = np.repeat(np.repeat(hints[row0:row1], s, axis=0), s, axis=1).ravel()
         t1 = time.perf_counter()
         hits = tracer.cast_rays(rays)
         t2 = time.perf_counter()
-        always = None
-        if c is not None:
-            grid = np.arange(rays.shape[0]).reshape(n * s, we * s)
-            column_samples = grid[:, m * s + c : (m + w) * s : s].ravel()
-            in_image = slice(max(m - row0, 0) * s + c, max(min(m + h - row0, n), 0) * s, s)
-            centre_samples = grid[in_image, m * s + c : (m + w) * s : s].ravel()
-            always = np.zeros(rays.shape[0], dtype=bool)
-            always[centre_samples] = True  # the shadow mask needs every pixel centre
         shaded, tt = _shade(
             scene,
             tracer,
@@ -516,15 +553,13 @@ def render(
             rays[:1, :3],
             rays[:, 3:],
             hits,
-            always_test=always,
+            shadow_hint=band_hint,
         )
         fine[row0 * s : row1 * s] = shaded.electrons.reshape(n * s, we * s)
         if c is not None:
-            col_v[row0 * s : row1 * s] = shaded.v[column_samples].reshape(n * s, w)
-            col_obj[row0 * s : row1 * s] = hits.object_index[column_samples].reshape(n * s, w)
-            centre_hits.append(_take_hits(hits, centre_samples))
-            centre_lit.append(shaded.lit[centre_samples])
-            centre_v.append(shaded.v[centre_samples])
+            cols = slice(m * s + c, (m + w) * s, s)
+            col_v[row0 * s : row1 * s] = shaded.v.reshape(n * s, we * s)[:, cols]
+            col_obj[row0 * s : row1 * s] = hits.object_index.reshape(n * s, we * s)[:, cols]
         timings["rays"] += t1 - t0
         timings["ray_casting"] += t2 - t1
         timings["shading"] += tt["shading"]
@@ -557,27 +592,17 @@ def render(
     timings["blur_noise"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    if c is not None:
-        p_hits = _concat_hits(centre_hits)
-        p_lit = np.concatenate(centre_lit)
-        p_v = np.concatenate(centre_v)
-    else:
-        d = _pixel_directions(camera)
-        o = np.broadcast_to(camera.centre, d.shape)
-        p_hits = tracer.cast(o, d)
-        shaded, _ = _shade(
-            scene,
-            tracer,
-            station,
-            light,
-            settings,
-            camera.centre.astype(np.float32)[None, :],
-            d.astype(np.float32),
-            p_hits,
-            always_test=np.ones(d.shape[0], dtype=bool),
-        )
-        p_lit, p_v = shaded.lit, shaded.v
-    truth = _pixel_truth(tracer, station, light, p_hits, p_lit, p_v)
+    inner = (np.arange(he)[:, None] >= m) & (np.arange(he)[:, None] < m + h)
+    inner = (inner & (np.arange(we)[None, :] >= m) & (np.arange(we)[None, :] < m + w)).ravel()
+    idx = np.flatnonzero(inner)
+    truth = _pixel_truth(
+        tracer,
+        station,
+        light,
+        centre_dirs[idx],
+        _take_hits(centre_hits, idx),
+        centre_shaded.lit[idx],
+    )
     timings["pixel_truth"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -586,8 +611,9 @@ def render(
             sample_rows = np.arange(he * s) / s + (0.5 / s - 0.5) - m
             v_cols, obj_cols = col_v, col_obj
         else:
-            sample_rows = np.arange(h, dtype=np.float64)
-            v_cols, obj_cols = truth["v"], truth["object_index"]
+            sample_rows = np.arange(he, dtype=np.float64) - m
+            v_cols = centre_shaded.v.reshape(he, we)[:, m : m + w]
+            obj_cols = centre_hits.object_index.reshape(he, we)[:, m : m + w]
         line_rows = find_line_rows(
             tracer,
             station,
@@ -616,4 +642,13 @@ def render(
         settings=settings,
         seed=seed,
         timings=timings,
+    )
+
+
+def _reshape(shaded: _Shaded, he: int, we: int) -> _Shaded:
+    return _Shaded(
+        electrons=shaded.electrons.reshape(he, we),
+        v=shaded.v.reshape(he, we),
+        lit=shaded.lit.reshape(he, we),
+        candidate=shaded.candidate.reshape(he, we),
     )
