@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import os
 import random
+import subprocess
+import sys
 import uuid
 from pathlib import Path
 
@@ -237,6 +239,38 @@ def test_crash_before_rename_leaves_only_a_temp_file(tmp_path: Path, step: str) 
     assert [(e.kind, e.uid) for e in entries] == [("temp", uid)]
     # The leftover is a complete HDF5 file, merely unpublished; check_file sees no final file.
     assert store.check_file(uid).status == "missing"
+
+
+_KILLED_WRITER = """
+import os, sys
+from pathlib import Path
+import numpy as np
+from rasterserver.store import FrameToWrite, RawStore
+
+def hook(step):
+    if step == sys.argv[3]:
+        os._exit(9)  # no cleanup of any kind, as with SIGKILL or a power cut
+
+store = RawStore(Path(sys.argv[1]), crash_hook=hook)
+store.write(sys.argv[2], [FrameToWrite(0, "raster", np.ones((64, 48), np.uint16))])
+"""
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [("temp-written", "temp"), ("fsynced", "temp"), ("renamed", "final")],
+)
+def test_killed_writer_leaves_an_explainable_state(
+    tmp_path: Path, step: str, expected: str
+) -> None:
+    uid = _uid(25)
+    done = subprocess.run(
+        [sys.executable, "-c", _KILLED_WRITER, str(tmp_path), uid, step], check=False
+    )
+    assert done.returncode == 9
+    store = RawStore(tmp_path)
+    assert [(e.kind, e.uid) for e in store.scan()] == [(expected, uid)]
+    assert store.check_file(uid).status == ("ok" if expected == "final" else "missing")
 
 
 def test_crash_after_rename_leaves_a_complete_file(tmp_path: Path) -> None:
