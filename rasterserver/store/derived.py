@@ -1,0 +1,368 @@
+"""Derived-results store: one write-once HDF5 file per (acquisition, stage result).
+
+Raw frames are never rewritten; everything computed from them lives here, beside the raw
+store, in files that are as durable and as self-describing as the raw ones.
+
+File layout (format version 1)
+------------------------------
+Path: ``<root>/derived/<uid[0:2]>/<uid[2:4]>/<uid>.<stage>-<key>.h5``, where ``uid`` is the
+acquisition's uid, ``stage`` the stage kind (``points``, ``surface``, ...) and ``key`` the
+first 32 hex digits of the result's *chain key* (see :mod:`rasterserver.pipeline`). All
+results of an acquisition therefore share its shard folder and its name prefix, and the name
+is a function of what was computed: asking for the same computation twice can only ever name
+the same file, and a result left behind by a crash is found again instead of duplicated.
+
+Root attributes (strings unless noted): ``format`` (``"rasterserver-derived"``),
+``format_version`` (integer 1), ``acquisition`` (uid), ``stage``, ``plugin``,
+``plugin_version``, ``params`` (canonical JSON), ``params_hash``, ``chain_key``,
+``input_checksum`` (content hash of the input record), ``output_checksum`` (content hash of
+the stored record, :meth:`rasterserver.records.Record.content_hash`), ``record_kind``,
+``created_utc`` and ``writer``.
+
+Group ``/record``: one dataset per field of the record as :meth:`Record.to_arrays` gives them
+(scalars as scalar datasets, strings as fixed-length UTF-8 byte strings). Any HDF5 reader can
+open the files; :func:`rasterserver.records.record_type` rebuilds the record in Python.
+
+Durability: written under a temporary name in the final folder, fsynced and published with a
+link that refuses to replace (:mod:`.durable`), like the raw store; files are opened without
+HDF5 file locking for the same reasons (see :mod:`.raw`).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+
+from rasterserver import __version__
+from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFoundError
+from rasterserver.records import Record, record_type
+from rasterserver.store.durable import ensure_dir, fsync_file, publish
+from rasterserver.store.layout import shard_path, temp_path, validate_uid
+
+__all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredResult"]
+
+FORMAT_NAME = "rasterserver-derived"
+FORMAT_VERSION = 1
+AREA = "derived"
+SUFFIX = ".h5"
+KEY_DIGITS = 32
+
+_STAGE = re.compile(r"[a-z][a-z0-9_-]{0,31}")
+_KEY = re.compile(r"[0-9a-f]{64}")
+_NAME = re.compile(
+    rf"(?P<uid>[0-9a-f]{{32}})\.(?P<stage>[a-z][a-z0-9_-]{{0,31}})-(?P<key>[0-9a-f]{{{KEY_DIGITS}}})"
+    rf"{re.escape(SUFFIX)}(?P<temp>\.tmp-.+)?"
+)
+_META_KEYS = (
+    "acquisition",
+    "stage",
+    "plugin",
+    "plugin_version",
+    "params",
+    "params_hash",
+    "chain_key",
+    "input_checksum",
+    "output_checksum",
+    "record_kind",
+    "created_utc",
+    "writer",
+)
+
+
+@dataclass(frozen=True)
+class StoredResult:
+    """A stage result as stored.
+
+    Attributes
+    ----------
+    path : str
+        File path relative to the archive root, POSIX separators.
+    output_checksum : str
+        Content hash of the stored record.
+    adopted : bool
+        True when the file existed already (same chain key and content) and was reused, e.g.
+        after a crash between writing the file and committing its catalogue row.
+    """
+
+    path: str
+    output_checksum: str
+    adopted: bool = False
+
+
+@dataclass(frozen=True)
+class DerivedEntry:
+    """One file found under ``<root>/derived``.
+
+    Attributes
+    ----------
+    path : Path
+        Absolute path.
+    kind : {"final", "temp", "stray"}
+        A published result, a leftover partial write, or anything else.
+    uid, stage, key : str or None
+        What the name says, for ``final`` and ``temp`` files.
+    """
+
+    path: Path
+    kind: Literal["final", "temp", "stray"]
+    uid: str | None = None
+    stage: str | None = None
+    key: str | None = None
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+class DerivedStore:
+    """Write-once store of stage results under ``<root>/derived``.
+
+    Parameters
+    ----------
+    root : Path
+        Archive root (the folder that also holds ``raw/``).
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.area = self.root / AREA
+
+    # --- names -----------------------------------------------------------------------------
+
+    def path_for(self, uid: str, stage: str, chain_key: str) -> Path:
+        """Return the final path of a result (whether or not it exists).
+
+        Parameters
+        ----------
+        uid : str
+            Acquisition uid.
+        stage : str
+            Stage kind, lowercase letters, digits, ``-`` and ``_``.
+        chain_key : str
+            64 hex digits.
+
+        Returns
+        -------
+        Path
+        """
+        validate_uid(uid)
+        if not _STAGE.fullmatch(stage):
+            raise InputError(f"invalid stage kind {stage!r} for a derived file name")
+        if not _KEY.fullmatch(chain_key):
+            raise InputError(f"invalid chain key {chain_key!r}: expected 64 hex digits")
+        return shard_path(self.area, uid, f".{stage}-{chain_key[:KEY_DIGITS]}{SUFFIX}")
+
+    def relative_path(self, uid: str, stage: str, chain_key: str) -> str:
+        """Path of a result relative to the archive root, POSIX separators."""
+        return self.path_for(uid, stage, chain_key).relative_to(self.root).as_posix()
+
+    def _absolute(self, relative: str) -> Path:
+        path = (self.root / relative).resolve()
+        if not path.is_relative_to(self.area.resolve()):
+            raise InputError(f"{relative!r} is not a derived-results path")
+        return path
+
+    # --- writing ---------------------------------------------------------------------------
+
+    def write(
+        self,
+        uid: str,
+        record: Record,
+        *,
+        stage: str,
+        plugin: str,
+        plugin_version: str,
+        params: Mapping[str, Any],
+        params_hash: str,
+        chain_key: str,
+        input_checksum: str,
+    ) -> StoredResult:
+        """Store one stage result durably; never replaces a file.
+
+        If the final file exists already and holds the same chain key and content (a crash
+        after publishing, or a concurrent worker computing the same thing), it is adopted.
+
+        Parameters
+        ----------
+        uid : str
+            Acquisition uid.
+        record : Record
+            The stage's output.
+        stage, plugin, plugin_version : str
+            What computed it.
+        params : Mapping
+            The validated parameters, JSON-ready.
+        params_hash, chain_key, input_checksum : str
+            Provenance (see :mod:`rasterserver.pipeline`).
+
+        Returns
+        -------
+        StoredResult
+
+        Raises
+        ------
+        ConflictError
+            A file with this name exists but holds something else.
+        """
+        final = self.path_for(uid, stage, chain_key)
+        relative = final.relative_to(self.root).as_posix()
+        checksum = record.content_hash()
+        if final.exists():
+            return self._adopt(final, relative, chain_key, checksum)
+        ensure_dir(final.parent)
+        temp = temp_path(final)
+        meta = {
+            "acquisition": uid,
+            "stage": stage,
+            "plugin": plugin,
+            "plugin_version": plugin_version,
+            "params": json.dumps(dict(params), sort_keys=True, separators=(",", ":")),
+            "params_hash": params_hash,
+            "chain_key": chain_key,
+            "input_checksum": input_checksum,
+            "output_checksum": checksum,
+            "record_kind": record.kind,
+            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "writer": f"rasterserver {__version__}",
+        }
+        try:
+            with h5py.File(temp, "w-", locking=False, libver="earliest") as h5:
+                h5.attrs["format"] = FORMAT_NAME
+                h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
+                for name, value in meta.items():
+                    h5.attrs[name] = value
+                group = h5.create_group("record")
+                for name, array in record.to_arrays().items():
+                    group.create_dataset(name, data=np.asarray(array))
+            fsync_file(temp)
+            try:
+                publish(temp, final)
+            except ConflictError:
+                # another writer published the same name between our check and now
+                return self._adopt(final, relative, chain_key, checksum)
+        except Exception:
+            temp.unlink(missing_ok=True)
+            raise
+        return StoredResult(relative, checksum)
+
+    def _adopt(self, final: Path, relative: str, chain_key: str, checksum: str) -> StoredResult:
+        try:
+            meta = self.metadata(relative)
+        except IntegrityError as exc:
+            raise ConflictError(f"{relative} exists but is unreadable: {exc}") from None
+        if meta.get("chain_key") != chain_key or meta.get("output_checksum") != checksum:
+            raise ConflictError(
+                f"{relative} exists with other contents; derived files are write-once"
+            )
+        return StoredResult(relative, checksum, adopted=True)
+
+    # --- reading ---------------------------------------------------------------------------
+
+    def metadata(self, relative: str) -> dict[str, str]:
+        """The provenance attributes of a stored result (without reading its arrays).
+
+        Raises
+        ------
+        NotFoundError
+            No such file.
+        IntegrityError
+            Not a readable derived file.
+        """
+        with self._open(relative) as h5:
+            return {key: _text(h5.attrs[key]) for key in _META_KEYS if key in h5.attrs}
+
+    def read(self, relative: str, *, expected_checksum: str | None = None) -> Record:
+        """Load a stored result as its record class.
+
+        Parameters
+        ----------
+        relative : str
+            Path relative to the archive root (as in the catalogue).
+        expected_checksum : str, optional
+            Content hash the record must have (the catalogue's ``output_checksum``); a
+            mismatch means the file was altered and raises.
+
+        Returns
+        -------
+        Record
+
+        Raises
+        ------
+        NotFoundError, IntegrityError
+        """
+        with self._open(relative) as h5:
+            kind = _text(h5.attrs.get("record_kind", ""))
+            stored = _text(h5.attrs.get("output_checksum", ""))
+            group = h5.get("record")
+            if not isinstance(group, h5py.Group):
+                raise IntegrityError(f"{relative}: no record group")
+            try:
+                arrays = {name: np.asarray(ds[()]) for name, ds in group.items()}
+            except (OSError, ValueError) as exc:
+                raise IntegrityError(f"{relative}: unreadable record ({exc})") from None
+        try:
+            cls = record_type(kind)
+        except NotFoundError:
+            raise IntegrityError(
+                f"{relative}: record kind {kind!r} is unknown here (is its plugin installed?)"
+            ) from None
+        try:
+            record = cls.from_arrays(arrays)
+        except (InputError, TypeError) as exc:
+            raise IntegrityError(f"{relative}: stored {kind} record is invalid: {exc}") from None
+        digest = record.content_hash()
+        for expected in (stored, expected_checksum):
+            if expected and digest != expected:
+                raise IntegrityError(f"{relative}: contents do not match their checksum")
+        return record
+
+    def _open(self, relative: str) -> h5py.File:
+        path = self._absolute(relative)
+        if not path.is_file():
+            raise NotFoundError(f"derived result {relative} is missing")
+        try:
+            h5 = h5py.File(path, "r", locking=False)
+        except OSError as exc:
+            raise IntegrityError(f"{relative}: unreadable HDF5 file ({exc})") from None
+        if _text(h5.attrs.get("format", "")) != FORMAT_NAME:
+            h5.close()
+            raise IntegrityError(f"{relative}: not a rasterserver derived file")
+        return h5
+
+    def exists(self, relative: str) -> bool:
+        """True if the file ``relative`` exists."""
+        return self._absolute(relative).is_file()
+
+    # --- verification ----------------------------------------------------------------------
+
+    def scan(self) -> Iterator[DerivedEntry]:
+        """List every file under ``<root>/derived``, sorted.
+
+        Yields
+        ------
+        DerivedEntry
+        """
+        if not self.area.is_dir():
+            return
+        for top in sorted(self.area.iterdir()):
+            subs = sorted(top.iterdir()) if top.is_dir() else [top]
+            for sub in subs:
+                files = sorted(sub.iterdir()) if sub.is_dir() else [sub]
+                for path in files:
+                    yield _classify(path, top.name + sub.name)
+
+
+def _classify(path: Path, shard: str) -> DerivedEntry:
+    match = _NAME.fullmatch(path.name)
+    if match is None or not path.is_file() or match["uid"][:4] != shard:
+        return DerivedEntry(path, "stray")
+    kind: Literal["final", "temp"] = "temp" if match["temp"] else "final"
+    return DerivedEntry(path, kind, match["uid"], match["stage"], match["key"])
