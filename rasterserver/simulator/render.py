@@ -86,6 +86,8 @@ class RenderSettings:
         8 (uint8) or 10-16 (uint16).
     line_rows : bool
         Compute the exact per-column line rows (ground truth); costs ~0.1 s.
+        With ``projector_electrons = 0`` (projector off) the ground truth has no lines:
+        ``line_number`` is -1, ``line_rows`` empty and every visible pixel is in "shadow".
     """
 
     supersampling: int = 3
@@ -408,7 +410,8 @@ def _pixel_directions(camera: Camera, margin: int = 0) -> np.ndarray:
     key = (camera.key(), margin)
     d = _PIXEL_DIRECTIONS_CACHE.get(key)
     if d is None:
-        grid = _ideal_grid(camera, margin).reshape(-1, 2)
+        # the sub-sample pass caches the grid padded by margin + 1: share it
+        grid = _ideal_grid(camera, margin + 1)[1:-1, 1:-1].reshape(-1, 2)
         d = np.column_stack([grid, np.ones(grid.shape[0])])
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         if not np.array_equal(camera.R, np.eye(3)):
@@ -605,8 +608,14 @@ def render(
     )
     timings["pixel_truth"] = time.perf_counter() - t0
 
+    projector_on = settings.projector_electrons > 0
+    if not projector_on:
+        # no raster light at all (a control-point frame): nothing is lit, no line is seen
+        truth["line_number"] = np.full_like(truth["line_number"], -1)
+        truth["shadow"] = truth["visible"].copy()
+
     t0 = time.perf_counter()
-    if settings.line_rows:
+    if settings.line_rows and projector_on:
         if c is not None:
             sample_rows = np.arange(he * s) / s + (0.5 / s - 0.5) - m
             v_cols, obj_cols = col_v, col_obj

@@ -350,3 +350,12 @@ def test_empty_scene_is_dark() -> None:
     assert not r.visible.any() and len(r.line_rows) == 0
     assert np.all(r.image == round(NOISE_FREE.offset))
     assert np.all(np.isnan(r.points)) and np.all(r.line_number == -1)
+
+
+def test_projector_off_has_no_lines() -> None:
+    st = default_station(96, 120)
+    settings = NOISE_FREE.replace(projector_electrons=0.0, ambient_electrons=5000.0)
+    r = render(Scene([SceneObject("plane", plane_mesh(), 0.5)]), st, settings=settings, seed=0)
+    assert len(r.line_rows) == 0 and np.all(r.line_number == -1)
+    np.testing.assert_array_equal(r.shadow, r.visible)
+    np.testing.assert_allclose(r.electrons, 2500.0, rtol=1e-5)
