@@ -741,35 +741,53 @@ def _arm(
     need = np.interp(ys, rows_y, out) + p.arm_gap + r_at + 0.5
     slope = float(max(0.0, ((need - x_sh) / (ys - y_sh)).max(initial=0.0)))
 
-    def x_at(y: float) -> float:
-        return x_sh + slope * (y - y_sh)
-
     z_sh = at(y_sh, extreme_z) - 10.0 * s
     z_el = at(y_el, extreme_z) + 5.0 * s
-    # The elbows flex slightly: the forearms hang a little forwards of the upper arms.
-    knots = np.array(
-        [
-            [side * x_sh, y_sh, z_sh],
-            [side * x_at(y_el), y_el, z_el],
-            [side * x_at(y_wr), y_wr, z_el + 25.0 * s],
-            [side * x_at(y_end), y_end, z_el + 35.0 * s],
-        ]
-    )
-    centre = _smooth_polyline(knots, step=2.0, sigma=25.0)
-    # Radius along the arm: deltoid, upper arm, elbow, forearm bulge, wrist, hand.
-    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centre, axis=0), axis=1))])
-    ys = centre[:, 1]
-    radius = np.interp(
-        ys,
-        [y_sh, y_sh + 0.3 * (y_el - y_sh), y_el, y_el + 0.25 * (y_wr - y_el), y_wr, y_end],
-        [r_sh, 0.95 * r_sh, r_el, 1.1 * r_el, r_wr, r_hand],
-    )
-    radius = gaussian_filter1d(radius, 10.0 / max(along[1] - along[0], 1e-6), mode="nearest")
+
+    def build(slope: float) -> tuple[np.ndarray, np.ndarray]:
+        def x_at(y: float) -> float:
+            return x_sh + slope * (y - y_sh)
+
+        # The elbows flex slightly: the forearms hang a little forwards of the upper arms.
+        knots = np.array(
+            [
+                [side * x_sh, y_sh, z_sh],
+                [side * x_at(y_el), y_el, z_el],
+                [side * x_at(y_wr), y_wr, z_el + 25.0 * s],
+                [side * x_at(y_end), y_end, z_el + 35.0 * s],
+            ]
+        )
+        centre = _smooth_polyline(knots, step=2.0, sigma=25.0)
+        # Radius along the arm: deltoid, upper arm, elbow, forearm bulge, wrist, hand.
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centre, axis=0), 1))])
+        radius = np.interp(
+            centre[:, 1],
+            [y_sh, y_sh + 0.3 * (y_el - y_sh), y_el, y_el + 0.25 * (y_wr - y_el), y_wr, y_end],
+            [r_sh, 0.95 * r_sh, r_el, 1.1 * r_el, r_wr, r_hand],
+        )
+        radius = gaussian_filter1d(radius, 10.0 / max(along[1] - along[0], 1e-6), mode="nearest")
+        return centre, radius
+
+    def gaps(centre: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Horizontal gap below the armpits, at the arm's widest extent per height.
+        ys = centre[:, 1]
+        sel = (ys >= y_gap0) & (ys <= min(y_end, rows_y[-1]))
+        trunk = np.interp(ys[sel], rows_y, out)
+        return ys[sel], side * centre[sel, 0] - radius[sel] - trunk
+
+    centre, radius = build(slope)
+    # The smoothed elbow and radius profile can eat into the gap a little: steepen the arm
+    # until the measured gap holds.
+    for _ in range(4):
+        ys, gap_y = gaps(centre, radius)
+        deficit = p.arm_gap + 0.1 - gap_y
+        if gap_y.size == 0 or deficit.max() <= 0.0:
+            break
+        slope += float((deficit / np.maximum(ys - y_sh, 1.0)).max())
+        centre, radius = build(slope)
     mesh = _tube(centre, radius, around=int(max(48, round(2 * np.pi * r_sh / 2.0))))
-    # Measured gap below the armpits, at the arm's widest (horizontal) extent.
-    sel = (ys >= y_gap0) & (ys <= min(y_end, rows_y[-1]))
-    trunk = np.interp(ys[sel], rows_y, out)
-    gap = float((side * centre[sel, 0] - radius[sel] - trunk).min()) if sel.any() else math.nan
+    gap_y = gaps(centre, radius)[1]
+    gap = float(gap_y.min()) if gap_y.size else math.nan
     return mesh, gap
 
 
