@@ -146,3 +146,39 @@ def rms(values: np.ndarray) -> float:
     """Root mean square of the finite values."""
     values = values[np.isfinite(values)]
     return float(np.sqrt(np.mean(values**2)))
+
+
+STATION_NAME = "clinic-1"
+
+
+def archive_with_frames(settings: Any, frames: dict[str, np.ndarray], *, calibrate: bool = True):
+    """A fresh archive with station ``clinic-1`` (calibrated with the default station) and one
+    single-frame acquisition of patient ``P1`` per entry of ``frames``.
+
+    Returns
+    -------
+    archive : Archive
+    uids : dict of str to str
+        Acquisition uid per key of ``frames``.
+    """
+    import datetime as dt
+
+    from rasterserver.archive import Archive, FrameSource
+
+    archive = Archive.create(settings)
+    archive.add_patient("P1")
+    archive.add_station(STATION_NAME)
+    if calibrate:
+        st = station()
+        archive.add_raster("default", st.raster_definition.to_dict())
+        archive.add_calibration(STATION_NAME, st.to_dict(), raster="default")
+    uids = {}
+    for k, (name, pixels) in enumerate(frames.items()):
+        acq = archive.ingest(
+            [FrameSource(pixels, role="raster", name=f"{name}.npy")],
+            patient="P1",
+            station=STATION_NAME,
+            acquired_at=dt.datetime(2025, 3, 1, 10, k, tzinfo=dt.UTC),
+        )
+        uids[name] = acq.uid
+    return archive, uids

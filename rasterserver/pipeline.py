@@ -1,0 +1,952 @@
+"""Run chains of stage plugins: in memory for one image, and for archived acquisitions.
+
+Two entry points:
+
+:func:`run_chain`
+    Pure: an image (or any intermediate record) in, one record per stage out. No archive, no
+    I/O; what ``rasterserver reconstruct`` and the tests use.
+:class:`Pipeline`
+    For an archived acquisition: read its raster frame (never modifying it), resolve its
+    calibration, run the chain, store each stage's output in a derived HDF5 file
+    (:mod:`rasterserver.store.derived`) and record a :class:`~rasterserver.catalog.models.
+    StageResult` row with full provenance, inside a :class:`~rasterserver.catalog.models.
+    PipelineRun` row.
+
+Reuse
+-----
+Every result has a *chain key*: SHA-256 over the frame's checksum and index and, for its stage
+and each stage before it, the plugin name, algorithm version, parameters hash, and the
+checksums of the calibration and raster definition for the stages that use them
+(``requires``). The same key means the same computation, so the stored result is reused; the
+longest stored prefix of a chain is loaded and only the rest is computed. A new calibration
+therefore recomputes reconstruction onwards but reuses the image-processing stages, and a new
+peak detector recomputes everything; old results stay beside the new ones.
+
+Work is split so that a Dask worker can do the computing: :meth:`Pipeline.plan` (catalogue and
+files, in the driver), :func:`compute` (pure, anywhere) and :meth:`Pipeline.commit` (files and
+rows, in the driver).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import logging
+import socket
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import exists, select
+from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+
+from rasterserver import __version__
+from rasterserver.archive import Archive, canonical_json_sha256
+from rasterserver.catalog.models import (
+    Acquisition,
+    Calibration,
+    Frame,
+    PipelineRun,
+    StageResult,
+)
+from rasterserver.catalog.models import Station as StationRow
+from rasterserver.errors import InputError, IntegrityError, NotFoundError, RasterServerError
+from rasterserver.optics import Station
+from rasterserver.raster import Raster
+from rasterserver.records import Image, Record
+from rasterserver.registry import Registry, get_registry
+from rasterserver.stage import (
+    BUILTIN_STAGE_KINDS,
+    StageContext,
+    coerce_params,
+    params_hash,
+    run_stage,
+)
+from rasterserver.store.derived import DerivedStore
+
+__all__ = [
+    "ChainStep",
+    "Computation",
+    "Pipeline",
+    "Plan",
+    "ProcessResult",
+    "StepOutcome",
+    "check_frame_fits",
+    "compute",
+    "parse_stage_options",
+    "resolve_chain",
+    "run_chain",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TARGET = "mesh"
+_KEY_TAG = "rasterserver.chain/1"
+
+
+# --- chains ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ChainStep:
+    """One resolved stage of a chain: which plugin, with which validated parameters.
+
+    Attributes
+    ----------
+    kind : str
+        Stage kind (``"points"``).
+    plugin : str
+        Plugin name (``"points.ray-plane"``).
+    version : str
+        The plugin's algorithm version.
+    params : dict
+        Validated parameters, defaults included, JSON-ready.
+    params_hash : str
+        :func:`rasterserver.stage.params_hash` of them.
+    requires : tuple of str
+        What the plugin needs from the context.
+    package : str
+        ``"<distribution> <version>"`` that provides the plugin.
+    """
+
+    kind: str
+    plugin: str
+    version: str
+    params: dict[str, Any]
+    params_hash: str
+    requires: tuple[str, ...]
+    package: str = ""
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready summary for the run's ``chain`` column."""
+        return {
+            "stage": self.kind,
+            "plugin": self.plugin,
+            "version": self.version,
+            "params_hash": self.params_hash,
+        }
+
+
+def parse_stage_options(options: Sequence[str]) -> dict[str, str]:
+    """Parse ``KIND=PLUGIN`` command-line options into a chain mapping.
+
+    Parameters
+    ----------
+    options : sequence of str
+        E.g. ``["peaks=peaks.first-moment", "surface=surface.linear-grid"]``.
+
+    Returns
+    -------
+    dict of str to str
+
+    Raises
+    ------
+    InputError
+        An option without ``=`` or naming a kind twice.
+    """
+    chain: dict[str, str] = {}
+    for option in options:
+        kind, sep, plugin = option.partition("=")
+        kind, plugin = kind.strip(), plugin.strip()
+        if not sep or not kind or not plugin:
+            raise InputError(
+                f"--stage {option!r}: expected KIND=PLUGIN, e.g. points=points.ray-plane"
+            )
+        if kind in chain:
+            raise InputError(f"--stage names stage {kind!r} twice")
+        chain[kind] = plugin
+    return chain
+
+
+def resolve_chain(
+    chain: Mapping[str, str] | None = None,
+    *,
+    params: Mapping[str, Mapping[str, Any]] | None = None,
+    start: type[Record] = Image,
+    until: str = DEFAULT_TARGET,
+    registry: Registry | None = None,
+) -> list[ChainStep]:
+    """Pick the plugin of every stage from the one taking ``start`` records up to ``until``.
+
+    Parameters
+    ----------
+    chain : Mapping of str to str, optional
+        Plugin name per stage kind; the registry's default for kinds not named.
+    params : Mapping of str to Mapping, optional
+        Parameters per stage kind (validated here).
+    start : type of Record, optional
+        Class of the chain's input; the chain begins at the stage that takes it.
+    until : str, optional
+        Last stage kind, ``"mesh"`` by default.
+    registry : Registry, optional
+        Where plugins are found; the process's shared registry by default.
+
+    Returns
+    -------
+    list of ChainStep
+        In processing order.
+
+    Raises
+    ------
+    InputError
+        Unknown stage kinds, a plugin of another kind, parameters for stages not in the
+        chain, invalid parameters, or stages whose records do not fit together.
+    NotFoundError
+        A named plugin does not exist or no plugin implements a needed stage.
+    """
+    registry = registry or get_registry()
+    chain = dict(chain or {})
+    params = dict(params or {})
+    if until not in BUILTIN_STAGE_KINDS:
+        raise InputError(f"unknown stage {until!r}; stages: {', '.join(BUILTIN_STAGE_KINDS)}")
+    kinds = list(BUILTIN_STAGE_KINDS[: BUILTIN_STAGE_KINDS.index(until) + 1])
+    for what, mapping in (("--stage", chain), ("parameters", params)):
+        unknown = sorted(set(mapping) - set(BUILTIN_STAGE_KINDS))
+        if unknown:
+            raise InputError(
+                f"{what}: unknown stage kind(s) {', '.join(unknown)}; "
+                f"stages: {', '.join(BUILTIN_STAGE_KINDS)}"
+            )
+    # resolve from the end: stages before the one taking `start` are never needed, and may
+    # not even be installed when the chain starts from an intermediate record
+    steps: list[ChainStep] = []
+    found_start = False
+    for kind in reversed(kinds):
+        stage = registry.get(chain[kind]) if kind in chain else registry.default_for(kind)
+        if stage.stage != kind:
+            raise InputError(
+                f"plugin {stage.name!r} implements stage {stage.stage!r}, not {kind!r}"
+            )
+        if steps:
+            nxt = registry.get(steps[0].plugin)
+            if stage.output_type is not nxt.input_type:
+                raise InputError(
+                    f"{stage.name} gives {stage.output_type.kind} records but {nxt.name} "
+                    f"takes {nxt.input_type.kind}"
+                )
+        validated = coerce_params(stage, params.get(kind))
+        info = registry.info(stage.name)
+        steps.insert(
+            0,
+            ChainStep(
+                kind=kind,
+                plugin=stage.name,
+                version=stage.version,
+                params=validated.model_dump(mode="json"),
+                params_hash=params_hash(validated),
+                requires=tuple(stage.requires),
+                package=f"{info.package or '?'} {info.package_version or '?'}",
+            ),
+        )
+        if stage.input_type is start:
+            found_start = True
+            break
+    if not found_start:
+        raise InputError(f"no stage up to {until!r} takes {start.kind!r} records")
+    first = BUILTIN_STAGE_KINDS.index(steps[0].kind)
+    ignored = sorted(k for k in set(chain) | set(params) if BUILTIN_STAGE_KINDS.index(k) < first)
+    if ignored:
+        raise InputError(
+            f"stage(s) {', '.join(ignored)} come before {steps[0].kind!r}, where this chain "
+            f"starts ({start.kind} input)"
+        )
+    return steps
+
+
+def check_frame_fits(image_shape: tuple[int, ...], station: object) -> None:
+    """Refuse a frame whose size differs from the calibrated camera's.
+
+    Raises
+    ------
+    InputError
+        With both sizes in the message.
+    """
+    if isinstance(station, Station):
+        rows, cols = (int(s) for s in image_shape[:2])
+        if (rows, cols) != station.camera.shape:
+            raise InputError(
+                f"the frame is {rows}x{cols} (rows x columns) but the calibration's camera "
+                f"{station.name!r} is {station.camera.height}x{station.camera.width}: "
+                "wrong calibration for this frame"
+            )
+
+
+def _as_record(data: np.ndarray | Record) -> Record:
+    if isinstance(data, Record):
+        return data
+    if isinstance(data, np.ndarray):
+        return Image(data)
+    raise InputError(f"a chain takes an image array or a record, not {type(data).__name__}")
+
+
+def _run_steps(
+    record: Record,
+    steps: Sequence[ChainStep],
+    context: StageContext,
+    registry: Registry,
+) -> tuple[dict[str, Record], dict[str, float]]:
+    results: dict[str, Record] = {}
+    durations: dict[str, float] = {}
+    for step in steps:
+        stage = registry.get(step.plugin)
+        if stage.version != step.version:
+            raise RasterServerError(
+                f"plugin {step.plugin} is version {stage.version} here but the chain was "
+                f"planned with version {step.version}: install the same version everywhere"
+            )
+        t0 = time.perf_counter()
+        record = run_stage(stage, record, step.params, context)
+        durations[step.kind] = time.perf_counter() - t0
+        results[step.kind] = record
+    return results, durations
+
+
+def run_chain(
+    image: np.ndarray | Record,
+    *,
+    chain: Mapping[str, str] | None = None,
+    params: Mapping[str, Mapping[str, Any]] | None = None,
+    context: StageContext | None = None,
+    until: str = DEFAULT_TARGET,
+    registry: Registry | None = None,
+    durations: dict[str, float] | None = None,
+) -> dict[str, Record]:
+    """Run the stages on one image in memory; no archive, no files.
+
+    Parameters
+    ----------
+    image : numpy.ndarray or Record
+        A 2-D ``uint8``/``uint16`` frame, an :class:`~rasterserver.records.Image`, or an
+        intermediate record (e.g. ``NumberedLines``): the chain then starts at the stage that
+        takes it.
+    chain : Mapping of str to str, optional
+        Plugin per stage kind (defaults from the registry).
+    params : Mapping of str to Mapping, optional
+        Parameters per stage kind.
+    context : StageContext, optional
+        Calibration (:class:`~rasterserver.optics.Station`) and raster
+        (:class:`~rasterserver.raster.Raster`) for the stages that need them.
+    until : str, optional
+        Last stage kind (``"mesh"``).
+    registry : Registry, optional
+        Where plugins are found.
+    durations : dict, optional
+        Filled with seconds per stage kind.
+
+    Returns
+    -------
+    dict of str to Record
+        One record per stage kind run, in processing order.
+
+    Raises
+    ------
+    InputError
+        Bad chain, parameters or input, a frame of another size than the calibrated camera,
+        or a stage's requirement missing from ``context``.
+    """
+    registry = registry or get_registry()
+    record = _as_record(image)
+    context = context or StageContext()
+    steps = resolve_chain(chain, params=params, start=type(record), until=until, registry=registry)
+    if isinstance(record, Image):
+        check_frame_fits(record.pixels.shape, context.calibration)
+    results, spent = _run_steps(record, steps, context, registry)
+    if durations is not None:
+        durations.update(spent)
+    return results
+
+
+def _key(previous: str, step: ChainStep, calibration_sha: str, raster_sha: str) -> str:
+    parts = [
+        previous,
+        step.plugin,
+        step.version,
+        step.params_hash,
+        calibration_sha if "calibration" in step.requires else "",
+        raster_sha if "raster" in step.requires else "",
+    ]
+    return hashlib.sha256("\0".join(parts).encode()).hexdigest()
+
+
+def chain_keys(
+    frame_sha256: str,
+    frame_index: int,
+    steps: Sequence[ChainStep],
+    *,
+    calibration_sha: str,
+    raster_sha: str,
+) -> list[str]:
+    """The chain key of every step (see the module docstring).
+
+    Returns
+    -------
+    list of str
+        64 hex digits each, one per step.
+    """
+    key = hashlib.sha256(f"{_KEY_TAG}\0{frame_sha256}\0{frame_index}".encode()).hexdigest()
+    keys = []
+    for step in steps:
+        key = _key(key, step, calibration_sha, raster_sha)
+        keys.append(key)
+    return keys
+
+
+# --- archived acquisitions -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CachedResult:
+    """A stored result found for a step of a plan."""
+
+    result_id: int
+    store_path: str
+    output_checksum: str
+    reason: str
+
+
+@dataclass
+class Plan:
+    """Everything needed to compute and store one acquisition's chain (picklable).
+
+    Made by :meth:`Pipeline.plan` in the driver; :func:`compute` needs only ``steps[first:]``,
+    ``input_record`` and ``context``.
+    """
+
+    uid: str
+    acquisition_id: int
+    run_id: int
+    frame_index: int
+    calibration_id: int
+    steps: list[ChainStep]
+    keys: list[str]
+    cached: list[CachedResult | None]
+    first: int
+    input_record: Record | None
+    input_checksum: str
+    context: StageContext
+
+    @property
+    def to_compute(self) -> list[ChainStep]:
+        """The steps that have no stored result yet."""
+        return self.steps[self.first :]
+
+
+@dataclass
+class Computation:
+    """What :func:`compute` returns: the new records, their timings and where it ran."""
+
+    records: dict[str, Record]
+    durations: dict[str, float]
+    host: str
+
+
+def compute(
+    input_record: Record,
+    steps: Sequence[ChainStep],
+    context: StageContext,
+    *,
+    registry: Registry | None = None,
+) -> Computation:
+    """Run ``steps`` on ``input_record``: the pure part of processing, fit for a Dask worker.
+
+    Plugins are looked up by name in ``registry``, by default the process's own (a worker's);
+    a worker with another version of a plugin than the driver planned with refuses to compute.
+    """
+    records, durations = _run_steps(input_record, steps, context, registry or get_registry())
+    return Computation(records, durations, socket.gethostname())
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """How one stage of a processed acquisition came about."""
+
+    kind: str
+    plugin: str
+    result_id: int
+    reused: bool
+    duration_s: float
+    reason: str
+    store_path: str
+    output_checksum: str
+
+
+@dataclass
+class ProcessResult:
+    """The outcome of processing one acquisition.
+
+    Attributes
+    ----------
+    uid : str
+        The acquisition.
+    run_id : int
+        Its :class:`PipelineRun` row.
+    steps : list of StepOutcome
+        One per stage, in order.
+    final : Record or None
+        The last stage's record (loaded from its file when reused).
+    records : dict of str to Record
+        Records computed in this run (reused ones are not loaded).
+    """
+
+    uid: str
+    run_id: int
+    steps: list[StepOutcome]
+    final: Record | None = None
+    records: dict[str, Record] = field(default_factory=dict)
+
+    @property
+    def computed(self) -> int:
+        """Number of stages computed in this run."""
+        return sum(not s.reused for s in self.steps)
+
+    @property
+    def reused(self) -> int:
+        """Number of stages whose stored result was reused."""
+        return sum(s.reused for s in self.steps)
+
+    @property
+    def reason(self) -> str:
+        """The last stage's reason (why it is empty, or a note)."""
+        return self.steps[-1].reason if self.steps else ""
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+class Pipeline:
+    """Processing of archived acquisitions with stored results, provenance and reuse.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive (catalogue and raw store).
+    registry : Registry, optional
+        Where plugins are found.
+    """
+
+    def __init__(self, archive: Archive, *, registry: Registry | None = None) -> None:
+        self.archive = archive
+        self.registry = registry or get_registry()
+        self.derived = DerivedStore(archive.settings.archive)
+
+    # --- the three phases ------------------------------------------------------------------
+
+    def plan(
+        self,
+        uid: str,
+        *,
+        chain: Mapping[str, str] | None = None,
+        params: Mapping[str, Mapping[str, Any]] | None = None,
+        calibration: tuple[str, int | None] | None = None,
+        until: str = DEFAULT_TARGET,
+        frame_index: int | None = None,
+    ) -> Plan:
+        """Resolve the chain, the frame and the calibration; find stored results; open a run.
+
+        A :class:`PipelineRun` row is committed with status ``running``; if anything after
+        that fails, the run is marked ``failed`` with the message and the error re-raised.
+
+        Parameters
+        ----------
+        uid : str
+            Acquisition uid.
+        chain, params, until
+            As for :func:`run_chain`.
+        calibration : (str, int or None), optional
+            Station name and calibration version (None: newest) to use instead of the one
+            attached at ingest. It must belong to the acquisition's station.
+        frame_index : int, optional
+            Frame to process; the first ``raster`` frame by default.
+
+        Returns
+        -------
+        Plan
+
+        Raises
+        ------
+        NotFoundError
+            Unknown acquisition, station or calibration; no calibration attached or given.
+        InputError
+            Bad chain or parameters, no raster frame, a calibration of another station, an
+            invalid calibration document, or a frame of another size than the camera's.
+        IntegrityError
+            A stored result to be reused is missing or altered.
+        """
+        steps = resolve_chain(chain, params=params, until=until, registry=self.registry)
+        acquisition = self.archive.acquisition(uid)
+        with self.archive.session() as s:
+            run = PipelineRun(
+                acquisition_id=acquisition.id,
+                chain=[step.describe() for step in steps],
+                status="running",
+                started_at=_now(),
+                host=socket.gethostname(),
+                package_version=__version__,
+            )
+            s.add(run)
+        try:
+            return self._plan(acquisition, run, steps, calibration, frame_index)
+        except BaseException as exc:
+            self._fail(run.id, exc)
+            raise
+
+    def _plan(
+        self,
+        acquisition: Acquisition,
+        run: PipelineRun,
+        steps: list[ChainStep],
+        calibration: tuple[str, int | None] | None,
+        frame_index: int | None,
+    ) -> Plan:
+        uid = acquisition.uid
+        frame = self._frame(acquisition, frame_index)
+        cal_row, station, raster = self._calibration(acquisition, calibration)
+        with self.archive.session() as s:
+            s.get(PipelineRun, run.id).calibration_id = cal_row.id  # type: ignore[union-attr]
+        check_frame_fits((frame.height, frame.width), station)
+        raster_sha = canonical_json_sha256(raster.to_dict())
+        keys = chain_keys(
+            frame.sha256, frame.index, steps, calibration_sha=cal_row.sha256, raster_sha=raster_sha
+        )
+        with self.archive.session() as s:
+            rows = {
+                row.chain_key: row
+                for row in s.scalars(
+                    select(StageResult).where(
+                        StageResult.acquisition_id == acquisition.id,
+                        StageResult.chain_key.in_(keys),
+                    )
+                )
+            }
+        cached: list[CachedResult | None] = []
+        for key in keys:
+            row = rows.get(key)
+            if row is None or (cached and cached[-1] is None):
+                cached.append(None)
+                continue
+            cached.append(CachedResult(row.id, row.store_path, row.output_checksum, row.reason))
+        first = next((i for i, c in enumerate(cached) if c is None), len(steps))
+        context = StageContext(calibration=station, raster=raster)
+        input_record: Record | None = None
+        input_checksum = ""
+        if first < len(steps):
+            if first == 0:
+                # read-only, SHA-256 verified against the file: the raw frame is never touched
+                pixels = self.archive.read_frame(uid, frame.index)
+                input_record = Image(pixels, role=frame.role)
+            else:
+                previous = cached[first - 1]
+                assert previous is not None
+                input_record = self._load(previous)
+            input_checksum = input_record.content_hash()
+        return Plan(
+            uid=uid,
+            acquisition_id=acquisition.id,
+            run_id=run.id,
+            frame_index=frame.index,
+            calibration_id=cal_row.id,
+            steps=steps,
+            keys=keys,
+            cached=cached,
+            first=first,
+            input_record=input_record,
+            input_checksum=input_checksum,
+            context=context,
+        )
+
+    def compute(self, plan: Plan) -> Computation:
+        """Compute the steps of ``plan`` without stored results, in this process."""
+        if plan.input_record is None:
+            return Computation({}, {}, socket.gethostname())
+        try:
+            return compute(
+                plan.input_record, plan.to_compute, plan.context, registry=self.registry
+            )
+        except BaseException as exc:
+            self._fail(plan.run_id, exc)
+            raise
+
+    def commit(self, plan: Plan, computation: Computation) -> ProcessResult:
+        """Store the computed records and their provenance; finish the run.
+
+        Files are written (durably) before their rows; a crash in between leaves files that
+        the next run adopts, because their names follow from their chain keys.
+        """
+        try:
+            return self._commit(plan, computation)
+        except BaseException as exc:
+            self._fail(plan.run_id, exc)
+            raise
+
+    def _commit(self, plan: Plan, computation: Computation) -> ProcessResult:
+        outcomes: list[StepOutcome] = []
+        for step, cached in zip(plan.steps[: plan.first], plan.cached[: plan.first], strict=True):
+            assert cached is not None
+            outcomes.append(
+                StepOutcome(step.kind, step.plugin, cached.result_id, True, 0.0, cached.reason,
+                            cached.store_path, cached.output_checksum)
+            )
+        stored = []
+        input_checksum = plan.input_checksum
+        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+            record = computation.records[step.kind]
+            result = self.derived.write(
+                plan.uid,
+                record,
+                stage=step.kind,
+                plugin=step.plugin,
+                plugin_version=step.version,
+                params=step.params,
+                params_hash=step.params_hash,
+                chain_key=key,
+                input_checksum=input_checksum,
+            )
+            stored.append((step, key, record, result, input_checksum))
+            input_checksum = result.output_checksum
+        parent_id = outcomes[-1].result_id if outcomes else None
+        with self.archive.session() as s:
+            for step, key, record, result, in_sum in stored:
+                row = StageResult(
+                    acquisition_id=plan.acquisition_id,
+                    run_id=plan.run_id,
+                    parent_id=parent_id,
+                    calibration_id=plan.calibration_id if step.requires else None,
+                    frame_index=plan.frame_index,
+                    stage=step.kind,
+                    plugin=step.plugin,
+                    plugin_version=step.version,
+                    plugin_package=step.package,
+                    params=step.params,
+                    params_hash=step.params_hash,
+                    chain_key=key,
+                    input_checksum=in_sum,
+                    output_checksum=result.output_checksum,
+                    record_kind=record.kind,
+                    store_path=result.path,
+                    reason=getattr(record, "reason", "") or "",
+                    package_version=__version__,
+                    host=computation.host,
+                    duration_s=float(computation.durations.get(step.kind, 0.0)),
+                    created_at=_now(),
+                )
+                reused = False
+                try:
+                    with s.begin_nested():
+                        s.add(row)
+                except SQLIntegrityError:
+                    # another process stored the same computation meanwhile: use its row
+                    existing = s.scalar(
+                        select(StageResult).where(
+                            StageResult.acquisition_id == plan.acquisition_id,
+                            StageResult.chain_key == key,
+                        )
+                    )
+                    if existing is None:
+                        raise
+                    row, reused = existing, True
+                parent_id = row.id
+                outcomes.append(
+                    StepOutcome(step.kind, step.plugin, row.id, reused, row.duration_s,
+                                row.reason, row.store_path, row.output_checksum)
+                )
+            run = s.get(PipelineRun, plan.run_id)
+            assert run is not None
+            run.status = "done"
+            run.finished_at = _now()
+            run.computed = sum(not o.reused for o in outcomes)
+            run.reused = sum(o.reused for o in outcomes)
+        final: Record | None = None
+        if computation.records and plan.steps:
+            final = computation.records.get(plan.steps[-1].kind)
+        if final is None and outcomes:
+            last = outcomes[-1]
+            final = self.derived.read(last.store_path, expected_checksum=last.output_checksum)
+        log.info(
+            "processed acquisition %s: %d stage(s) computed, %d reused",
+            plan.uid,
+            sum(not o.reused for o in outcomes),
+            sum(o.reused for o in outcomes),
+        )
+        return ProcessResult(plan.uid, plan.run_id, outcomes, final, dict(computation.records))
+
+    def process(
+        self,
+        uid: str,
+        *,
+        chain: Mapping[str, str] | None = None,
+        params: Mapping[str, Mapping[str, Any]] | None = None,
+        calibration: tuple[str, int | None] | None = None,
+        until: str = DEFAULT_TARGET,
+        frame_index: int | None = None,
+    ) -> ProcessResult:
+        """Process one acquisition in this process: plan, compute, commit.
+
+        See :meth:`plan` for the parameters and errors.
+
+        Returns
+        -------
+        ProcessResult
+        """
+        plan = self.plan(
+            uid, chain=chain, params=params, calibration=calibration, until=until,
+            frame_index=frame_index,
+        )
+        return self.commit(plan, self.compute(plan))
+
+    # --- queries ---------------------------------------------------------------------------
+
+    def result(
+        self, uid: str, stage: str, *, plugin: str | None = None
+    ) -> tuple[StageResult, Record]:
+        """The newest stored result of ``stage`` for acquisition ``uid``, with its record.
+
+        Raises
+        ------
+        NotFoundError
+            Unknown acquisition, or nothing of that stage stored (the message says how to
+            process it).
+        """
+        acquisition = self.archive.acquisition(uid)
+        query = select(StageResult).where(
+            StageResult.acquisition_id == acquisition.id, StageResult.stage == stage
+        )
+        if plugin is not None:
+            query = query.where(StageResult.plugin == plugin)
+        with self.archive.session() as s:
+            row = s.scalar(query.order_by(StageResult.created_at.desc(), StageResult.id.desc()))
+        if row is None:
+            which = f" by {plugin}" if plugin else ""
+            raise NotFoundError(
+                f"acquisition {uid} has no stored {stage} result{which}: "
+                f"run `rasterserver process {uid}` first"
+            )
+        return row, self.derived.read(row.store_path, expected_checksum=row.output_checksum)
+
+    def results(self, uid: str) -> list[StageResult]:
+        """Every stored result of ``uid``, oldest first."""
+        acquisition = self.archive.acquisition(uid)
+        with self.archive.session() as s:
+            return list(
+                s.scalars(
+                    select(StageResult)
+                    .where(StageResult.acquisition_id == acquisition.id)
+                    .order_by(StageResult.id)
+                )
+            )
+
+    def runs(self, uid: str) -> list[PipelineRun]:
+        """Every pipeline run of ``uid``, oldest first."""
+        acquisition = self.archive.acquisition(uid)
+        with self.archive.session() as s:
+            return list(
+                s.scalars(
+                    select(PipelineRun)
+                    .where(PipelineRun.acquisition_id == acquisition.id)
+                    .order_by(PipelineRun.id)
+                )
+            )
+
+    def unprocessed(self, *, patient: str | None = None, limit: int = 100_000) -> list[str]:
+        """Uids of acquisitions with a raster frame and no successful run, oldest first."""
+        done = exists().where(
+            PipelineRun.acquisition_id == Acquisition.id, PipelineRun.status == "done"
+        )
+        has_raster = exists().where(Frame.acquisition_id == Acquisition.id, Frame.role == "raster")
+        query = select(Acquisition.uid).where(~done, has_raster)
+        with self.archive.session() as s:
+            if patient is not None:
+                query = query.where(Acquisition.patient_id == self.archive.patient(patient, s).id)
+            query = query.order_by(Acquisition.acquired_at, Acquisition.id).limit(limit)
+            return list(s.scalars(query))
+
+    # --- helpers ---------------------------------------------------------------------------
+
+    def _frame(self, acquisition: Acquisition, index: int | None) -> Frame:
+        frames = sorted(acquisition.frames, key=lambda f: f.index)
+        if index is not None:
+            for frame in frames:
+                if frame.index == index:
+                    return frame
+            raise NotFoundError(f"acquisition {acquisition.uid} has no frame {index}")
+        for frame in frames:
+            if frame.role == "raster":
+                return frame
+        roles = ", ".join(sorted({f.role for f in frames})) or "none"
+        raise InputError(
+            f"acquisition {acquisition.uid} has no raster frame (frame roles: {roles}); "
+            "give the frame index to process another one"
+        )
+
+    def _calibration(
+        self, acquisition: Acquisition, wanted: tuple[str, int | None] | None
+    ) -> tuple[Calibration, Station, Raster]:
+        with self.archive.session() as s:
+            if wanted is not None:
+                station_name, version = wanted
+                row = self.archive.calibration(station_name, version, s)
+                if acquisition.station_id is not None and row.station_id != acquisition.station_id:
+                    own_row = s.get(StationRow, acquisition.station_id)
+                    own = own_row.name if own_row is not None else "?"
+                    raise InputError(
+                        f"calibration {station_name}:{row.version} belongs to station "
+                        f"{station_name!r} but acquisition {acquisition.uid} was recorded at "
+                        f"station {own!r}"
+                    )
+            elif acquisition.calibration_id is not None:
+                row = s.get(Calibration, acquisition.calibration_id)
+                assert row is not None
+            else:
+                raise NotFoundError(
+                    f"acquisition {acquisition.uid} has no calibration: give one with "
+                    "--calibration STATION:VERSION (or ingest with --station after storing a "
+                    "calibration of that station)"
+                )
+            raster_definition = row.raster.definition if row.raster is not None else None
+            station_name = row.station.name
+        try:
+            station = Station.from_dict(row.parameters)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(
+                f"calibration {station_name}:{row.version} is not a usable calibration "
+                f"document: {exc}"
+            ) from None
+        try:
+            raster = (
+                Raster.from_dict(raster_definition)
+                if raster_definition is not None
+                else station.raster_definition
+            )
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(
+                f"the raster of calibration {station_name}:{row.version} is unusable: {exc}"
+            ) from None
+        return row, station, raster
+
+    def _load(self, cached: CachedResult) -> Record:
+        try:
+            return self.derived.read(cached.store_path, expected_checksum=cached.output_checksum)
+        except NotFoundError:
+            raise IntegrityError(
+                f"stored result {cached.store_path} is missing; run `rasterserver verify`"
+            ) from None
+
+    def _fail(self, run_id: int, exc: BaseException) -> None:
+        message = str(exc) if isinstance(exc, RasterServerError) else f"{type(exc).__name__}: {exc}"
+        try:
+            with self.archive.session() as s:
+                run = s.get(PipelineRun, run_id)
+                if run is not None and run.status == "running":
+                    run.status = "failed"
+                    run.finished_at = _now()
+                    run.error = message[:10_000]
+        except Exception:  # the original error matters more than failing to record it
+            log.exception("could not mark pipeline run %s as failed", run_id)
+
+
+def describe_params(step: ChainStep) -> str:
+    """The step's parameters as canonical JSON (for messages and listings)."""
+    return json.dumps(step.params, sort_keys=True, separators=(",", ":"))
