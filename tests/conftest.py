@@ -8,6 +8,7 @@ reachable server the leg is skipped with the reason.
 
 from __future__ import annotations
 
+import functools
 import os
 import uuid
 from collections.abc import Iterator
@@ -36,17 +37,13 @@ def _postgres_unavailable() -> str | None:
     return None
 
 
-_PG_REASON: str | None | bool = False  # False: not probed yet
-
-
+@functools.cache
 def postgres_skip_reason() -> str | None:
     """Probe the PostgreSQL server once per session; return why it cannot be used, if so."""
-    global _PG_REASON
-    if _PG_REASON is False:
-        _PG_REASON = _postgres_unavailable()
-        if _PG_REASON and os.environ.get("RASTERSERVER_REQUIRE_POSTGRES"):
-            pytest.fail(f"RASTERSERVER_REQUIRE_POSTGRES is set but {_PG_REASON}")
-    return _PG_REASON  # type: ignore[return-value]
+    reason = _postgres_unavailable()
+    if reason and os.environ.get("RASTERSERVER_REQUIRE_POSTGRES"):
+        pytest.fail(f"RASTERSERVER_REQUIRE_POSTGRES is set but {reason}")
+    return reason
 
 
 @pytest.fixture
