@@ -591,7 +591,7 @@ class Pipeline:
         try:
             return self._plan(acquisition, run, steps, calibration, frame_index)
         except BaseException as exc:
-            self._fail(run.id, exc)
+            self.fail(run.id, exc)
             raise
 
     def _plan(
@@ -667,7 +667,7 @@ class Pipeline:
                 plan.input_record, plan.to_compute, plan.context, registry=self.registry
             )
         except BaseException as exc:
-            self._fail(plan.run_id, exc)
+            self.fail(plan.run_id, exc)
             raise
 
     def commit(self, plan: Plan, computation: Computation) -> ProcessResult:
@@ -679,7 +679,7 @@ class Pipeline:
         try:
             return self._commit(plan, computation)
         except BaseException as exc:
-            self._fail(plan.run_id, exc)
+            self.fail(plan.run_id, exc)
             raise
 
     def _commit(self, plan: Plan, computation: Computation) -> ProcessResult:
@@ -934,7 +934,8 @@ class Pipeline:
                 f"stored result {cached.store_path} is missing; run `rasterserver verify`"
             ) from None
 
-    def _fail(self, run_id: int, exc: BaseException) -> None:
+    def fail(self, run_id: int, exc: BaseException) -> None:
+        """Mark run ``run_id`` failed with the message of ``exc`` (if it is still running)."""
         message = str(exc) if isinstance(exc, RasterServerError) else f"{type(exc).__name__}: {exc}"
         try:
             with self.archive.session() as s:
