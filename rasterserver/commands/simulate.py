@@ -9,7 +9,6 @@ check the result: the images, the ground truth, the station's calibration and th
 from __future__ import annotations
 
 import dataclasses
-import datetime as dt
 import json
 from enum import StrEnum
 from pathlib import Path
@@ -252,6 +251,7 @@ def back(
     parameters with the applied lateral deviation and rotation per height), back.json (the
     parameters, reusable), calibration.json (the station) and raster.json (the diapositive).
     """
+    from rasterserver.simulated_visits import progressed
     from rasterserver.simulator.back import BackParameters
     from rasterserver.simulator.back import preset as get_preset
     from rasterserver.simulator.back import random_back as rb
@@ -283,7 +283,7 @@ def back(
 
     written: list[tuple[Path, BackParameters, Any]] = []
     for visit in range(visits):
-        visit_params = _progressed(params, visit, progression)
+        visit_params = progressed(params, visit, progression)
         folder = out if visits == 1 else out / f"visit-{visit + 1:02d}"
         _echo_progress(f"[{visit + 1}/{visits}] rendering back -> {folder}")
         scene = _make_back(visit_params)
@@ -313,23 +313,6 @@ def _make_back(params: Any) -> Any:
     return make_back(params)
 
 
-def _progressed(params: Any, visit: int, progression: float) -> Any:
-    """The back at a later visit: every curve's deviation and rotation grown geometrically,
-    capped at the parameter limits."""
-    if visit == 0 or not params.curves:
-        return params
-    factor = (1.0 + progression) ** visit
-    curves = tuple(
-        dataclasses.replace(
-            c,
-            lateral_deviation=max(-120.0, min(120.0, c.lateral_deviation * factor)),
-            rotation=max(-60.0, min(60.0, c.rotation * factor)),
-        )
-        for c in params.curves
-    )
-    return dataclasses.replace(params, curves=curves)
-
-
 def _ingest_visits(
     ctx: typer.Context,
     written: list[tuple[Path, Any, Any]],
@@ -338,56 +321,21 @@ def _ingest_visits(
     patient: str,
     station_name: str,
 ) -> None:
-    from rasterserver.archive import Archive, FrameSource, canonical_json_sha256
+    from rasterserver.archive import Archive
     from rasterserver.commands.common import settings as cli_settings
-    from rasterserver.errors import ConflictError, NotFoundError
+    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
 
-    archive = Archive.create(cli_settings(ctx))
-    try:
-        try:
-            archive.patient(patient)
-        except NotFoundError:
-            archive.add_patient(patient, name="Simulated patient")
-        try:
-            archive.station(station_name)
-        except NotFoundError:
-            archive.add_station(station_name, description="rasterserver simulator")
-        raster = station.raster_definition
-        raster_name = f"simulator-{canonical_json_sha256(raster.to_dict())[:12]}"
-        try:
-            archive.add_raster(raster_name, raster.to_dict())
-        except ConflictError:
-            raster_name = None  # stored already under another name; leave it unlinked
-        calibration = station.to_dict()
-        newest = archive.calibrations(station_name)
-        if not newest or newest[-1].sha256 != canonical_json_sha256(calibration):
-            archive.add_calibration(
-                station_name, calibration, raster=raster_name, notes="simulator station"
-            )
-        first = dt.datetime(2024, 1, 15, 9, 0, tzinfo=dt.UTC)
-        for i, (folder, params, rendering) in enumerate(written):
-            main = params.curves[0] if params.curves else None
-            notes = (
-                f"simulated back, visit {i + 1}; main curve "
-                + (
-                    f"{main.lateral_deviation:.1f} mm, {main.rotation:.1f}°"
-                    if main
-                    else "none (straight spine)"
-                )
-                + f"; parameters in {folder / 'back.json'}"
-            )
-            acq = archive.ingest(
-                [FrameSource(rendering.image, role="raster", name=f"visit-{i + 1:02d}")],
-                patient=patient,
-                station=station_name,
-                acquired_at=first + dt.timedelta(days=182 * i),
-                operator="simulator",
-                notes=notes,
-            )
-            _echo_progress(f"[{i + 1}/{len(written)}] ingested visit as acquisition {acq.uid}")
-            typer.echo(f"ingested {acq.uid}")
-    finally:
-        archive.close()
+    visits = [
+        SimulatedVisit(params, rendering.image, note=f"; parameters in {folder / 'back.json'}")
+        for folder, params, rendering in written
+    ]
+    with Archive.create(cli_settings(ctx)) as archive:
+        rows = archive_visits(
+            archive, visits, station=station, patient=patient, station_name=station_name,
+            log=_echo_progress,
+        )
+    for acq in rows:
+        typer.echo(f"ingested {acq.uid}")
 
 
 _CALIBRATION_HELP = (
