@@ -5,7 +5,10 @@ Physics, per camera sub-sample (``supersampling`` x ``supersampling`` per pixel)
 1. the camera ray hits the nearest surface (open3d ``RaycastingScene``);
 2. the hit point's diapositive coordinate ``v`` gives the blurred raster transmission
    (:class:`~rasterserver.simulator.illumination.RasterLight`);
-3. a shadow ray towards the projector centre decides whether the raster light arrives;
+3. a shadow ray towards the projector centre decides whether the raster light arrives
+   (cast for every pixel centre first; a sub-sample gets its own only where the 3 x 3
+   neighbouring pixel centres disagree, i.e. near a shadow edge, so a shadow narrower than
+   about one pixel may be missed in the image — never in the ground truth's pixel maps);
 4. Lambertian shading: projector irradiance ``x max(0, n.l)`` ``x (d_ref/d)**2`` (optional),
    plus uniform ambient light, times the object's albedo at the point, gives expected
    photo-electrons;
