@@ -7,8 +7,8 @@ number is that order plus an offset, which the pattern of light and heavy lines 
 Reading the kinds robustly: absolute intensity varies along the back (distance, inclination,
 skin), but two neighbouring lines in one column are lit and seen alike, so the ratio of their
 peak areas is the ratio of their line widths: 1.5 for a heavy line over a light one (60:40),
-1 for equal kinds. For each pair of consecutive levels ``k, k + 1`` of a component, the
-median over the columns where they are direct neighbours of ``log(area_k / area_k+1)`` is
+1 for equal kinds. For each pair of consecutive levels ``k, k + 1`` of a component, a robust
+mean over the columns where they are direct neighbours of ``log(area_k / area_k+1)`` is
 ``+λ``, ``0`` or ``-λ`` (``λ = log 1.5``).
 
 The offset is the maximum-likelihood placement of these differences on the code: every
@@ -42,7 +42,7 @@ def level_differences(
     line_order: np.ndarray,
     line_component: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Median log-area ratio of every pair of consecutive levels, per component.
+    """Robust mean log-area ratio of every pair of consecutive levels, per component.
 
     Parameters
     ----------
@@ -54,9 +54,9 @@ def level_differences(
     Returns
     -------
     comp, level, ratio, count : numpy.ndarray
-        One entry per (component, level ``k``) with measurements: the median over columns
-        of ``log(area at k / area at k + 1)`` where a line of level ``k`` lies directly
-        above one of level ``k + 1``, and the number of such columns.
+        One entry per (component, level ``k``) with measurements: the robust mean over
+        columns of ``log(area at k / area at k + 1)`` where a line of level ``k`` lies
+        directly above one of level ``k + 1``, and the number of such columns.
     """
     empty_i = np.zeros(0, dtype=np.int64)
     if col.size < 2 or line_order.size == 0:
@@ -84,16 +84,20 @@ def level_differences(
     comp, level = comp_of[k], lev_of[k]
     span = int(lev_of.max()) + 2
     key = comp * span + level
-    o = np.lexsort((lr, key))
-    key, lr = key[o], lr[o]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, key.size])
-    # median of each sorted group: mean of the two middle elements
-    mid_lo = starts + (counts - 1) // 2
-    mid_hi = starts + counts // 2
-    med = 0.5 * (lr[mid_lo] + lr[mid_hi])
-    gkey = key[starts]
-    return gkey // span, gkey % span, med, counts
+    # Keys are small (components x levels): count by key directly, no sort.
+    n_keys = int(key.max()) + 1
+    counts = np.bincount(key, minlength=n_keys)
+    # A robust centre without sorting: the mean of the clipped ratios, then twice the mean
+    # of those near the previous centre (silhouette columns and skin spots are outliers).
+    lr = np.clip(lr, -1.0, 1.0)
+    centre = np.bincount(key, weights=lr, minlength=n_keys) / np.maximum(counts, 1)
+    for window in (0.3, 0.15):
+        near = np.abs(lr - centre[key]) <= window
+        total = np.bincount(key[near], weights=lr[near], minlength=n_keys)
+        n_near = np.bincount(key[near], minlength=n_keys)
+        centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
+    groups = np.flatnonzero(counts)
+    return groups // span, groups % span, centre[groups], counts[groups]
 
 
 @dataclass(frozen=True)

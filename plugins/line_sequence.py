@@ -41,6 +41,7 @@ def line_neighbours(
     n_lines: int,
     *,
     gap_ratio: float = 1.6,
+    cell: int = 24,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pairs of lines that are direct neighbours in some columns, and in how many.
 
@@ -52,7 +53,10 @@ def line_neighbours(
         Number of lines.
     gap_ratio : float
         A neighbourhood in a column counts only when its row gap is at most ``gap_ratio``
-        times the mean of the gaps directly above and below it in that column.
+        times the mean of the gaps directly above and below it in that column, and
+        ``gap_ratio`` times the typical gap in its ``cell`` x ``cell`` pixel cell.
+    cell : int
+        Cell size (px) of the typical gap.
 
     Returns
     -------
@@ -78,8 +82,28 @@ def line_neighbours(
             np.where(np.isnan(g_next), gap, g_next),
             np.where(np.isnan(g_next), g_prev, 0.5 * (g_prev + g_next)),
         )
+    # And the typical spacing around the pair: the mean gap in its cell of the image, after
+    # dropping gaps far above a first mean (the missing lines themselves). An isolated pair
+    # (no gaps above or below it in its column) is judged by this alone.
+    cell_col = (col[:-1] // cell).astype(np.int64)
+    cell_row = (np.maximum(row[:-1], 0.0) // cell).astype(np.int64)
+    cell_id = cell_col * (int(cell_row.max()) + 1 if cell_row.size else 1) + cell_row
+    cell_id = np.where(same_col, cell_id, -1)
+    sel = cell_id >= 0
+    if np.any(sel):
+        n_cells = int(cell_id.max()) + 1
+        for_mean = sel.copy()
+        for _ in range(2):
+            total = np.bincount(cell_id[for_mean], weights=gap[for_mean], minlength=n_cells)
+            count = np.bincount(cell_id[for_mean], minlength=n_cells)
+            typical = np.where(count > 0, total / np.maximum(count, 1), np.inf)
+            for_mean = sel & (gap <= 1.4 * typical[np.maximum(cell_id, 0)])
+        cell_ref = typical[np.maximum(cell_id, 0)]
+    else:
+        cell_ref = np.full(n - 1, np.inf)
     a, b = line_id[:-1].astype(np.int64), line_id[1:].astype(np.int64)
-    ok = same_col & (a >= 0) & (b >= 0) & (a != b) & (gap <= gap_ratio * ref)
+    ok = same_col & (a >= 0) & (b >= 0) & (a != b)
+    ok &= (gap <= gap_ratio * ref) & (gap <= gap_ratio * cell_ref)
     if not np.any(ok):
         return empty, empty, empty
     keys, counts = np.unique(a[ok] * n_lines + b[ok], return_counts=True)

@@ -96,7 +96,7 @@ def _extrema(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def detect_peaks(
     image: np.ndarray,
     *,
-    min_height: float = 8.0,
+    min_height: float = 5.0,
     min_slope: float = 3.0,
     bias: BiasMode = "max-minimum",
     bias_fraction: float = 0.1,
@@ -230,7 +230,7 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
     class Params(StageParams):
         """Parameters of :class:`FirstMomentPeaks` (grey values in DN of the input)."""
 
-        min_height: float = Field(8.0, ge=0, description="Least rise and fall of a peak (DN).")
+        min_height: float = Field(5.0, ge=0, description="Least rise and fall of a peak (DN).")
         min_slope: float = Field(
             3.0, ge=0, description="Least steepest single-pixel step on each flank (DN/px)."
         )

@@ -53,7 +53,12 @@ def wall(*, supersampling: int = 1, seed: int = 3) -> Rendering:
 
 
 def truth_of_peaks(
-    col: np.ndarray, row: np.ndarray, line_rows: LineRows, *, tol: float = 1.5
+    col: np.ndarray,
+    row: np.ndarray,
+    line_rows: LineRows,
+    *,
+    tol: float = 1.5,
+    resolve: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth line number and row of each peak (-1 / NaN when no line centre is near).
 
@@ -65,6 +70,9 @@ def truth_of_peaks(
         The simulator's exact line-centre rows.
     tol : float
         Largest distance (px) from a peak to its line centre in the same column.
+    resolve : float
+        Two line centres closer than this (px) in a column (where a line emerges from
+        behind a fold) make a single peak whose line cannot be told: such peaks get -1.
     """
     gc, gr, gn = line_rows.column, line_rows.row, line_rows.number
     order = np.lexsort((gr, gc))
@@ -74,12 +82,15 @@ def truth_of_peaks(
     kp = col.astype(np.int64) * span + row
     if kg.size == 0 or kp.size == 0:
         return np.full(kp.size, -1, np.int64), np.full(kp.size, np.nan)
-    j = np.clip(np.searchsorted(kg, kp), 1, max(kg.size - 1, 1))
-    j0 = np.clip(j - 1, 0, kg.size - 1)
-    j1 = np.clip(j, 0, kg.size - 1)
+    last = kg.size - 1
+    j = np.clip(np.searchsorted(kg, kp), 1, max(last, 1))
+    j0 = np.clip(j - 1, 0, last)
+    j1 = np.clip(j, 0, last)
     e0, e1 = np.abs(kg[j0] - kp), np.abs(kg[j1] - kp)
     jj = np.where(e0 < e1, j0, j1)
     near = np.minimum(e0, e1) < tol
+    for side in (np.clip(jj - 1, 0, last), np.clip(jj + 1, 0, last)):
+        near &= ~((side != jj) & (np.abs(kg[side] - kg[jj]) < resolve))
     return np.where(near, gn[jj], -1), np.where(near, gr[jj], np.nan)
 
 
