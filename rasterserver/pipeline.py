@@ -246,6 +246,15 @@ def resolve_chain(
             break
     if not found_start:
         raise InputError(f"no stage up to {until!r} takes {start.kind!r} records")
+    # stages beyond `until` are not run, but a misspelt choice for them is still a mistake
+    for kind in BUILTIN_STAGE_KINDS[BUILTIN_STAGE_KINDS.index(until) + 1 :]:
+        if kind in chain or kind in params:
+            stage = registry.get(chain[kind]) if kind in chain else registry.default_for(kind)
+            if stage.stage != kind:
+                raise InputError(
+                    f"plugin {stage.name!r} implements stage {stage.stage!r}, not {kind!r}"
+                )
+            coerce_params(stage, params.get(kind))
     first = BUILTIN_STAGE_KINDS.index(steps[0].kind)
     ignored = sorted(k for k in set(chain) | set(params) if BUILTIN_STAGE_KINDS.index(k) < first)
     if ignored:

@@ -10,10 +10,13 @@ from types import ModuleType
 from rasterserver.commands import (
     db,
     demo,
+    export,
     ingest,
     listing,
     patients,
     plugins,
+    process,
+    reconstruct,
     simulate,
     stations,
     verify,
@@ -29,4 +32,7 @@ COMMAND_MODULES: list[ModuleType] = [
     verify,
     plugins,
     simulate,
+    reconstruct,
+    process,
+    export,
 ]

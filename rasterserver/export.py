@@ -1,0 +1,218 @@
+"""Writing results for other programs: point clouds, meshes and the line overlay image.
+
+* Point clouds as PLY (binary, open3d's tensor point cloud: ``x, y, z`` as doubles plus the
+  per-point properties ``number`` and ``col`` (int), ``row`` (double) and ``area`` (float),
+  which any PLY reader lists as vertex properties) or CSV (one header line, one point per
+  line).
+* Meshes as PLY, OBJ or STL through ``open3d.io.write_triangle_mesh``; vertex normals face
+  the camera.
+* The overlay: the raw frame with every peak coloured by its line number and the numbers
+  written at the ends of each line, what a clinician looks at to trust the numbering.
+
+Coordinates are millimetres in the world frame of the calibration used.
+"""
+
+from __future__ import annotations
+
+import colorsys
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from rasterserver.errors import InputError
+from rasterserver.records_surface import MeshRecord, Points
+
+__all__ = [
+    "MESH_FORMATS",
+    "POINT_FORMATS",
+    "line_colours",
+    "overlay_image",
+    "write_mesh",
+    "write_points",
+]
+
+POINT_FORMATS = ("ply", "csv")
+MESH_FORMATS = ("ply", "obj", "stl")
+
+_GOLDEN = 0.618033988749895
+
+
+def _check_target(path: Path) -> Path:
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"cannot write {path.name}: folder {path.parent} does not exist")
+    return path
+
+
+def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "ply") -> Path:
+    """Write a point cloud with its per-point properties.
+
+    Parameters
+    ----------
+    points : Points
+        The points; must not be empty.
+    path : Path
+        Target file (overwritten).
+    fmt : {"ply", "csv"}
+        File format.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        No points (the message carries the record's reason), an unknown format or a missing
+        folder.
+    """
+    path = _check_target(path)
+    if len(points) == 0:
+        raise InputError(f"no points to write: {points.reason or 'empty result'}")
+    if fmt == "csv":
+        table = np.column_stack(
+            [points.x, points.y, points.z, points.number, points.col, points.row, points.area]
+        )
+        np.savetxt(
+            path,
+            table,
+            delimiter=",",
+            header="x_mm,y_mm,z_mm,line_number,column,row,peak_area",
+            comments="",
+            fmt=["%.6f", "%.6f", "%.6f", "%d", "%d", "%.6f", "%.4f"],
+        )
+        return path
+    if fmt != "ply":
+        raise InputError(f"unknown point format {fmt!r}; use one of {', '.join(POINT_FORMATS)}")
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points.xyz)))
+    for name, values, dtype in (
+        ("number", points.number, np.int32),
+        ("col", points.col, np.int32),
+        ("row", points.row, np.float64),
+        ("area", points.area, np.float32),
+    ):
+        cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(values, dtype=dtype)[:, None])
+    if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
+        raise OSError(f"open3d could not write {path}")
+    return path
+
+
+def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"] = "ply") -> Path:
+    """Write a triangle mesh with vertex normals.
+
+    Parameters
+    ----------
+    mesh : MeshRecord
+        The mesh; must not be empty.
+    path : Path
+        Target file (overwritten).
+    fmt : {"ply", "obj", "stl"}
+        File format (STL keeps only triangles and their normals).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        An empty mesh (with its reason), an unknown format or a missing folder.
+    """
+    path = _check_target(path)
+    if fmt not in MESH_FORMATS:
+        raise InputError(f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
+    if len(mesh.triangles) == 0:
+        raise InputError(f"no mesh to write: {mesh.reason or 'empty result'}")
+    if path.suffix.lower() != f".{fmt}":
+        # open3d picks the writer from the suffix
+        raise InputError(f"{path.name}: a {fmt} file must end in .{fmt}")
+    o3d_mesh: Any = mesh.to_open3d()
+    o3d_mesh.compute_triangle_normals()
+    if not o3d.io.write_triangle_mesh(str(path), o3d_mesh, write_ascii=False):
+        raise OSError(f"open3d could not write {path}")
+    return path
+
+
+def line_colours(numbers: np.ndarray) -> np.ndarray:
+    """Distinct BGR colours (uint8) for line numbers: neighbouring lines differ in hue."""
+    numbers = np.asarray(numbers)
+    out = np.zeros((numbers.size, 3), dtype=np.uint8)
+    for i, n in enumerate(numbers.ravel()):
+        hue = (float(n) * _GOLDEN) % 1.0
+        r, g, b = colorsys.hsv_to_rgb(hue, 0.85, 1.0)
+        out[i] = (int(255 * b), int(255 * g), int(255 * r))
+    return out
+
+
+def _to_bgr8(image: np.ndarray) -> np.ndarray:
+    frame = np.asarray(image)
+    if frame.dtype != np.uint8:
+        top = float(frame.max()) or 1.0
+        frame = np.clip(frame.astype(np.float64) * (255.0 / top), 0, 255).astype(np.uint8)
+    return cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+
+
+def overlay_image(
+    image: np.ndarray, lines: Any, *, scale: int = 2, min_label: int = 10
+) -> np.ndarray:
+    """The frame with its detected lines coloured by number and numbered at their ends.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        The raw 2-D frame (``uint8`` or ``uint16``, shown scaled to its maximum).
+    lines : NumberedLines
+        Per-peak ``col``, ``row``, ``number`` and ``line_id`` (``-1``: none).
+    scale : int, optional
+        Enlargement, so that the numbers are legible next to lines ~10 px apart.
+    min_label : int, optional
+        Pieces of lines with fewer peaks are coloured but not labelled (less clutter).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(scale * H, scale * W, 3)`` BGR ``uint8`` image. Numbered peaks are drawn in their
+        line's colour, unnumbered ones in grey; each numbered line (each connected piece, by
+        ``line_id``, of at least ``min_label`` peaks) carries its number at both ends.
+    """
+    if scale < 1:
+        raise InputError("the overlay scale must be at least 1")
+    base = _to_bgr8(image)
+    # dim the frame so that the coloured lines stand out against the bright raster
+    canvas = cv2.resize(base // 2, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    h, w = canvas.shape[:2]
+    col = np.asarray(lines.col, dtype=np.float64)
+    row = np.asarray(lines.row, dtype=np.float64)
+    number = np.asarray(lines.number)
+    line_id = np.asarray(getattr(lines, "line_id", np.full(number.shape, -1)))
+    ok = np.isfinite(row)
+    x = np.clip(np.rint((col + 0.5) * scale - 0.5).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint((row + 0.5) * scale - 0.5).astype(np.int64), 0, h - 1)
+    numbered = ok & (number >= 0)
+    unnumbered = ok & (number < 0)
+    canvas[y[unnumbered], x[unnumbered]] = (150, 150, 150)
+    if numbered.any():
+        values, inverse = np.unique(number[numbered], return_inverse=True)
+        colours = line_colours(values)[inverse]
+        for dy in range(scale):
+            canvas[np.minimum(y[numbered] + dy, h - 1), x[numbered]] = colours
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    size = 0.32 * scale
+    for piece in np.unique(line_id[numbered]) if numbered.any() else []:
+        sel = np.flatnonzero(numbered & (line_id == piece))
+        if piece < 0 or sel.size < min_label:
+            continue
+        n = int(np.bincount(number[sel] - number[sel].min()).argmax() + number[sel].min())
+        colour = tuple(int(c) for c in line_colours(np.array([n]))[0])
+        text = str(n)
+        (tw, th), _ = cv2.getTextSize(text, font, size, 1)
+        left, right = sel[np.argmin(col[sel])], sel[np.argmax(col[sel])]
+        for end, dx in ((left, -tw - 3), (right, 3)):
+            px = int(np.clip(x[end] + dx, 0, max(w - tw, 0)))
+            py = int(np.clip(y[end] + th // 2, th, h - 1))
+            cv2.putText(canvas, text, (px, py), font, size, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(canvas, text, (px, py), font, size, colour, 1, cv2.LINE_AA)
+    return canvas
