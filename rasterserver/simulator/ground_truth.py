@@ -78,6 +78,28 @@ def _evaluate(
     return uv[:, 1], hits.object_index, p, hits.normals, uv
 
 
+def _evaluate_v(
+    tracer: Tracer,
+    station: Station,
+    columns: np.ndarray,
+    rows: np.ndarray,
+    triangle: np.ndarray,
+    obj: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Like :func:`_evaluate` (``v`` and object) but rays with a known triangle
+    (``triangle >= 0``) are intersected with its plane instead of being cast."""
+    o, d = station.camera.rays(np.column_stack([columns, rows]))
+    tri = triangle.copy()
+    obj_out = obj.copy()
+    cast = np.flatnonzero(tri < 0)
+    if cast.size:
+        hits = tracer.cast(o[cast], d[cast])
+        tri[cast] = hits.triangle
+        obj_out[cast] = hits.object_index
+    p = tracer.exact_points(o, d, tri)
+    return station.projector.project(p)[:, 1], obj_out
+
+
 def find_line_rows(
     tracer: Tracer,
     station: Station,
@@ -86,6 +108,7 @@ def find_line_rows(
     v: np.ndarray,
     object_index: np.ndarray,
     light: RasterLight,
+    triangle: np.ndarray | None = None,
     tol: float = 1e-6,
     max_iter: int = 60,
     shadow_epsilon: float = 0.05,
@@ -107,6 +130,10 @@ def find_line_rows(
         ``(K, W)`` scene object hit (-1: none).
     light : RasterLight
         Line lookup for the raster.
+    triangle : numpy.ndarray, optional
+        ``(K, W)`` global triangle index of the samples. Where both ends of a bracket lie
+        on the same triangle the refinement intersects rays with its plane instead of
+        casting them (every result is still verified by a final cast).
     tol : float
         Row tolerance (px) of the refinement.
     max_iter : int
@@ -140,13 +167,26 @@ def find_line_rows(
     r_a = sample_rows[k_idx][rep].astype(np.float64)
     r_b = sample_rows[k_idx + 1][rep].astype(np.float64)
     target = light.positions[line]
+    fixed = np.full(columns.size, -1, dtype=np.int64)
+    if triangle is not None:
+        ta, tb = triangle[k_idx, col][rep], triangle[k_idx + 1, col][rep]
+        fixed = np.where(ta == tb, ta, -1)
 
-    va_x, oa, *_ = _evaluate(tracer, station, columns, r_a)
-    vb_x, ob, *_ = _evaluate(tracer, station, columns, r_b)
-    f_a, f_b = va_x - target, vb_x - target
-    ok = (oa == obj) & (ob == obj) & (f_a * f_b <= 0)
+    both = np.concatenate([r_a, r_b])
+    v_ab, o_ab = _evaluate_v(
+        tracer,
+        station,
+        np.concatenate([columns, columns]),
+        both,
+        np.concatenate([fixed, fixed]),
+        np.concatenate([obj, obj]),
+    )
+    n_c = columns.size
+    f_a, f_b = v_ab[:n_c] - target, v_ab[n_c:] - target
+    ok = (o_ab[:n_c] == obj) & (o_ab[n_c:] == obj) & (f_a * f_b <= 0)
     keep = np.flatnonzero(ok)
     columns, obj, line, target = columns[keep], obj[keep], line[keep], target[keep]
+    fixed = fixed[keep]
     r_a, r_b, f_a, f_b = r_a[keep], r_b[keep], f_a[keep], f_b[keep]
     row = np.where(np.abs(f_a) <= np.abs(f_b), r_a, r_b)
     done = (f_a == 0) | (f_b == 0)
@@ -159,7 +199,7 @@ def find_line_rows(
         r_new = b - fb * (b - a) / (fb - fa)
         bad = ~np.isfinite(r_new) | (r_new <= np.minimum(a, b)) | (r_new >= np.maximum(a, b))
         r_new = np.where(bad, 0.5 * (a + b), r_new)
-        v_new, o_new, *_ = _evaluate(tracer, station, columns[act], r_new)
+        v_new, o_new = _evaluate_v(tracer, station, columns[act], r_new, fixed[act], obj[act])
         f_new = v_new - target[act]
         lost = o_new != obj[act]  # an occluding edge inside the bracket: give up on it
         f_new = np.where(lost, np.nan, f_new)

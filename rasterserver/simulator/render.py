@@ -26,7 +26,10 @@ All randomness comes from ``numpy.random.default_rng(seed)``: one seed, one imag
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -91,6 +94,9 @@ class RenderSettings:
         Compute the exact per-column line rows (ground truth); costs ~0.1 s.
         With ``projector_electrons = 0`` (projector off) the ground truth has no lines:
         ``line_number`` is -1, ``line_rows`` empty and every visible pixel is in "shadow".
+    threads : int
+        Worker threads shading bands of sub-samples (0: one per CPU). Albedo functions are
+        then called from several threads at once (pure numpy functions are safe).
     """
 
     supersampling: int = 3
@@ -111,6 +117,7 @@ class RenderSettings:
     noise: bool = True
     bit_depth: int = 8
     line_rows: bool = True
+    threads: int = 0
 
     def __post_init__(self) -> None:
         if self.supersampling < 1:
@@ -159,7 +166,9 @@ class Rendering:
     settings : RenderSettings
     seed : int
     timings : dict
-        Seconds per phase.
+        Seconds per phase: ``subsamples`` is the wall time of the sub-sample pass; the
+        phases inside it (``rays``, ``ray_casting``, ``shadow_rays``, ``shading``) are summed
+        over its worker threads.
     """
 
     image: np.ndarray
@@ -540,9 +549,9 @@ def render(
     c = s // 2 if s % 2 == 1 else None
     col_v = np.full((he * s, w), np.nan, dtype=np.float32)
     col_obj = np.full((he * s, w), -1, dtype=np.int16)
-    band_rows = max(1, _MAX_BAND_RAYS // (we * s * s))
-    for row0 in range(0, he, band_rows):
-        row1 = min(he, row0 + band_rows)
+    col_tri = np.full((he * s, w), -1, dtype=np.int64)
+
+    def band(row0: int, row1: int) -> dict[str, float]:
         n = row1 - row0
         t0 = time.perf_counter()
         rays = _band_rays(camera, s, row0, row1, m)
@@ -561,15 +570,31 @@ def render(
             hits,
             shadow_hint=band_hint,
         )
+        # bands write disjoint rows: safe from worker threads
         fine[row0 * s : row1 * s] = shaded.electrons.reshape(n * s, we * s)
         if c is not None:
             cols = slice(m * s + c, (m + w) * s, s)
             col_v[row0 * s : row1 * s] = shaded.v.reshape(n * s, we * s)[:, cols]
             col_obj[row0 * s : row1 * s] = hits.object_index.reshape(n * s, we * s)[:, cols]
-        timings["rays"] += t1 - t0
-        timings["ray_casting"] += t2 - t1
-        timings["shading"] += tt["shading"]
-        timings["shadow_rays"] += tt.get("shadow_rays", 0.0)
+            col_tri[row0 * s : row1 * s] = hits.triangle.reshape(n * s, we * s)[:, cols]
+        return {"rays": t1 - t0, "ray_casting": t2 - t1, **tt}
+
+    workers = settings.threads or os.cpu_count() or 1
+    # at most _MAX_BAND_RAYS per band (memory); two bands per worker balance the load
+    n_bands = max(-(-he * we * s * s // _MAX_BAND_RAYS), 2 * workers if workers > 1 else 1)
+    bounds = np.linspace(0, he, n_bands + 1).round().astype(int)
+    jobs = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
+    t0 = time.perf_counter()
+    if workers > 1 and len(jobs) > 1:
+        # numpy and Embree release the GIL: bands shade in parallel
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            parts = list(pool.map(lambda job: band(*job), jobs))
+    else:
+        parts = [band(*job) for job in jobs]
+    timings["subsamples"] = time.perf_counter() - t0
+    for part in parts:
+        for key, value in part.items():
+            timings[key] = timings.get(key, 0.0) + value
 
     t0 = time.perf_counter()
     if settings.camera_blur > 0:
@@ -621,17 +646,19 @@ def render(
     if settings.line_rows and projector_on:
         if c is not None:
             sample_rows = np.arange(he * s) / s + (0.5 / s - 0.5) - m
-            v_cols, obj_cols = col_v, col_obj
+            v_cols, obj_cols, tri_cols = col_v, col_obj, col_tri
         else:
             sample_rows = np.arange(he, dtype=np.float64) - m
             v_cols = centre_shaded.v.reshape(he, we)[:, m : m + w]
             obj_cols = centre_hits.object_index.reshape(he, we)[:, m : m + w]
+            tri_cols = centre_hits.triangle.reshape(he, we)[:, m : m + w]
         line_rows = find_line_rows(
             tracer,
             station,
             sample_rows=sample_rows,
             v=v_cols,
             object_index=obj_cols,
+            triangle=tri_cols,
             light=light,
             shadow_epsilon=settings.shadow_epsilon,
         )
