@@ -59,6 +59,8 @@ class RasterLight:
             self.neighbours = 0
         else:
             self.neighbours = math.ceil((reach + self._step) / self.min_spacing)
+        # built now, not lazily: the renderer calls transmission_fast from several threads
+        self._build_table()
 
     def _cell(self, v: np.ndarray) -> np.ndarray:
         k = (v - self._v0) * (1.0 / self._step)
@@ -112,8 +114,6 @@ class RasterLight:
 
         Zero outside the raster (beyond one spacing from the end lines) and for NaN.
         """
-        if not hasattr(self, "_table"):
-            self._build_table()
         k = (np.asarray(v, dtype=np.float32) - np.float32(self._table_lo)) * np.float32(
             self._table_inv_step
         )

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -223,6 +224,7 @@ def _ideal_grid(camera: Camera, pad: int = 1) -> np.ndarray:
 
 _RAY_CACHE: dict[tuple[str, int, int, int, int], np.ndarray] = {}
 _RAY_CACHE_MAX_BYTES = 160 * 2**20
+_RAY_CACHE_LOCK = threading.Lock()
 
 
 def _band_rays(camera: Camera, s: int, row0: int, row1: int, margin: int) -> np.ndarray:
@@ -235,18 +237,20 @@ def _band_rays(camera: Camera, s: int, row0: int, row1: int, margin: int) -> np.
     them costs as much as casting them.
     """
     key = (camera.key(), s, row0, row1, margin)
-    rays = _RAY_CACHE.get(key)
+    with _RAY_CACHE_LOCK:
+        rays = _RAY_CACHE.get(key)
     if rays is None:
         dirs = _band_directions(camera, s, row0, row1, margin)
         rays = np.empty((dirs.shape[0], 6), dtype=np.float32)
         rays[:, :3] = camera.centre.astype(np.float32)[None, :]
         rays[:, 3:] = dirs
         if rays.nbytes <= _RAY_CACHE_MAX_BYTES:
-            while _RAY_CACHE and (
-                sum(r.nbytes for r in _RAY_CACHE.values()) + rays.nbytes > _RAY_CACHE_MAX_BYTES
-            ):
-                _RAY_CACHE.pop(next(iter(_RAY_CACHE)))
-            _RAY_CACHE[key] = rays
+            with _RAY_CACHE_LOCK:  # bands are built from worker threads
+                while _RAY_CACHE and (
+                    sum(r.nbytes for r in _RAY_CACHE.values()) + rays.nbytes > _RAY_CACHE_MAX_BYTES
+                ):
+                    _RAY_CACHE.pop(next(iter(_RAY_CACHE)))
+                _RAY_CACHE[key] = rays
     return rays
 
 
