@@ -34,6 +34,7 @@ from rasterserver.simulator.render import RenderSettings, render
 from rasterserver.simulator.scene import Scene, SceneObject
 
 PHASES = (
+    "subsamples",
     "rays",
     "ray_casting",
     "shadow_rays",
@@ -135,6 +136,8 @@ def main() -> None:
             "is the first render of a camera, which also builds its cached ray table; CPU is "
             "the process CPU time (ray casting uses both cores). `pixel_truth` and "
             "`line_rows` are the ground truth (per-pixel maps; exact line rows per column). "
+            "`subsamples` is the wall time of the sub-sample pass, whose parts (`rays`, "
+            "`ray_casting`, `shadow_rays`, `shading`) are summed over its worker threads. "
             f"The machine was shared with other jobs: 1-min load average {load_start:.1f} "
             f"before and {load_end:.1f} after the runs (2 cores), so medians are "
             "pessimistic; *best* is the fastest run.",
