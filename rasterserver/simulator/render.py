@@ -12,9 +12,14 @@ Physics, per camera sub-sample (``supersampling`` x ``supersampling`` per pixel)
 4. Lambertian shading: projector irradiance ``x max(0, n.l)`` ``x (d_ref/d)**2`` (optional),
    plus uniform ambient light, times the object's albedo at the point, gives expected
    photo-electrons;
-5. the sub-sampled electron image is blurred by the camera PSF (Gaussian) and box-averaged to
-   pixels (which is the pixel's area integral), then digitised with shot noise, read noise,
-   saturation and quantisation (:mod:`rasterserver.simulator.noise`).
+5. the sub-sampled electron image is blurred by the camera PSF (Gaussian; the scene is
+   rendered a few pixels beyond the sensor's edge so that the PSF sees real scene there) and
+   box-averaged to pixels (the pixel's area integral), then digitised with shot noise, read
+   noise, saturation and quantisation (:mod:`rasterserver.simulator.noise`).
+
+Accuracy (tests/simulator/test_render.py): on planes, noise-free, the first-moment centre of
+every line peak lies within 0.002 px of the analytic prediction; 3 x 3 supersampling is
+within ~1 % in intensity of a 7 x 7 reference.
 
 Ground truth is traced separately at the exact pixel centres (points, normals, object,
 raster line, shadows) and, per column, the exact rows of all visible line centres
