@@ -137,32 +137,6 @@ def _corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray
     return (dev > corner) & (dev >= prev_dev) & (dev >= next_dev)
 
 
-def _nearest_labels(label: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest label >= 0 on the left and on the right within each segment (-1 if none).
-
-    ``start[k]`` is True where element ``k`` begins a new segment. Running max/min of the
-    indices of labelled elements, compared with the segment bounds, need no loop.
-    """
-    n = label.size
-    idx = np.arange(n, dtype=np.int32)
-    labelled = label >= 0
-    prev = np.where(labelled, idx, -1)
-    np.maximum.accumulate(prev, out=prev)
-    nxt = np.where(labelled, idx, n)
-    nxt = np.minimum.accumulate(nxt[::-1])[::-1]
-    seg_first = np.where(start, idx, 0)
-    np.maximum.accumulate(seg_first, out=seg_first)
-    starts = np.flatnonzero(start)
-    seg_last = np.empty(starts.size, dtype=np.int32)
-    seg_last[:-1] = starts[1:] - 1
-    seg_last[-1] = n - 1
-    seg_last = seg_last[np.cumsum(start) - 1]
-    ext = np.append(label, -1)
-    fwd = np.where(prev >= seg_first, ext[prev], -1)
-    bwd = np.where(nxt <= seg_last, ext[nxt], -1)
-    return fwd, bwd
-
-
 def _smooth_along(a: np.ndarray, head: np.ndarray, half: int) -> np.ndarray:
     """Mean of ``a`` over ``±half`` positions of the same chain (chain-ordered arrays)."""
     n = a.size
@@ -188,15 +162,17 @@ def _side_max(
     return np.where(same, a[src], 0.0).max(axis=1)
 
 
-def _union_roots(parent: np.ndarray) -> np.ndarray:
-    """Root of every label in a union-find parent array (labels are few: plain loop)."""
-    root = parent.copy()
-    for i in range(root.size):
-        r = i
-        while root[r] != r:
-            r = root[r]
-        root[i] = r
-    return root
+def _roots(parent: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Union-find roots of ``ids`` (-1 stays -1), by pointer jumping on the parent array."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if parent.size == 0:
+        return ids
+    out = np.where(ids >= 0, parent[np.maximum(ids, 0)], -1)
+    while True:
+        nxt = np.where(out >= 0, parent[np.maximum(out, 0)], -1)
+        if np.array_equal(nxt, out):
+            return out
+        out = nxt
 
 
 def search_lines(
@@ -263,65 +239,75 @@ def search_lines(
     if smooth > 0:
         a = _smooth_along(a, head, smooth)
     label = np.full(n, -1, dtype=np.int64)
+    # Union-find over line ids: two fragments of one line, met across a shallow minimum,
+    # become one line. Roots are resolved on the few ids concerned, and once at the end.
     parent = np.zeros(0, dtype=np.int64)
     scale = float(np.median(a))
+    # Only the unlabelled peaks matter at a level, and they only shrink: each level works on
+    # them alone. A run of free peaks meets a line exactly where its neighbour in the chain
+    # is labelled (a labelled peak is always active), so its lines are its ends' neighbours.
+    unlabelled = np.arange(n)
     for li, factor in enumerate(levels):
         last = li == len(levels) - 1
-        active = (label >= 0) | (a >= factor * scale)
-        joined = np.zeros(n, dtype=bool)
-        joined[1:] = linked[1:] & active[1:] & active[:-1]
-        start = ~joined
-        seg = np.cumsum(start) - 1
-        fwd, bwd = _nearest_labels(label, start)
-        free = active & (label < 0)
-        new_label = np.where(fwd >= 0, fwd, bwd)
-        conflict = free & (fwd >= 0) & (bwd >= 0) & (fwd != bwd)
+        unlabelled = unlabelled[label[unlabelled] < 0]
+        free = unlabelled[a[unlabelled] >= factor * scale]
+        if free.size == 0:
+            continue
+        brk = np.ones(free.size, dtype=bool)
+        brk[1:] = (free[1:] != free[:-1] + 1) | ~linked[free[1:]]
+        run_start = np.flatnonzero(brk)
+        run_len = np.diff(np.append(run_start, free.size))
+        s_pos = free[run_start]
+        e_pos = free[run_start + run_len - 1]
+        left_lab = np.where(linked[s_pos], label[np.maximum(s_pos - 1, 0)], -1)
+        nxt = np.minimum(e_pos + 1, n - 1)
+        right_lab = np.where((e_pos + 1 < n) & linked[nxt], label[nxt], -1)
+        left_lab = _roots(parent, left_lab)
+        right_lab = _roots(parent, right_lab)
+        run_label = np.where(left_lab >= 0, left_lab, right_lab)
+        run_of = np.repeat(np.arange(run_start.size), run_len)
+        new_label = run_label[run_of]
+        conflict = (left_lab >= 0) & (right_lab >= 0) & (left_lab != right_lab)
         if np.any(conflict):
-            ci = np.flatnonzero(conflict)
-            first = np.ones(ci.size, dtype=bool)
-            first[1:] = ci[1:] != ci[:-1] + 1
-            gid = np.cumsum(first) - 1
-            g_start = ci[first]
-            g_end = ci[np.r_[first[1:], True]]
-            # weakest peak of each gap
-            o = np.lexsort((a[ci], gid))
-            lowest = np.ones(o.size, dtype=bool)
-            lowest[1:] = gid[o[1:]] != gid[o[:-1]]
-            cut_at = ci[o[lowest]]
+            cr = np.flatnonzero(conflict)
+            # weakest peak of each conflicting run: the intensity minimum between the lines
+            a_free = a[free]
+            lowest = np.minimum.reduceat(a_free, run_start)
+            at_min = np.flatnonzero(conflict[run_of] & (a_free == lowest[run_of]))
+            _, first = np.unique(run_of[at_min], return_index=True)
+            cut_at = free[at_min[first]]  # one per conflicting run, in the order of cr
             side = np.minimum(
-                _side_max(a, head, g_start, -1, dip_window),
-                _side_max(a, head, g_end, 1, dip_window),
+                _side_max(a, head, s_pos[cr], -1, dip_window),
+                _side_max(a, head, e_pos[cr], 1, dip_window),
             )
             pronounced = a[cut_at] < dip * side
-            cut = np.where(pronounced[gid], cut_at[gid], -1)
-            new_label[ci] = np.where(pronounced[gid], np.where(ci < cut, fwd[ci], bwd[ci]), fwd[ci])
-            # the weakest peak of a pronounced minimum belongs to neither line
-            new_label[cut_at[pronounced]] = -1
-            merge = ~pronounced
-            if np.any(merge):
-                for x, y in zip(fwd[g_start[merge]], bwd[g_end[merge]], strict=True):
-                    rx, ry = int(x), int(y)
-                    while parent[rx] != rx:
-                        rx = int(parent[rx])
-                    while parent[ry] != ry:
-                        ry = int(parent[ry])
-                    if rx != ry:
-                        parent[max(rx, ry)] = min(rx, ry)
-                root = _union_roots(parent)
-                label = np.where(label >= 0, root[np.maximum(label, 0)], -1)
-                new_label = np.where(new_label >= 0, root[np.maximum(new_label, 0)], -1)
-        grow = free & (new_label >= 0)
-        label[grow] = new_label[grow]
-        # Runs of free peaks touching no line: new lines, if long enough.
-        lonely = free & (fwd < 0) & (bwd < 0)
-        if np.any(lonely):
-            seg_len = np.bincount(seg[lonely], minlength=int(seg[-1]) + 1)
-            need = min_length if last else max(min_seed, min_length)
-            seeds = lonely & (seg_len[seg] >= need)
-            if np.any(seeds):
-                uniq, inv = np.unique(seg[seeds], return_inverse=True)
-                label[seeds] = parent.size + inv
-                parent = np.concatenate([parent, parent.size + np.arange(uniq.size)])
+            # pronounced: split at the minimum, which itself belongs to neither line
+            cut_of_run = np.full(run_start.size, -1, dtype=np.int64)
+            cut_of_run[cr[pronounced]] = cut_at[pronounced]
+            cut_el = cut_of_run[run_of]
+            split = cut_el >= 0
+            new_label[split] = np.where(
+                free[split] < cut_el[split],
+                left_lab[run_of[split]],
+                np.where(free[split] > cut_el[split], right_lab[run_of[split]], -1),
+            )
+            # shallow: noise or shading around a threshold, the two fragments are one line
+            for x, y in zip(
+                left_lab[cr[~pronounced]].tolist(), right_lab[cr[~pronounced]].tolist(), strict=True
+            ):
+                rx, ry = _roots(parent, np.array([x, y]))
+                if rx != ry:
+                    parent[max(rx, ry)] = min(rx, ry)
+        label[free] = new_label
+        # Runs touching no line: new lines, if long enough.
+        lonely = (left_lab < 0) & (right_lab < 0)
+        need = min_length if last else max(min_seed, min_length)
+        seeds = lonely & (run_len >= need)
+        if np.any(seeds):
+            ids = parent.size + np.cumsum(seeds) - 1
+            label[free] = np.where(seeds[run_of], ids[run_of], label[free])
+            parent = np.concatenate([parent, parent.size + np.arange(int(seeds.sum()))])
+    label = np.where(label >= 0, _roots(parent, label), -1)
     return _compact(label, perm, min_length)
 
 

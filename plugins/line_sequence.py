@@ -146,6 +146,7 @@ def order_lines(
     *,
     gap_ratio: float = 1.6,
     min_overlap: int = 3,
+    min_link: int = 6,
 ) -> LineOrder:
     """Relative order of the lines, component by component.
 
@@ -156,7 +157,10 @@ def order_lines(
     gap_ratio : float
         See :func:`line_neighbours`.
     min_overlap : int
-        Least number of columns of a neighbourhood that links two lines.
+        Least number of columns of a neighbourhood considered at all.
+    min_link : int
+        Least number of columns of a neighbourhood that links two groups of lines by
+        itself; shorter ones link groups only together, when they agree.
 
     Returns
     -------
@@ -169,37 +173,62 @@ def order_lines(
         return LineOrder(order=z, component=z.copy(), rejected=0)
     upper, lower, count = line_neighbours(col, row, line_id, n_lines, gap_ratio=gap_ratio)
     sizes = np.bincount(line_id[line_id >= 0], minlength=n_lines)
-    strong = count >= min_overlap
-    upper, lower, count = upper[strong], lower[strong], count[strong]
-    # Longest neighbourhood first; ties: the longer of the shorter line.
-    shorter = np.minimum(sizes[upper], sizes[lower])
-    sequence = np.lexsort((-shorter, -count))
+    usable = count >= min_overlap
+    upper, lower, count = upper[usable], lower[usable], count[usable]
     # Groups with explicit member lists: merging relabels the smaller group, so the whole
     # loop costs O(pairs + lines log lines).
     group = list(range(n_lines))
     level = [0] * n_lines
     members: dict[int, list[int]] = {i: [i] for i in range(n_lines)}
-    rejected = 0
-    for e in sequence.tolist():
-        u, v, w = int(upper[e]), int(lower[e]), int(count[e])
-        gu, gv = group[u], group[v]
-        if gu == gv:
-            if level[v] - level[u] != 1:
-                rejected += w
-            continue
-        # put v one below u: shift v's group by delta
-        delta = level[u] + 1 - level[v]
-        if len(members[gu]) < len(members[gv]):
-            # relabel u's group instead (shift it by -delta)
-            for x in members[gu]:
-                group[x] = gv
-                level[x] -= delta
-            members[gv].extend(members.pop(gu))
-        else:
-            for x in members[gv]:
-                group[x] = gu
-                level[x] += delta
-            members[gu].extend(members.pop(gv))
+
+    def merge(ga: int, gb: int, shift: int) -> None:
+        """Join group ``gb`` to ``ga``, its levels moved by ``shift``."""
+        if len(members[gb]) > len(members[ga]):
+            ga, gb, shift = gb, ga, -shift
+        for x in members[gb]:
+            group[x] = ga
+            level[x] += shift
+        members[ga].extend(members.pop(gb))
+
+    # Phase 1: neighbourhoods of at least min_link columns, longest first (ties: the longer
+    # of the shorter line); each either links two groups or is checked against the order.
+    strong = count >= min_link
+    su, sv, sw = upper[strong], lower[strong], count[strong]
+    shorter = np.minimum(sizes[su], sizes[sv])
+    for e in np.lexsort((-shorter, -sw)).tolist():
+        u, v = int(su[e]), int(sv[e])
+        if group[u] != group[v]:
+            merge(group[u], group[v], level[u] + 1 - level[v])
+    # Phase 2: a short neighbourhood alone may be a missing line taken for none (where the
+    # lines crowd at a fold); groups are linked by short neighbourhoods only when those
+    # between them agree on the shift and add up to min_link columns.
+    wu, wv, ww = upper[~strong], lower[~strong], count[~strong]
+    while wu.size:
+        g = np.asarray(group, dtype=np.int64)
+        lv = np.asarray(level, dtype=np.int64)
+        gu, gv = g[wu], g[wv]
+        cross = gu != gv
+        if not np.any(cross):
+            break
+        shift = (lv[wu] + 1 - lv[wv])[cross]
+        gu, gv, w = gu[cross], gv[cross], ww[cross]
+        flip = gu > gv
+        ga, gb = np.where(flip, gv, gu), np.where(flip, gu, gv)
+        shift = np.where(flip, -shift, shift)
+        keys, inv = np.unique(np.column_stack([ga, gb, shift]), axis=0, return_inverse=True)
+        votes = np.bincount(inv.ravel(), weights=w)
+        _, pinv = np.unique(keys[:, :2], axis=0, return_inverse=True)
+        pair_total = np.bincount(pinv.ravel(), weights=votes)[pinv.ravel()]
+        ok = (votes >= min_link) & (votes >= 2.0 * (pair_total - votes))
+        if not np.any(ok):
+            break
+        best = int(np.flatnonzero(ok)[np.argmax(votes[ok])])
+        merge(int(keys[best, 0]), int(keys[best, 1]), int(keys[best, 2]))
+    # Neighbourhoods contradicting the final order (rejected ones) are counted.
+    g = np.asarray(group, dtype=np.int64)
+    lv = np.asarray(level, dtype=np.int64)
+    inside = g[upper] == g[lower]
+    rejected = int(count[inside & (lv[lower] - lv[upper] != 1)].sum())
     group_arr = np.asarray(group, dtype=np.int64)
     level_arr = np.asarray(level, dtype=np.int64)
     # normalise each component's order to start at 0, number components by size
@@ -239,7 +268,10 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
             description="Largest row gap of a neighbourhood relative to the gaps around it.",
         )
         min_overlap: int = Field(
-            3, ge=1, description="Least neighbourhood (columns) that links two lines."
+            3, ge=1, description="Least neighbourhood (columns) considered at all."
+        )
+        min_link: int = Field(
+            6, ge=1, description="Least neighbourhood (columns) that links lines by itself."
         )
 
     def run(self, data: Lines, params: Params, context: StageContext) -> OrderedLines:
@@ -250,6 +282,7 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
             data.line_id,
             gap_ratio=params.gap_ratio,
             min_overlap=params.min_overlap,
+            min_link=params.min_link,
         )
         lid = data.line_id
         table = np.append(result.order, -1).astype(np.int32)
