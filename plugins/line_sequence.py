@@ -5,14 +5,18 @@ The seed's method, one hierarchical level above line search:
 1. **Neighbourhoods.** In every column, two consecutive peaks that belong to two different
    lines, with no other peak between them, make the upper line a direct neighbour of the
    lower one in that column. A gap much wider than the gaps above and below it in the same
-   column (``gap_ratio``) means a line is missing between them there, and is not counted.
+   column, or than the typical gap in its part of the image (``gap_ratio``), means a line
+   is missing between them there, and is not counted.
    The number of such columns is the length of the pair's mutual neighbourhood.
 2. **Order.** Pairs are taken longest neighbourhood first (ties: longer lines first). A pair
    either joins two groups of ordered lines (the lower line one below the upper) or, inside
    a group, must agree with the order already built; a pair that contradicts it is
    rejected. Every line is thus classified once, by its most reliable relation, and a short
    or accidental neighbourhood (an arm's line meeting the trunk's at the silhouette) cannot
-   overturn a long one.
+   overturn a long one. A neighbourhood shorter than ``min_link`` columns does not link two
+   groups by itself: where lines crowd at a fold a missing line is easily taken for none,
+   so short neighbourhoods link groups only when several agree on the shift and add up to
+   ``min_link`` columns. Lines left alone are not numbered, which is better than wrongly.
 3. Groups that no pair links stay separate *components*, each with its own relative order
    from 0 (top) down; line numbering decides each component's offset on its own.
 

@@ -152,3 +152,36 @@ def test_single_line() -> None:
     ordered = _order(_lines(np.arange(10), np.full(10, 4.0), np.zeros(10, int)))
     assert ordered.line_order.tolist() == [0]
     assert ordered.line_component.tolist() == [0]
+
+
+def test_a_short_neighbourhood_alone_does_not_link() -> None:
+    # Two groups of lines far apart in columns, joined only by a 3-column neighbourhood
+    # between a stub of each: not enough to link them.
+    c1, r1, l1 = _grid(3, np.arange(0, 40))
+    c2, r2, l2 = _grid(3, np.arange(100, 140), top=80.0)
+    stub_c = np.arange(60, 63)
+    col = np.r_[c1, c2, stub_c, stub_c]
+    row = np.r_[r1, r2, np.full(3, 70.0), np.full(3, 80.0)]
+    line = np.r_[l1, l2 + 3, np.full(3, 6), np.full(3, 7)]
+    result = order_lines(*_sorted(col, row, line), min_link=6)
+    assert result.component[6] != result.component[7]
+    # the same neighbourhood over 8 columns links the stubs
+    stub_c = np.arange(60, 68)
+    col = np.r_[c1, c2, stub_c, stub_c]
+    row = np.r_[r1, r2, np.full(8, 70.0), np.full(8, 80.0)]
+    line = np.r_[l1, l2 + 3, np.full(8, 6), np.full(8, 7)]
+    result = order_lines(*_sorted(col, row, line), min_link=6)
+    assert result.component[6] == result.component[7]
+    assert result.order[7] - result.order[6] == 1
+
+
+def test_agreeing_short_neighbourhoods_link_together() -> None:
+    # Lines 0 and 1 are neighbours in two separate 4-column stretches (a hole between):
+    # each alone is too short, together they agree.
+    cols = np.r_[np.arange(0, 4), np.arange(20, 24)]
+    col = np.r_[cols, cols]
+    row = np.r_[np.full(8, 50.0), np.full(8, 60.0)]
+    line = np.r_[np.zeros(8, int), np.ones(8, int)]
+    result = order_lines(*_sorted(col, row, line), min_link=6)
+    assert result.component[0] == result.component[1]
+    assert result.order.tolist() == [0, 1]
