@@ -1,21 +1,29 @@
-"""The main job on the embedded default: make a demo patient's data, archive it, check it.
+"""The main job on the embedded default: a simulated patient followed over several visits.
 
-``rasterserver demo`` runs this on SQLite and a local archive folder, so a newcomer sees the
-whole path (ingest → catalogue → verify) on a fresh machine with one command.
+``rasterserver demo`` renders a progressing scoliosis (one rasterstereograph per visit, six
+months apart) with the project's simulator, ingests the frames into the archive (SQLite and a
+local folder by default), processes every acquisition through the registered stage plugins,
+exports a mesh per visit for longitudinal comparison, and verifies the archive — the whole
+path a clinic's data takes, on a fresh machine, with one command.
 """
 
 from __future__ import annotations
 
-import datetime as dt
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 
-import numpy as np
-
-from rasterserver.archive import Archive, FrameSource
+from rasterserver.archive import Archive
 from rasterserver.catalog.models import Acquisition
 from rasterserver.config import Settings
-from rasterserver.errors import NotFoundError
+from rasterserver.export import write_mesh
+from rasterserver.jobs import JobOutcome, process_many
+from rasterserver.optics import default_station
+from rasterserver.pipeline import Pipeline
+from rasterserver.records_surface import MeshRecord
+from rasterserver.simulated_visits import SimulatedVisit, archive_visits, progressed
+from rasterserver.simulator.back import make_back, preset
+from rasterserver.simulator.render import RenderSettings, render
 
 DEMO_PATIENT = "DEMO-0001"
 DEMO_STATION = "demo-station"
@@ -26,75 +34,97 @@ class DemoResult:
     """What the demo did."""
 
     acquisitions: list[Acquisition]
-    verified_frames: int
-    problems: int
+    outcomes: list[JobOutcome]
+    meshes: list[Path] = field(default_factory=list)
+    verified_frames: int = 0
+    problems: int = 0
 
 
-def raster_like_frame(seed: int, *, shape: tuple[int, int] = (604, 576)) -> np.ndarray:
-    """Return a quick stand-in camera frame: bright horizontal lines, 1 per 10 rows, on noise.
+def simulate_visits(
+    visits: int, *, progression: float = 0.25, supersample: int = 2, seed: int = 0
+) -> list[SimulatedVisit]:
+    """Render ``visits`` rasterstereographs of a moderate scoliosis that progresses.
 
     Parameters
     ----------
+    visits : int
+        Number of visits.
+    progression : float
+        Relative growth of the curves per visit.
+    supersample : int
+        Sub-samples per pixel side of the renderer.
     seed : int
-        Seed of the noise and of the lines' gentle waviness.
-    shape : tuple of int
-        ``(rows, columns)``.
+        Noise seed of the first visit (later visits add their index).
 
     Returns
     -------
-    numpy.ndarray
-        ``uint8`` frame.
+    list of SimulatedVisit
     """
-    rng = np.random.default_rng(seed)
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
-    bend = 6.0 * np.sin(cols / shape[1] * np.pi) * (1 + 0.2 * rng.standard_normal())
-    phase = (rows - bend) % 10.0
-    lines = np.exp(-0.5 * ((phase - 5.0) / 1.1) ** 2)
-    image = 20 + 180 * lines + rng.normal(0, 2.0, shape)
-    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    station = default_station()
+    settings = RenderSettings(supersampling=supersample)
+    out = []
+    for visit in range(visits):
+        params = progressed(preset("moderate"), visit, progression)
+        rendering = render(make_back(params), station, settings=settings, seed=seed + visit)
+        out.append(SimulatedVisit(params, rendering.image))
+    return out
 
 
 def run_demo(
-    settings: Settings, *, visits: int = 3, log: Callable[[str], None] = print
+    settings: Settings,
+    *,
+    visits: int = 3,
+    export_dir: Path | None = None,
+    log: Callable[[str], None] = print,
 ) -> DemoResult:
-    """Create the archive if needed, ingest a demo patient's visits, list and verify them.
+    """Simulate, ingest, process, export and verify a demo patient's visits.
 
     Parameters
     ----------
     settings : Settings
         Where the archive and catalogue are (SQLite inside the archive by default).
     visits : int
-        How many visits (one acquisition each) to ingest.
+        How many visits to simulate.
+    export_dir : Path, optional
+        Where the meshes go; default ``<archive>/exports``.
     log : callable
-        Where progress lines go.
+        Where progress lines go (no patient data).
 
     Returns
     -------
     DemoResult
     """
-    archive = Archive.create(settings)
-    try:
-        try:
-            archive.patient(DEMO_PATIENT)
-        except NotFoundError:
-            archive.add_patient(DEMO_PATIENT, name="Demo Patient", sex="female")
-        first = dt.datetime(2024, 1, 15, 9, 0, tzinfo=dt.UTC)
-        for visit in range(visits):
-            when = first + dt.timedelta(days=182 * visit)
-            acq = archive.ingest(
-                [FrameSource(raster_like_frame(visit), role="raster", name=f"visit{visit}")],
-                patient=DEMO_PATIENT,
-                acquired_at=when,
-                operator="demo",
+    export_dir = export_dir or settings.archive / "exports"
+    log(f"simulating {visits} visit(s) of a progressing moderate scoliosis")
+    simulated = simulate_visits(visits)
+    with Archive.create(settings) as archive:
+        acquisitions = archive_visits(
+            archive, simulated, station=default_station(), patient=DEMO_PATIENT,
+            station_name=DEMO_STATION, log=log,
+        )
+        uids = [a.uid for a in acquisitions]
+        outcomes = process_many(archive, uids)
+        result = DemoResult(acquisitions, outcomes)
+        pipeline = Pipeline(archive)
+        export_dir.mkdir(parents=True, exist_ok=True)
+        for i, outcome in enumerate(outcomes):
+            if outcome.status != "done":
+                log(f"visit {i + 1}: processing failed: {outcome.error}")
+                continue
+            _row, mesh = pipeline.result(outcome.uid, "mesh")
+            assert isinstance(mesh, MeshRecord)
+            path = export_dir / f"{DEMO_PATIENT}-visit-{i + 1:02d}.ply"
+            write_mesh(mesh, path, fmt="ply")
+            result.meshes.append(path)
+            log(
+                f"visit {i + 1}: processed ({outcome.computed} stages computed, "
+                f"{outcome.reused} reused); mesh of {len(mesh.vertices)} vertices -> {path}"
             )
-            log(f"ingested visit {visit + 1}/{visits}: acquisition {acq.uid}")
-        acquisitions = archive.acquisitions(patient=DEMO_PATIENT)
-        log(f"{DEMO_PATIENT} has {len(acquisitions)} acquisition(s) in the archive")
         report = archive.verify()
+        result.verified_frames = report.frames_checked
+        result.problems = len(report.problems)
         log(
             f"verify: {report.acquisitions_checked} acquisitions, {report.frames_checked} "
             f"frames, {len(report.problems)} problem(s)"
         )
-        return DemoResult(acquisitions, report.frames_checked, len(report.problems))
-    finally:
-        archive.close()
+    return result

@@ -2,19 +2,29 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import open3d as o3d
+
 from rasterserver.archive import Archive
 from rasterserver.config import Settings
-from rasterserver.demo import DEMO_PATIENT, raster_like_frame, run_demo
+from rasterserver.demo import DEMO_PATIENT, run_demo
 
 
-def test_demo_ingests_lists_and_verifies(settings: Settings) -> None:
+def test_demo_simulates_ingests_processes_exports_and_verifies(
+    settings: Settings, tmp_path: Path
+) -> None:
     lines: list[str] = []
-    result = run_demo(settings, visits=2, log=lines.append)
+    result = run_demo(settings, visits=2, export_dir=tmp_path / "out", log=lines.append)
     assert result.problems == 0 and result.verified_frames == 2
-    assert len(result.acquisitions) == 2
+    assert [o.status for o in result.outcomes] == ["done", "done"]
+    assert len(result.meshes) == 2
+    for path in result.meshes:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        assert len(mesh.triangles) > 1000
+        # A back seen from the camera: a few hundred mm wide, in front of the origin plane.
+        extent = mesh.get_axis_aligned_bounding_box().get_extent()
+        assert 200 < extent[0] < 600 and 200 < extent[1] < 700
     with Archive(settings) as archive:
-        stored = archive.read_frame(result.acquisitions[-1].uid)
-    assert (stored == raster_like_frame(0)).all()
-    assert any(DEMO_PATIENT in line for line in lines)
-    # Running again adds visits instead of failing on the existing patient.
-    assert len(run_demo(settings, visits=1, log=lines.append).acquisitions) == 3
+        assert len(archive.acquisitions(patient=DEMO_PATIENT)) == 2
+    assert not any(DEMO_PATIENT in line for line in lines if "ingested" in line)

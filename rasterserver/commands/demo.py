@@ -8,18 +8,25 @@ import typer
 
 from rasterserver.commands.common import settings
 from rasterserver.demo import run_demo
-from rasterserver.errors import IntegrityError
+from rasterserver.errors import IntegrityError, RasterServerError
 
 
 def demo(
     ctx: typer.Context,
     visits: Annotated[int, typer.Option(min=1, max=20, help="Visits to simulate.")] = 3,
 ) -> None:
-    """Set up the archive (SQLite + local folder by default) and run the main job on a demo
-    patient: generate frames, ingest them, list them and verify the archive."""
+    """Run the main job on a simulated patient: render a progressing scoliosis over several
+    visits, ingest the frames, process them through the stage plugins, export one mesh per
+    visit (to <archive>/exports) and verify the archive.
+
+    Uses the archive and catalogue named by --archive / --database-url (default: ./archive
+    with SQLite inside it). Running it again adds further visits of the same demo patient.
+    """
     result = run_demo(settings(ctx), visits=visits, log=typer.echo)
     if result.problems:
         raise IntegrityError("the archive failed verification; run `rasterserver verify`")
+    if any(o.status != "done" for o in result.outcomes):
+        raise RasterServerError("some visits could not be processed (listed above)")
 
 
 def register(app: typer.Typer) -> None:
