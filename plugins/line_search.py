@@ -77,32 +77,39 @@ def link_peaks(
     span = float(np.ceil(row.max() - min(row.min(), 0.0))) + 2.0 * max_step + 2.0
     key = col64 * span + row
     nxt, dn = _nearest_in_column(key, col64, row, col64 + 1, span)
-    prv, _ = _nearest_in_column(key, col64, row, col64 - 1, span)
     ok = (nxt >= 0) & (dn <= max_step)
-    ok[ok] = prv[nxt[ok]] == np.flatnonzero(ok)
+    # Mutual: p must be the nearest to q = nxt[p] in p's column too. Rows are sorted within
+    # a column, so that holds when neither of p's neighbours in its column is nearer to q.
+    p = np.flatnonzero(ok)
+    q = nxt[p]
+    d = np.abs(row[p] - row[q])
+    for nb in (p - 1, p + 1):
+        inside = (nb >= 0) & (nb < n)
+        nb = np.clip(nb, 0, n - 1)
+        nearer = inside & (col64[nb] == col64[p]) & (np.abs(row[nb] - row[q]) <= d)
+        ok[p[nearer]] = False
     right = np.where(ok, nxt, -1)
     left = np.full(n, -1, dtype=np.int64)
     left[right[ok]] = np.flatnonzero(ok)
     return right, left
 
 
-def _chain_layout(left: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _chain_layout(left: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Chain order of peaks: ``perm`` (position → peak) and each position's chain head.
 
-    Pointer jumping finds every peak's chain head and its depth along the chain in
-    ``log2(longest chain)`` gathers; positions then follow from the chain lengths, no sort.
+    Pointer jumping finds every peak's chain head in ``log2(longest chain)`` gathers; a link
+    always advances one column, so the depth along the chain is the column difference, and
+    positions follow from the chain lengths: no sort.
     """
     n = left.size
     idx = np.arange(n, dtype=np.int64)
-    parent = np.where(left >= 0, left, idx)
-    depth = (left >= 0).astype(np.int64)
+    head = np.where(left >= 0, left, idx)
     while True:
-        grand = parent[parent]
-        if np.array_equal(grand, parent):
+        grand = head[head]
+        if np.array_equal(grand, head):
             break
-        depth = depth + depth[parent]
-        parent = grand
-    head = parent
+        head = grand
+    depth = col.astype(np.int64) - col[head]
     length = np.bincount(head, minlength=n)
     start = np.cumsum(length) - length
     pos = start[head] + depth
@@ -137,19 +144,25 @@ def _corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray
     return (dev > corner) & (dev >= prev_dev) & (dev >= next_dev)
 
 
-def _smooth_along(a: np.ndarray, head: np.ndarray, half: int) -> np.ndarray:
-    """Mean of ``a`` over ``±half`` positions of the same chain (chain-ordered arrays)."""
+def _smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
+    """Mean of ``a`` over ``±half`` positions of the same chain (chain-ordered arrays).
+
+    ``linked[k]`` tells whether position ``k`` continues the chain of ``k - 1``; the window
+    is clipped to the chain, and its sum taken from a cumulative sum.
+    """
     n = a.size
-    total = a.copy()
-    count = np.ones(n)
-    for j in range(1, half + 1):
-        for shift in (-j, j):
-            src = np.arange(n) + shift
-            ok = (src >= 0) & (src < n)
-            ok[ok] = head[src[ok]] == head[ok]
-            total[ok] += a[src[ok]]
-            count[ok] += 1.0
-    return total / count
+    idx = np.arange(n)
+    first = np.where(linked, 0, idx)
+    np.maximum.accumulate(first, out=first)
+    ends = np.ones(n, dtype=bool)
+    ends[:-1] = ~linked[1:]
+    last = np.where(ends, idx, n)
+    last = np.minimum.accumulate(last[::-1])[::-1]
+    lo = np.maximum(idx - half, first)
+    hi = np.minimum(idx + half, last)
+    total = np.zeros(n + 1)
+    np.cumsum(a, out=total[1:])
+    return (total[hi + 1] - total[lo]) / (hi - lo + 1)
 
 
 def _side_max(
@@ -228,7 +241,7 @@ def search_lines(
     if n == 0:
         return np.zeros(0, dtype=np.int32)
     _, left = link_peaks(col, row, max_step=max_step)
-    perm, head = _chain_layout(left)
+    perm, head = _chain_layout(left, col)
     r = row[perm]
     linked = np.zeros(n, dtype=bool)
     linked[1:] = head[1:] == head[:-1]
@@ -237,7 +250,7 @@ def search_lines(
     head = perm[np.maximum.accumulate(np.where(linked, 0, np.arange(n)))]
     a = area[perm].astype(np.float64)
     if smooth > 0:
-        a = _smooth_along(a, head, smooth)
+        a = _smooth_along(a, linked, smooth)
     label = np.full(n, -1, dtype=np.int64)
     # Union-find over line ids: two fragments of one line, met across a shallow minimum,
     # become one line. Roots are resolved on the few ids concerned, and once at the end.
@@ -292,12 +305,19 @@ def search_lines(
                 np.where(free[split] > cut_el[split], right_lab[run_of[split]], -1),
             )
             # shallow: noise or shading around a threshold, the two fragments are one line
-            for x, y in zip(
-                left_lab[cr[~pronounced]].tolist(), right_lab[cr[~pronounced]].tolist(), strict=True
-            ):
-                rx, ry = _roots(parent, np.array([x, y]))
-                if rx != ry:
-                    parent[max(rx, ry)] = min(rx, ry)
+            shallow = cr[~pronounced]
+            if shallow.size:
+                par = parent.tolist()  # plain ints: a few finds, no numpy call overhead
+                for x, y in zip(
+                    left_lab[shallow].tolist(), right_lab[shallow].tolist(), strict=True
+                ):
+                    while par[x] != x:
+                        x = par[x]
+                    while par[y] != y:
+                        y = par[y]
+                    if x != y:
+                        par[max(x, y)] = min(x, y)
+                parent = np.asarray(par, dtype=np.int64)
         label[free] = new_label
         # Runs touching no line: new lines, if long enough.
         lonely = (left_lab < 0) & (right_lab < 0)

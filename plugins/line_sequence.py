@@ -89,8 +89,8 @@ def line_neighbours(
     # And the typical spacing around the pair: the mean gap in its cell of the image, after
     # dropping gaps far above a first mean (the missing lines themselves). An isolated pair
     # (no gaps above or below it in its column) is judged by this alone.
-    cell_col = (col[:-1] // cell).astype(np.int64)
-    cell_row = (np.maximum(row[:-1], 0.0) // cell).astype(np.int64)
+    cell_col = col[:-1].astype(np.int64) // cell
+    cell_row = (np.maximum(row[:-1], 0.0) * (1.0 / cell)).astype(np.int64)
     cell_id = cell_col * (int(cell_row.max()) + 1 if cell_row.size else 1) + cell_row
     cell_id = np.where(same_col, cell_id, -1)
     sel = cell_id >= 0
@@ -110,7 +110,14 @@ def line_neighbours(
     ok &= (gap <= gap_ratio * ref) & (gap <= gap_ratio * cell_ref)
     if not np.any(ok):
         return empty, empty, empty
-    keys, counts = np.unique(a[ok] * n_lines + b[ok], return_counts=True)
+    pair_key = a[ok] * n_lines + b[ok]
+    if n_lines * n_lines <= 1 << 22:
+        # counting beats sorting while the pair table stays small (a few MB)
+        table = np.bincount(pair_key, minlength=n_lines * n_lines)
+        keys = np.flatnonzero(table)
+        counts = table[keys]
+    else:
+        keys, counts = np.unique(pair_key, return_counts=True)
     upper, lower = keys // n_lines, keys % n_lines
     # The same two lines seen the other way round somewhere: keep the dominant arrangement.
     rev = lower * n_lines + upper
