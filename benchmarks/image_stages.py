@@ -77,13 +77,28 @@ def truth_rows(col: np.ndarray, row: np.ndarray, lr: Any, tol: float = 1.5) -> n
     return np.where(np.minimum(e0, e1) < tol, gr[jj], np.nan)
 
 
-def scaled_params(scale: float) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Peak and line-search parameters for a sensor with ``scale`` times the seed's pixels."""
+def scaled_params(scale: float) -> dict[str, dict[str, Any]]:
+    """Stage parameters for a sensor with ``scale`` times the seed's pixels per mm.
+
+    Widths in pixels grow with the scale, slopes in grey values per pixel shrink, and the
+    lengths counted in columns (seeds, neighbourhoods) grow, so that each criterion means
+    the same on the back. Row steps between adjacent columns are slopes and do not change.
+    """
     if scale <= 1.0:
-        return {}, {}
-    peaks = {"max_width": round(25 * scale), "min_slope": 3.0 / scale}
-    lines = {"max_step": 4.0 * scale, "corner": 1.5 * scale**0.5}
-    return peaks, lines
+        return {"peaks": {}, "lines": {}, "order": {}, "numbers": {}}
+    k = float(scale)
+    return {
+        "peaks": {"max_width": round(25 * k), "min_slope": 3.0 / k},
+        "lines": {
+            "corner": 1.5 / k**0.5,
+            "dip_window": round(20 * k),
+            "smooth": round(2 * k),
+            "min_seed": round(8 * k),
+            "min_length": round(3 * k),
+        },
+        "order": {"min_overlap": round(3 * k), "min_link": round(6 * k)},
+        "numbers": {"min_columns": round(5 * k)},
+    }
 
 
 def accuracy(settings: RenderSettings, scenes: dict[str, Any]) -> dict[str, Any]:
@@ -108,15 +123,35 @@ def accuracy(settings: RenderSettings, scenes: dict[str, Any]) -> dict[str, Any]
     return out
 
 
+def numbering_check(result: Any, lr: Any, tol: float) -> dict[str, Any]:
+    """Lines numbered, wrongly numbered (majority truth differs), and peak coverage."""
+    from numbering_backs import _truth_numbers  # the sibling benchmark's truth matching
+
+    number = _truth_numbers(result.col, result.row, lr, tol=tol, resolve=2.0 * tol)
+    wrong = numbered = 0
+    for line in range(result.line_order.size):
+        truth = number[(result.line_id == line) & (number >= 0)]
+        if truth.size and result.line_number[line] >= 0:
+            numbered += 1
+            wrong += int(np.bincount(truth).argmax() != result.line_number[line])
+    on = number >= 0
+    return {
+        "lines": int(result.line_order.size),
+        "numbered": numbered,
+        "wrong": wrong,
+        "peak_coverage": round(float(np.mean(result.number[on] == number[on])), 4),
+    }
+
+
 def timings(image: np.ndarray, repeat: int, scale: float) -> dict[str, Any]:
-    """Median and best ms per stage over ``repeat`` runs."""
+    """Median and best ms per stage over ``repeat`` runs; the last result under "result"."""
     ctx = StageContext(raster=default_station().raster_definition)
-    p_peaks, p_lines = scaled_params(scale)
+    sp = scaled_params(scale)
     stages = [
-        (FirstMomentPeaks, p_peaks, None),
-        (HierarchicalLineSearch, p_lines, None),
-        (HierarchicalLineOrder, {}, None),
-        (CodeWindowNumbering, {}, ctx),
+        (FirstMomentPeaks, sp["peaks"], None),
+        (HierarchicalLineSearch, sp["lines"], None),
+        (HierarchicalLineOrder, sp["order"], None),
+        (CodeWindowNumbering, sp["numbers"], ctx),
     ]
     runs = []
     result: Any = None
@@ -140,6 +175,7 @@ def timings(image: np.ndarray, repeat: int, scale: float) -> dict[str, Any]:
         "lines": int(result.line_order.size),
         "numbered_share": round(float(np.mean(result.number >= 0)), 4) if result.n_peaks else 0.0,
         "reason": result.reason,
+        "result": result,
     }
 
 
@@ -197,8 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(report, indent=2), flush=True)
 
     station = default_station()
-    small = render(scenes["normal"], station, seed=11).image
+    small_r = render(scenes["normal"], station, seed=11)
+    small = small_r.image
     report["timing_604x576"] = timings(small, args.repeat, 1.0)
+    result = report["timing_604x576"].pop("result")
+    report["numbering_604x576"] = numbering_check(result, small_r.line_rows, 1.5)
     from rasterserver_plugins import line_search, peak_detection
 
     peaks = peak_detection.detect_peaks(small)
@@ -221,8 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         report["render_2448x2048_s"] = round(time.perf_counter() - t, 1)
         scale = 2048 / 576
         report["timing_2448x2048"] = timings(big.image, max(5, args.repeat // 3), scale)
-        pk, _ = scaled_params(scale)
-        peaks = run_stage(FirstMomentPeaks, Image(big.image), pk)
+        result = report["timing_2448x2048"].pop("result")
+        report["numbering_2448x2048"] = numbering_check(result, big.line_rows, 1.5 * scale)
+        peaks = run_stage(FirstMomentPeaks, Image(big.image), scaled_params(scale)["peaks"])
         exact = truth_rows(peaks.col, peaks.row, big.line_rows, tol=1.5 * scale)
         ok = ~np.isnan(exact)
         err = peaks.row[ok] - exact[ok]

@@ -142,3 +142,27 @@ def test_sixteen_bit_input() -> None:
     peaks16 = _run(image.astype(np.uint16) * 16, min_height=128.0, min_slope=48.0)
     assert peaks16.n_peaks == peaks8.n_peaks
     assert np.allclose(peaks16.row, peaks8.row, atol=1e-6)
+
+
+@pytest.mark.parametrize("bias", ["max-minimum", "min-minimum", "none"])
+def test_bias_modes(bias: str) -> None:
+    image, cols, rows = synthetic_lines(sigma=1.0, background=30.0)
+    peaks = _run(image, bias=bias, bias_fraction=0.0 if bias == "none" else 0.1)
+    err = _match(peaks, cols, rows)
+    assert peaks.n_peaks == rows.size
+    light = _run(image)
+    if bias == "none":
+        # the background stays in: larger areas, and the row is pulled towards the wider side
+        assert np.median(peaks.area) > 1.5 * np.median(light.area)
+        assert np.sqrt(np.mean(err**2)) > 0.1
+    else:
+        assert np.sqrt(np.mean(err**2)) < 0.03
+
+
+def test_wide_peaks_need_a_wider_window() -> None:
+    # lines 40 px apart with sigma 4 px (a 5 MP sensor): the default window cuts them
+    image, cols, rows = synthetic_lines((400, 30), spacing=40.0, sigma=4.0, tilt=0.02)
+    peaks = _run(image, max_width=100, min_slope=0.7)
+    err = _match(peaks, cols, rows)
+    assert peaks.n_peaks == rows.size
+    assert np.sqrt(np.mean(err**2)) < 0.05
