@@ -317,3 +317,28 @@ def test_a_crash_between_file_and_row_is_healed_by_the_next_run(archived, monkey
     assert sorted((Path(archive.settings.archive) / "derived").rglob("*.h5")) == files
     assert _count(archive, StageResult) == 5
     assert _count(archive, PipelineRun, status="done") == 1
+
+
+def test_verify_explains_every_derived_file(archived) -> None:
+    archive, uid = archived
+    pipeline = Pipeline(archive)
+    pipeline.process(uid, until="points")
+    report = pipeline.verify()
+    assert report.ok and report.frames_checked == 5 and report.acquisitions_checked == 1
+    rows = pipeline.results(uid)
+    root = Path(archive.settings.archive)
+    (root / rows[0].store_path).unlink()
+    damaged = root / rows[1].store_path
+    damaged.write_bytes(damaged.read_bytes()[:200])
+    (damaged.parent / f"{damaged.name}.tmp-1-abcd").write_bytes(b"partial")
+    # a computation whose row never made it
+    plan = pipeline.plan(uid, until="points", params={"points": {"depth_limit": 500.0}})
+    computation = pipeline.compute(plan)
+    step = plan.steps[-1]
+    pipeline.derived.write(
+        uid, computation.records["points"], stage="points", plugin=step.plugin,
+        plugin_version=step.version, params=step.params, params_hash=step.params_hash,
+        chain_key=plan.keys[-1], input_checksum=plan.input_checksum,
+    )
+    kinds = sorted(p.kind for p in pipeline.verify().problems)
+    assert kinds == ["corrupt", "missing", "orphaned", "temporary"]

@@ -101,3 +101,17 @@ def test_export_needs_a_processed_acquisition(setup, tmp_path: Path, capsys) -> 
     assert cli("export", uids["back"], "-f", "obj", "--what", "points", "-o", str(out)) == 2
     assert cli("export", uids["back"], "-f", "csv", "--what", "mesh", "-o", str(out)) == 2
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_process_on_a_local_dask_cluster(tmp_path: Path, capsys, monkeypatch) -> None:
+    pytest.importorskip("distributed")
+    from rasterserver.config import sqlite_url
+
+    settings = Settings(archive=tmp_path / "archive", database_url=sqlite_url(tmp_path / "a"))
+    archive, uids = gt.archive_with_frames(settings, {"back": gt.rendering("back").image})
+    archive.close()
+    monkeypatch.delenv("RASTERSERVER_DASK_SCHEDULER", raising=False)
+    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
+    assert main([*base, "process", uids["back"], "--dask", "--until", "surface"]) == 0
+    assert "6 computed, 0 reused" in capsys.readouterr().out
