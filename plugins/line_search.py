@@ -9,15 +9,18 @@ The seed's method, vectorised:
    departs from the steps around it by more than ``corner`` pixels (a sharp corner, the
    second difference of the row along the chain) joins two different lines and is cut.
 3. **Hierarchy.** Lines are built from the brightest parts first. At each of a few falling
-   area thresholds, the runs of chained peaks above the threshold are examined: a run without
-   a line becomes a new line if it is long enough; a run touching one line extends it
-   (dilation); a run touching several lines is split between them at its weakest peak, so
-   two existing lines are never merged. A pronounced intensity minimum along a chain (the
-   shoulder blade, the arm/trunk boundary) therefore separates two lines seeded on either
-   side of it.
+   area thresholds (the area smoothed along the chain), the runs of chained peaks above the
+   threshold are examined: a run without a line becomes a new line if it is long enough; a
+   run touching one line extends it (dilation); a run touching two lines is split between
+   them at its weakest peak when that is a pronounced intensity minimum (``dip`` times the
+   lines' areas around it). A pronounced minimum along a chain (the shoulder blade, the
+   arm/trunk boundary) therefore separates two lines seeded on either side of it, as in the
+   seed. A shallow minimum only means that noise or shading crossed a threshold, and the two
+   fragments are one line.
 
-Chains are laid out once in chain order (a permutation computed without sorting), so every
-level is a few passes over 1-D arrays; the only Python loop is over the threshold levels.
+Chains are laid out once in chain order (a permutation computed without sorting); each level
+works on the still unlabelled peaks only, so the levels together cost about one pass over the
+peaks. Python loops run over the threshold levels and the fragments joined, never over peaks.
 """
 
 from __future__ import annotations
@@ -356,11 +359,11 @@ def _compact(label: np.ndarray, perm: np.ndarray, min_length: int) -> np.ndarray
 
 
 class HierarchicalLineSearch(Stage[Peaks, Lines]):
-    """Peaks joined into raster lines, brightest parts first, never merging two lines.
+    """Peaks joined into raster lines, brightest parts first, cut at corners and dips.
 
     Mutual-nearest-neighbour links between adjacent columns form chains; sharp corners cut
     them; lines are seeded at falling area thresholds and grow by dilation, and a run that
-    would join two lines is split at its intensity minimum.
+    would join two lines is split at its intensity minimum when that is pronounced.
     """
 
     name: ClassVar[str] = "lines.hierarchical"
