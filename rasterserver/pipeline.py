@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
-import json
 import logging
 import socket
 import time
@@ -723,7 +722,11 @@ class Pipeline:
                     acquisition_id=plan.acquisition_id,
                     run_id=plan.run_id,
                     parent_id=parent_id,
-                    calibration_id=plan.calibration_id if step.requires else None,
+                    calibration_id=(
+                        plan.calibration_id
+                        if {"calibration", "raster"} & set(step.requires)
+                        else None
+                    ),
                     frame_index=plan.frame_index,
                     stage=step.kind,
                     plugin=step.plugin,
@@ -1014,8 +1017,3 @@ class Pipeline:
                     run.error = message[:10_000]
         except Exception:  # the original error matters more than failing to record it
             log.exception("could not mark pipeline run %s as failed", run_id)
-
-
-def describe_params(step: ChainStep) -> str:
-    """The step's parameters as canonical JSON (for messages and listings)."""
-    return json.dumps(step.params, sort_keys=True, separators=(",", ":"))
