@@ -121,10 +121,11 @@ def run_demo(
                 f"{outcome.reused} reused); mesh of {len(mesh.vertices)} vertices -> {path}"
             )
         report = archive.verify()
+        derived = pipeline.verify()
         result.verified_frames = report.frames_checked
-        result.problems = len(report.problems)
+        result.problems = len(report.problems) + len(derived.problems)
         log(
             f"verify: {report.acquisitions_checked} acquisitions, {report.frames_checked} "
-            f"frames, {len(report.problems)} problem(s)"
+            f"frames, {derived.frames_checked} stored results, {result.problems} problem(s)"
         )
     return result
