@@ -350,6 +350,8 @@ def test_empty_scene_is_dark() -> None:
     assert not r.visible.any() and len(r.line_rows) == 0
     assert np.all(r.image == round(NOISE_FREE.offset))
     assert np.all(np.isnan(r.points)) and np.all(r.line_number == -1)
+    nothing = render(Scene([]), st, settings=NOISE_FREE, seed=0)
+    assert np.array_equal(nothing.image, r.image) and nothing.object_names == []
 
 
 def test_projector_off_has_no_lines() -> None:
