@@ -1,0 +1,189 @@
+"""Calibration of the simulated station from its six frames: figures against the truth, and
+refusal of degenerate inputs with a message that says what is wrong."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import cv2
+import geometry_truth as gt
+import numpy as np
+import pytest
+from calibration_frames import rendered_dir
+
+from rasterserver.calibration import calibrate_station, load_control_points, load_frames
+from rasterserver.calibration.control_points import ControlPointFile, PlatePoints
+from rasterserver.calibration.station_calibration import CalibrationFrames, StationCalibration
+from rasterserver.errors import InputError
+from rasterserver.optics import Station, default_station
+from rasterserver.pipeline import run_chain
+from rasterserver.raster import Raster
+from rasterserver.stage import StageContext
+
+
+@pytest.fixture(scope="module")
+def inputs() -> tuple[CalibrationFrames, ControlPointFile, Raster, Station]:
+    folder = rendered_dir()
+    return (
+        load_frames(folder),
+        load_control_points(folder / "control_points.json"),
+        Raster.load(folder / "raster.json"),
+        Station.load(folder / "calibration.json"),
+    )
+
+
+@pytest.fixture(scope="module")
+def result(inputs) -> tuple[StationCalibration, float]:
+    frames, control, raster, _ = inputs
+    t0 = time.perf_counter()
+    out = calibrate_station(frames, control, raster=raster, reference=default_station())
+    return out, time.perf_counter() - t0
+
+
+def _calibrate(inputs, *, frames=None, control=None):
+    f, c, raster, _ = inputs
+    return calibrate_station(frames or f, control or c, raster=raster,
+                             reference=default_station())
+
+
+def test_control_point_reprojection_within_a_tenth_of_a_pixel(result) -> None:
+    res, seconds = result
+    assert len(res.point_ids) == 42
+    assert res.camera.rms <= 0.1
+    assert np.linalg.norm(res.camera.residuals, axis=1).max() < 0.3
+    assert seconds < 10.0
+
+
+def test_camera_and_projector_close_to_the_truth(result, inputs) -> None:
+    res, _ = result
+    true = inputs[3]
+    cam, tcam = res.station.camera, true.camera
+    assert np.allclose(cam.K, tcam.K, atol=2.0)  # px, of f = 2000 px
+    assert np.linalg.norm(cam.centre - tcam.centre) < 2.0  # mm, at 2 m
+    assert abs(cam.dist[0] - tcam.dist[0]) < 0.01
+    proj, tproj = res.station.projector, true.projector
+    # the centre's position along the lines (x) is taken from the reference: compare y, z
+    assert np.allclose(proj.centre[1:], tproj.centre[1:], atol=2.0)
+    assert abs(proj.K[1, 1] - tproj.K[1, 1]) < 5.0
+    assert res.projector_rms_mm < 0.05
+    # every plate's lines are numbered right: the truth has them at their true v
+    assert res.projector.dlt_rms < 0.5
+
+
+def _points(station: Station, raster: Raster) -> np.ndarray:
+    rendering = gt.rendering("back")
+    record = gt.numbered_lines(rendering.line_rows, rendering.image.shape)
+    out = run_chain(record, until="points", context=StageContext(calibration=station,
+                                                                  raster=raster))
+    pts = out["points"]
+    return np.column_stack([pts.x, pts.y, pts.z])
+
+
+def test_back_reconstructed_with_the_estimate_matches_the_truth(result, inputs) -> None:
+    res, _ = result
+    raster, true = inputs[2], inputs[3]
+    estimated = _points(res.station, raster)
+    exact = _points(true, raster)
+    assert estimated.shape == exact.shape and len(exact) > 10_000
+    to_surface = gt.rms(gt.distance_to_scene(gt.scene("back"), estimated))
+    between = gt.rms(np.linalg.norm(estimated - exact, axis=1))
+    assert to_surface <= 0.5
+    assert between <= 0.1
+
+
+def test_calibration_document_round_trips(result, tmp_path) -> None:
+    res, _ = result
+    path = res.station.save(tmp_path / "calibration.json")
+    back = Station.load(path)
+    assert np.allclose(back.camera.K, res.station.camera.K)
+    assert np.allclose(back.projector.R, res.station.projector.R)
+    residuals = res.residuals_dict()
+    assert len(residuals["camera"]["points"]) == 42
+    assert residuals["projector"]["lines"]
+
+
+# --- degenerate inputs ------------------------------------------------------------------------
+
+
+def test_a_missing_frame_is_named(inputs) -> None:
+    frames = inputs[0]
+    on = {k: v for k, v in frames.on.items() if k != 1}
+    with pytest.raises(InputError, match="config1-projector-on is missing"):
+        _calibrate(inputs, frames=dataclasses.replace(frames, on=on))
+
+
+def test_a_frame_without_control_points_is_named(inputs) -> None:
+    frames, control = inputs[0], inputs[1]
+    fewer = ControlPointFile({k: v for k, v in control.plates.items() if k != 2}, control.layout)
+    with pytest.raises(InputError, match="config2-projector-off has no control points"):
+        _calibrate(inputs, frames=frames, control=fewer)
+
+
+def _plate_pixels(image: np.ndarray) -> np.ndarray:
+    from rasterserver.calibration.control_points import detect_plates
+
+    return detect_plates(image)[0].mask
+
+
+def test_a_plate_not_visible_is_refused(inputs) -> None:
+    frames = inputs[0]
+    off = dict(frames.off)
+    image = off[0].copy()
+    mask = _plate_pixels(image)
+    image[mask] = np.median(image[~mask])  # the left plate hidden (the base's grey instead)
+    off[0] = image
+    with pytest.raises(InputError, match=r"found 1 control plate\(s\), expected 2"):
+        _calibrate(inputs, frames=dataclasses.replace(frames, off=off))
+
+
+def test_a_covered_hole_is_refused(inputs) -> None:
+    frames = inputs[0]
+    off = dict(frames.off)
+    image = off[1].copy()
+    from rasterserver.calibration.control_points import detect_plates
+
+    plate = detect_plates(image)[0]
+    u, v = np.rint(plate.holes[6]).astype(int)
+    cv2.circle(image, (int(u), int(v)), 8, int(np.median(image[plate.mask])), -1)
+    off[1] = image
+    with pytest.raises(InputError, match="shows 6 holes, expected 7"):
+        _calibrate(inputs, frames=dataclasses.replace(frames, off=off))
+
+
+def test_a_foreign_dark_spot_is_refused(inputs) -> None:
+    frames = inputs[0]
+    off = dict(frames.off)
+    image = off[2].copy()
+    from rasterserver.calibration.control_points import detect_plates
+
+    plate = detect_plates(image)[1]
+    u, v = np.rint(plate.holes[2] + [15, 30]).astype(int)
+    cv2.circle(image, (int(u), int(v)), 4, 10, -1)
+    off[2] = image
+    with pytest.raises(InputError, match="shows 8 holes, expected 7"):
+        _calibrate(inputs, frames=dataclasses.replace(frames, off=off))
+
+
+def test_mislabelled_control_points_are_refused_by_name(inputs) -> None:
+    control = inputs[1]
+    plates = {k: list(v) for k, v in control.plates.items()}
+    first = plates[0][0]
+    xyz = first.xyz.copy()
+    xyz[[0, 3]] = xyz[[3, 0]]  # two holes' coordinates exchanged
+    plates[0][0] = PlatePoints(first.configuration, first.plate, first.ids, xyz)
+    with pytest.raises(InputError, match=r"do not fit one camera.*c0-high-[03]"):
+        _calibrate(inputs, control=ControlPointFile(plates, control.layout))
+
+
+def test_a_plate_without_raster_lines_is_refused(inputs) -> None:
+    frames = inputs[0]
+    on = dict(frames.on)
+    from rasterserver.calibration.control_points import detect_plates
+
+    image = on[0].copy()
+    mask = detect_plates(frames.off[0])[1].mask
+    image[mask] = 8  # the projector's light does not reach this plate
+    on[0] = image
+    with pytest.raises(InputError, match="low plate: 0 raster lines found"):
+        _calibrate(inputs, frames=dataclasses.replace(frames, on=on))
