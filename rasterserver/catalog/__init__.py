@@ -28,3 +28,7 @@ __all__ = [
     "make_engine",
     "session_factory",
 ]
+
+# The HTTP API's tables (accounts, tokens, audit) must be in Base.metadata wherever the
+# schema is compared or created, so they are imported with the catalogue.
+from rasterserver.catalog import auth_models as auth_models

@@ -8,6 +8,7 @@ from __future__ import annotations
 from types import ModuleType
 
 from rasterserver.commands import (
+    calibrate,
     db,
     demo,
     export,
@@ -17,8 +18,10 @@ from rasterserver.commands import (
     plugins,
     process,
     reconstruct,
+    serve,
     simulate,
     stations,
+    tokens,
     verify,
 )
 
@@ -35,4 +38,7 @@ COMMAND_MODULES: list[ModuleType] = [
     reconstruct,
     process,
     export,
+    serve,
+    tokens,
+    calibrate,
 ]

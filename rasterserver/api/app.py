@@ -1,0 +1,152 @@
+"""The FastAPI application factory and the services it holds.
+
+:func:`create_app` builds the app for one archive. The routers reach the services through
+``request.app.state.services``: the same :class:`~rasterserver.archive.Archive` and
+:class:`~rasterserver.pipeline.Pipeline` the CLI uses, plus the API's own pieces (jobs,
+pseudonyms, metrics).
+
+Settings (environment, or :class:`ApiSettings` arguments):
+
+``RASTERSERVER_MAX_UPLOAD_BYTES``
+    Largest request body (default 256 MiB); bigger ones get 413.
+``RASTERSERVER_REQUEST_TIMEOUT``
+    Seconds a request may take (default 120); then 504.
+``RASTERSERVER_PSEUDONYM_KEY``
+    Hex key of the researchers' pseudonyms (default: made once, kept in the catalogue).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+
+from fastapi import FastAPI
+
+from rasterserver import __version__
+from rasterserver.api.audit import RequestMiddleware
+from rasterserver.api.errors import LimitsMiddleware, install_handlers
+from rasterserver.api.jobs import JobRunner
+from rasterserver.api.metrics import Metrics
+from rasterserver.api.pseudonym import Pseudonymiser
+from rasterserver.archive import Archive
+from rasterserver.config import Settings
+from rasterserver.pipeline import Pipeline
+
+
+@dataclass(frozen=True)
+class ApiSettings:
+    """Limits of the HTTP API.
+
+    Attributes
+    ----------
+    max_upload_bytes : int
+        Largest request body accepted.
+    request_timeout_s : float
+        Longest a request may take.
+    job_workers : int
+        Threads running processing jobs in this process.
+    """
+
+    max_upload_bytes: int = 256 * 1024 * 1024
+    request_timeout_s: float = 120.0
+    job_workers: int = 1
+
+    @classmethod
+    def from_env(cls) -> ApiSettings:
+        """Read the limits from the environment, with the defaults above."""
+        return cls(
+            max_upload_bytes=int(os.environ.get("RASTERSERVER_MAX_UPLOAD_BYTES",
+                                                cls.max_upload_bytes)),
+            request_timeout_s=float(os.environ.get("RASTERSERVER_REQUEST_TIMEOUT",
+                                                   cls.request_timeout_s)),
+            job_workers=int(os.environ.get("RASTERSERVER_JOB_WORKERS", cls.job_workers)),
+        )
+
+
+class Services:
+    """What the routers call: the archive, its pipeline, jobs, pseudonyms and metrics."""
+
+    def __init__(self, settings: Settings, api: ApiSettings) -> None:
+        self.settings = settings
+        self.api = api
+        self.archive = Archive(settings)
+        self.pipeline = Pipeline(self.archive)
+        self.jobs = JobRunner(self.archive, workers=api.job_workers)
+        self.pseudonyms = Pseudonymiser(self.archive)
+        self.metrics = Metrics()
+
+    def close(self) -> None:
+        """Stop the job threads and release the catalogue's connections."""
+        self.jobs.close()
+        self.archive.close()
+
+
+def _drop_record(_record: logging.LogRecord) -> bool:
+    return False
+
+
+def silence_uvicorn_access_log() -> None:
+    """Drop uvicorn's access log records: they carry the concrete path and query, which can
+    name a patient. A filter, not just ``access_log=False``: logging set-ups elsewhere (a
+    ``dictConfig`` touching ``uvicorn``) re-enable propagation, but leave filters alone.
+    """
+    access = logging.getLogger("uvicorn.access")
+    if _drop_record not in access.filters:
+        access.addFilter(_drop_record)
+
+
+def create_app(settings: Settings, api: ApiSettings | None = None) -> FastAPI:
+    """Build the HTTP API of the archive described by ``settings``.
+
+    Parameters
+    ----------
+    settings : Settings
+        Archive folder and catalogue URL; the catalogue must be migrated.
+    api : ApiSettings, optional
+        Limits; by default from the environment.
+
+    Returns
+    -------
+    fastapi.FastAPI
+    """
+    from rasterserver.api.routers import ROUTERS
+
+    silence_uvicorn_access_log()
+    api = api or ApiSettings.from_env()
+    services = Services(settings, api)
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        try:
+            yield
+        finally:
+            services.close()
+
+    app = FastAPI(
+        title="rasterserver",
+        version=__version__,
+        summary="Archive and clinical data server for video rasterstereography.",
+        description=(
+            "Bearer tokens (`rasterserver token create`) on every route but `/health`. "
+            "Roles: admin, clinician, station (upload only), researcher (pseudonymised, "
+            "read-only). Every access to patient data is audited."
+        ),
+        lifespan=lifespan,
+    )
+    app.state.services = services
+    install_handlers(app)
+    for router in ROUTERS:
+        app.include_router(router)
+    # outermost first: the limits wrap the audit, so a refused upload is still answered
+    app.add_middleware(RequestMiddleware, services=services)
+    app.add_middleware(LimitsMiddleware, max_body_bytes=api.max_upload_bytes,
+                       timeout_s=api.request_timeout_s)
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Uvicorn factory for ``--workers`` > 1: settings from the environment."""
+    return create_app(Settings.from_env())

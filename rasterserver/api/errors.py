@@ -1,0 +1,127 @@
+"""JSON error bodies for every refusal, and the request limits (size, time).
+
+Every error response is ``{"detail": ..., "error": <type>}``: the service's
+:class:`~rasterserver.errors.RasterServerError` subclasses keep their ``http_status`` (422 bad
+input, 404, 409, 500 integrity), FastAPI's validation errors stay 422 with the per-field list,
+and anything unexpected is a 500 whose body says nothing about the data.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import anyio
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from rasterserver.errors import RasterServerError
+
+log = logging.getLogger(__name__)
+
+
+def error_body(status: int, detail: object, kind: str) -> dict[str, object]:
+    """The JSON body of an error response."""
+    return {"detail": detail, "error": kind, "status": status}
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Register the exception handlers that turn every error into a JSON body."""
+
+    @app.exception_handler(RasterServerError)
+    async def _service_error(_request: Request, exc: RasterServerError) -> JSONResponse:
+        return JSONResponse(error_body(exc.http_status, str(exc), type(exc).__name__),
+                            status_code=exc.http_status)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return JSONResponse(error_body(exc.status_code, exc.detail, "HTTPError"),
+                            status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        # the offending input is echoed back to the client only, never logged
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""),
+                   "type": e.get("type", "")} for e in exc.errors()]
+        return JSONResponse(error_body(422, errors, "ValidationError"), status_code=422)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(_request: Request, exc: Exception) -> JSONResponse:
+        log.error("unexpected %s while handling a request", type(exc).__name__, exc_info=exc)
+        return JSONResponse(error_body(500, "internal error", "InternalError"), status_code=500)
+
+
+class _TooLarge(StarletteHTTPException):
+    """Raised while reading a body that outgrows the limit.
+
+    An HTTPException so that FastAPI's body parser passes it on as a 413 instead of turning
+    it into a generic 400.
+    """
+
+
+class LimitsMiddleware:
+    """Refuse bodies over ``max_body_bytes`` (413) and requests over ``timeout_s`` (504).
+
+    The size is checked on ``Content-Length`` before anything is read, and again while the
+    body streams in, so a chunked upload cannot get around it.
+    """
+
+    def __init__(self, app: ASGIApp, *, max_body_bytes: int, timeout_s: float) -> None:
+        self.app = app
+        self.max_body_bytes = max_body_bytes
+        self.timeout_s = timeout_s
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def send_tracked(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        async def refuse(status: int, detail: str, kind: str) -> None:
+            body = json.dumps(error_body(status, detail, kind)).encode()
+            await send({"type": "http.response.start", "status": status,
+                        "headers": [(b"content-type", b"application/json"),
+                                    (b"content-length", str(len(body)).encode()),
+                                    (b"connection", b"close")]})
+            await send({"type": "http.response.body", "body": body})
+
+        too_big = f"request body over {self.max_body_bytes} bytes"
+        for name, value in scope.get("headers", []):
+            if name == b"content-length":
+                try:
+                    length = int(value)
+                except ValueError:
+                    await refuse(400, "bad Content-Length", "BadRequest")
+                    return
+                if length > self.max_body_bytes:
+                    await refuse(413, too_big, "PayloadTooLarge")
+                    return
+        received = 0
+
+        async def receive_limited() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_body_bytes:
+                    raise _TooLarge(413, too_big)
+            return message
+
+        try:
+            with anyio.fail_after(self.timeout_s):
+                await self.app(scope, receive_limited, send_tracked)
+        except TimeoutError:
+            if not started:
+                await refuse(504, f"request took longer than {self.timeout_s:g} s", "Timeout")
+        except _TooLarge:
+            if not started:
+                await refuse(413, too_big, "PayloadTooLarge")

@@ -1,0 +1,136 @@
+"""Pseudonyms for the researcher role: keyed, stable, and interval-preserving.
+
+A patient's pseudonym is ``PS-`` and the first 20 hex digits of HMAC-SHA256(key,
+``"patient:" + identifier``): stable across requests, restarts and workers, and impossible to
+invert or to recompute without the key. Every date of that patient is shifted by the same
+offset, -365 ... +365 days, also derived from the key (HMAC over ``"shift:" + identifier``), so
+intervals between visits survive exactly while the calendar dates do not. Names, birth dates,
+operators and notes are never shown to researchers.
+
+The key comes from ``RASTERSERVER_PSEUDONYM_KEY`` (hex) if set, else from the catalogue's
+``pseudonym_key`` table, where it is made on first use.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import hmac
+import os
+import secrets
+import threading
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+
+from rasterserver.archive import Archive
+from rasterserver.catalog.auth_models import PseudonymKey
+from rasterserver.errors import InputError, NotFoundError
+
+PREFIX = "PS-"
+MAX_SHIFT_DAYS = 365
+
+
+def load_key(archive: Archive) -> bytes:
+    """Return the pseudonym key: from the environment, or the catalogue (made once)."""
+    env = os.environ.get("RASTERSERVER_PSEUDONYM_KEY")
+    if env:
+        try:
+            key = bytes.fromhex(env)
+        except ValueError:
+            raise InputError("RASTERSERVER_PSEUDONYM_KEY must be hex") from None
+        if len(key) < 16:
+            raise InputError("RASTERSERVER_PSEUDONYM_KEY must hold at least 16 bytes")
+        return key
+    query = select(PseudonymKey.key_hex).order_by(PseudonymKey.id).limit(1)
+    with archive.session() as s:
+        found = s.scalar(query)
+        if found is None:
+            s.add(PseudonymKey(key_hex=secrets.token_hex(32)))
+    if found is None:
+        # two workers may both have made one: the oldest wins, for everyone
+        with archive.session() as s:
+            found = s.scalar(query)
+    assert found is not None
+    return bytes.fromhex(found)
+
+
+class Pseudonymiser:
+    """Maps identifiers to pseudonyms and back, and shifts dates, with one key.
+
+    Parameters
+    ----------
+    archive : Archive
+        Where the key and the patients are.
+    key : bytes, optional
+        The key; by default :func:`load_key`.
+    """
+
+    def __init__(self, archive: Archive, key: bytes | None = None) -> None:
+        self.archive = archive
+        self._key = key
+        self._reverse: dict[str, str] = {}
+        self._lock = threading.Lock()
+
+    @property
+    def key(self) -> bytes:
+        """The key, loaded on first use."""
+        if self._key is None:
+            try:
+                self._key = load_key(self.archive)
+            except SQLIntegrityError:  # pragma: no cover - a concurrent first use
+                self._key = load_key(self.archive)
+        return self._key
+
+    def _mac(self, text: str) -> bytes:
+        return hmac.new(self.key, text.encode(), hashlib.sha256).digest()
+
+    def pseudonym(self, identifier: str) -> str:
+        """The stable pseudonym of the patient with site ``identifier``."""
+        return PREFIX + self._mac("patient:" + identifier).hex()[:20]
+
+    def shift_days(self, identifier: str) -> int:
+        """The patient's date offset in days, in [-365, 365]."""
+        value = int.from_bytes(self._mac("shift:" + identifier)[:8], "big")
+        return value % (2 * MAX_SHIFT_DAYS + 1) - MAX_SHIFT_DAYS
+
+    def shift_date(self, identifier: str, day: dt.date | None) -> dt.date | None:
+        """Shift a date of the patient by their offset."""
+        return None if day is None else day + dt.timedelta(days=self.shift_days(identifier))
+
+    def shift_time(self, identifier: str, when: dt.datetime | None) -> dt.datetime | None:
+        """Shift a time of the patient by their offset (whole days: time of day kept)."""
+        return None if when is None else when + dt.timedelta(days=self.shift_days(identifier))
+
+    def identifier(self, pseudonym: str) -> str:
+        """The site identifier behind ``pseudonym``.
+
+        Raises
+        ------
+        NotFoundError
+            No patient has this pseudonym.
+        """
+        if not pseudonym.startswith(PREFIX):
+            raise NotFoundError("unknown pseudonym")
+        with self._lock:
+            found = self._reverse.get(pseudonym)
+        if found is not None:
+            return found
+        # a patient registered since the last look-up: recompute the table (a few ms per
+        # thousand patients, and only on a miss)
+        table: dict[str, str] = {}
+        offset, page = 0, 5000
+        while True:
+            batch = self._identifiers(offset, page)
+            table.update((self.pseudonym(i), i) for i in batch)
+            if len(batch) < page:
+                break
+            offset += page
+        with self._lock:
+            self._reverse = table
+        if pseudonym not in table:
+            raise NotFoundError("unknown pseudonym")
+        return table[pseudonym]
+
+    def _identifiers(self, offset: int, limit: int) -> list[str]:
+        return [p.identifier for p in self.archive.patients(limit=limit, offset=offset)]

@@ -1,0 +1,66 @@
+"""Who may call what: one table, keyed by route name, read by :func:`~.auth.authorize`.
+
+The roles:
+
+``admin``
+    Accounts, stations, rasters, calibrations, the audit trail and metrics; no patient data.
+``clinician``
+    Patients, visits, acquisitions, frames, processing, results and exports.
+``station``
+    Uploads acquisitions, nothing else (a service account on an acquisition station).
+``researcher``
+    Reads patients, acquisitions, frames, results and exports, pseudonymised
+    (see :mod:`rasterserver.api.pseudonym`); writes nothing.
+
+A route missing from :data:`RULES` is refused to everyone (and a test fails), so a new
+route cannot go out unprotected by accident.
+"""
+
+from __future__ import annotations
+
+ADMIN, CLINICIAN, STATION, RESEARCHER = "admin", "clinician", "station", "researcher"
+EVERYONE = frozenset({ADMIN, CLINICIAN, STATION, RESEARCHER})
+READERS = frozenset({CLINICIAN, RESEARCHER})
+
+#: Routes that need no token at all.
+PUBLIC = frozenset({"health", "openapi", "swagger_ui_html", "swagger_ui_redirect", "redoc_html"})
+
+RULES: dict[str, frozenset[str]] = {
+    # catalogue set-up
+    "list_plugins": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    "metrics": frozenset({ADMIN}),
+    "list_accounts": frozenset({ADMIN}),
+    "add_account": frozenset({ADMIN}),
+    "list_stations": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    "add_station": frozenset({ADMIN}),
+    "get_station": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    "add_raster": frozenset({ADMIN}),
+    "get_raster": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    "list_calibrations": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    "add_calibration": frozenset({ADMIN}),
+    "get_calibration": frozenset({ADMIN, CLINICIAN, RESEARCHER}),
+    # patient data
+    "list_patients": READERS,
+    "add_patient": frozenset({CLINICIAN}),
+    "get_patient": READERS,
+    "list_visits": READERS,
+    "list_acquisitions": READERS,
+    "upload_acquisition": frozenset({CLINICIAN, STATION}),
+    "get_acquisition": READERS,
+    "get_frame": READERS,
+    "get_frame_preview": READERS,
+    "list_results": READERS,
+    "get_result": READERS,
+    "list_runs": READERS,
+    "export_result": READERS,
+    "start_job": frozenset({CLINICIAN}),
+    "list_jobs": frozenset({CLINICIAN}),
+    "get_job": frozenset({CLINICIAN}),
+    # oversight
+    "get_audit": frozenset({ADMIN}),
+}
+
+
+def allowed(route_name: str, role: str) -> bool:
+    """Return whether ``role`` may call the route called ``route_name``."""
+    return role in RULES.get(route_name, frozenset())

@@ -1,0 +1,30 @@
+"""``/accounts``: users and service accounts (tokens are made with the CLI only)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Query
+
+from rasterserver.api import auth
+from rasterserver.api.deps import PageDep, ServicesDep, protected_router
+from rasterserver.api.schemas import AccountIn, AccountOut
+
+router = protected_router("accounts")
+
+
+@router.get("/accounts", name="list_accounts", response_model=list[AccountOut])
+def list_accounts(
+    svc: ServicesDep, page: PageDep,
+    role: Annotated[str | None, Query(max_length=16)] = None,
+) -> list[AccountOut]:
+    """Accounts by name, optionally of one role."""
+    found = auth.accounts(svc.archive, limit=page.limit, offset=page.offset, role=role)
+    return [AccountOut(name=p.name, role=p.role, kind=p.kind) for p in found]
+
+
+@router.post("/accounts", name="add_account", response_model=AccountOut, status_code=201)
+def add_account(body: AccountIn, svc: ServicesDep) -> AccountOut:
+    """Create a user or service account; give it a token with `rasterserver token create`."""
+    p = auth.add_account(svc.archive, body.name, role=body.role, kind=body.kind)
+    return AccountOut(name=p.name, role=p.role, kind=p.kind)

@@ -1,0 +1,169 @@
+"""``/acquisitions``: upload (multipart), list, read, and raw frames (NPY, PNG preview)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+from typing import Annotated
+
+import cv2
+import numpy as np
+from fastapi import File, Form, Path, Query, Request, UploadFile
+from fastapi.responses import Response
+
+from rasterserver.api.deps import (
+    MAX_OFFSET,
+    CallerDep,
+    NoteDep,
+    PageDep,
+    ServicesDep,
+    not_modified,
+    protected_router,
+    utc,
+)
+from rasterserver.api.schemas import AcquisitionOut
+from rasterserver.api.views import acquisition_out, refuse_date_filters_for, resolve_patient
+from rasterserver.archive import FrameSource
+from rasterserver.catalog.models import ACQUISITION_KINDS
+from rasterserver.errors import InputError, NotFoundError
+
+router = protected_router("acquisitions")
+
+Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
+FrameIndex = Annotated[int, Path(ge=0, le=MAX_OFFSET)]
+
+
+def _parse_shape(text: str | None) -> tuple[int, int] | None:
+    if not text:
+        return None
+    try:
+        rows, cols = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"shape {text!r}: expected ROWSxCOLUMNS, e.g. 604x576") from None
+    return rows, cols
+
+
+@router.get("/acquisitions", name="list_acquisitions", response_model=list[AcquisitionOut])
+def list_acquisitions(
+    svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
+    patient: Annotated[str | None, Query(max_length=64,
+                                         description="Identifier (researchers: pseudonym).")]
+    = None,
+    since: Annotated[dt.datetime | None, Query(description="Acquired at or after.")] = None,
+    until: Annotated[dt.datetime | None, Query(description="Acquired before.")] = None,
+    kind: Annotated[str | None, Query(max_length=16)] = None,
+) -> list[AcquisitionOut]:
+    """Acquisitions, newest first, by patient, time range and kind."""
+    refuse_date_filters_for(caller, since, until)
+    rows = svc.archive.acquisitions(
+        patient=resolve_patient(caller, patient, svc.pseudonyms) if patient else None,
+        since=utc(since), until=utc(until), kind=kind, limit=page.limit, offset=page.offset)
+    for a in rows:
+        note.touch(a.patient_id)
+    return [acquisition_out(a, caller, svc.pseudonyms) for a in rows]
+
+
+@router.post("/acquisitions", name="upload_acquisition", response_model=AcquisitionOut,
+             status_code=201, responses={413: {"description": "Upload too large"},
+                                         422: {"description": "A frame or field was refused; "
+                                                            "nothing was stored"}})
+def upload_acquisition(
+    svc: ServicesDep, caller: CallerDep, note: NoteDep,
+    files: Annotated[list[UploadFile], File(description="Frames: PNG, TIFF, NPY or raw.")],
+    roles: Annotated[list[str] | None, Form(description="Role per frame, or one for all.")]
+    = None,
+    patient: Annotated[str | None, Form(max_length=64)] = None,
+    kind: Annotated[str, Form(max_length=16)] = "patient",
+    station: Annotated[str | None, Form(max_length=100)] = None,
+    calibration_version: Annotated[int | None, Form(ge=1, le=2**31)] = None,
+    visit_date: Annotated[dt.date | None, Form()] = None,
+    acquired_at: Annotated[dt.datetime | None, Form()] = None,
+    operator: Annotated[str, Form(max_length=100)] = "",
+    notes: Annotated[str, Form(max_length=10_000)] = "",
+    shape: Annotated[str | None, Form(max_length=32, description="ROWSxCOLS of raw frames.")]
+    = None,
+    dtype: Annotated[str | None, Form(max_length=16)] = None,
+    convert_color: Annotated[bool, Form()] = False,
+) -> AcquisitionOut:
+    """Store one acquisition of one or several frames, validated like ``rasterserver ingest``.
+
+    Every frame is decoded and checked before anything is written: one refused frame and
+    nothing is stored.
+    """
+    if kind not in ACQUISITION_KINDS:
+        raise InputError(f"kind must be one of {', '.join(ACQUISITION_KINDS)}")
+    names = roles or ["raster"]
+    if len(names) == 1:
+        names = names * len(files)
+    if len(names) != len(files):
+        raise InputError(f"{len(files)} files but {len(names)} roles")
+    sources = [FrameSource(f.file.read(), role=r, name=f.filename or f"frame-{k}")
+               for k, (f, r) in enumerate(zip(files, names, strict=True))]
+    acq = svc.archive.ingest(
+        sources, patient=patient, kind=kind, station=station,
+        calibration_version=calibration_version, visit_date=visit_date,
+        acquired_at=utc(acquired_at), operator=operator, notes=notes,
+        shape=_parse_shape(shape), dtype=dtype, convert_color=convert_color)
+    note.touch(acq.patient_id, acq.uid)
+    # the returned row lacks its patient relationship; read it back as a reader would
+    return acquisition_out(svc.archive.acquisition(acq.uid), caller, svc.pseudonyms)
+
+
+@router.get("/acquisitions/{uid}", name="get_acquisition", response_model=AcquisitionOut)
+def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep,
+                    note: NoteDep) -> AcquisitionOut:
+    """One acquisition with its frames' metadata."""
+    acq = svc.archive.acquisition(uid)
+    note.touch(acq.patient_id, acq.uid)
+    return acquisition_out(acq, caller, svc.pseudonyms)
+
+
+def _frame_sha(svc: ServicesDep, note: NoteDep, uid: str, index: int) -> str:
+    acq = svc.archive.acquisition(uid)
+    note.touch(acq.patient_id, acq.uid)
+    for f in acq.frames:
+        if f.index == index:
+            return f.sha256
+    raise NotFoundError(f"acquisition {uid} has no frame {index}")
+
+
+_IMMUTABLE = "private, max-age=31536000, immutable"
+
+
+@router.get("/acquisitions/{uid}/frames/{index}", name="get_frame",
+            response_class=Response,
+            responses={200: {"content": {"application/x-npy": {}},
+                             "description": "The raw frame as a NumPy .npy file"},
+                       304: {"description": "Not modified"}})
+def get_frame(uid: Uid, index: FrameIndex, request: Request, svc: ServicesDep,
+              note: NoteDep) -> Response:
+    """The raw frame, bit for bit as stored, as NPY; its SHA-256 is the ETag."""
+    sha = _frame_sha(svc, note, uid, index)
+    if (cached := not_modified(request, sha)) is not None:
+        return cached
+    buffer = io.BytesIO()
+    np.save(buffer, svc.archive.read_frame(uid, index), allow_pickle=False)
+    return Response(buffer.getvalue(), media_type="application/x-npy",
+                    headers={"ETag": f'"{sha}"', "Cache-Control": _IMMUTABLE,
+                             "Content-Disposition": f'attachment; filename="{uid}-{index}.npy"'})
+
+
+@router.get("/acquisitions/{uid}/frames/{index}/preview.png", name="get_frame_preview",
+            response_class=Response,
+            responses={200: {"content": {"image/png": {}}, "description": "8-bit PNG"},
+                       304: {"description": "Not modified"}})
+def get_frame_preview(uid: Uid, index: FrameIndex, request: Request, svc: ServicesDep,
+                      note: NoteDep) -> Response:
+    """An 8-bit PNG preview of the frame (16-bit frames scaled to their maximum)."""
+    etag = _frame_sha(svc, note, uid, index) + "-png"
+    if (cached := not_modified(request, etag)) is not None:
+        return cached
+    frame = svc.archive.read_frame(uid, index)
+    if frame.dtype != np.uint8:
+        peak = float(frame.max()) or 1.0
+        frame = np.clip(frame.astype(np.float64) * (255.0 / peak), 0, 255).astype(np.uint8)
+    ok, png = cv2.imencode(".png", frame)
+    if not ok:  # pragma: no cover - a stored frame is always a 2-D integer image
+        raise RuntimeError("PNG encoding failed")
+    return Response(png.tobytes(), media_type="image/png",
+                    headers={"ETag": f'"{etag}"', "Cache-Control": _IMMUTABLE})

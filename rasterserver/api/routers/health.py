@@ -1,0 +1,33 @@
+"""``/health`` (no token) and ``/metrics`` (admin)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import PlainTextResponse
+
+from rasterserver import __version__
+from rasterserver.api.auth import authorize
+from rasterserver.api.deps import ServicesDep
+from rasterserver.api.schemas import Health
+from rasterserver.catalog import migrate
+
+router = APIRouter(tags=["service"])
+
+
+@router.get("/health", name="health", response_model=Health)
+def health(svc: ServicesDep) -> Health:
+    """Liveness and the catalogue's schema revision; needs no token."""
+    return Health(status="ok", version=__version__,
+                  schema_revision=migrate.current_revision(svc.archive.engine))
+
+
+@router.get("/metrics", name="metrics", response_class=PlainTextResponse,
+            dependencies=[Depends(authorize)],
+            responses={200: {"content": {"text/plain": {}}}})
+def metrics(svc: ServicesDep) -> PlainTextResponse:
+    """Request counts and latencies of this worker, in the Prometheus text format."""
+    jobs = svc.jobs.list(limit=10**6)
+    extra = {"rasterserver_jobs_running": sum(j.status == "running" for j in jobs),
+             "rasterserver_jobs_queued": sum(j.status == "queued" for j in jobs)}
+    return PlainTextResponse(svc.metrics.render(extra),
+                             media_type="text/plain; version=0.0.4")

@@ -1,0 +1,62 @@
+"""``/patients`` and their ``/visits``; researchers see pseudonyms and shifted dates."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Path
+from sqlalchemy import select
+
+from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router
+from rasterserver.api.schemas import PatientIn, PatientOut, VisitOut
+from rasterserver.api.views import patient_out, resolve_patient, visit_out
+from rasterserver.catalog.models import Visit
+
+router = protected_router("patients")
+
+PatientRef = Annotated[str, Path(max_length=64,
+                                 description="Site identifier (researchers: pseudonym).")]
+
+
+@router.get("/patients", name="list_patients", response_model=list[PatientOut])
+def list_patients(svc: ServicesDep, caller: CallerDep, note: NoteDep,
+                  page: PageDep) -> list[PatientOut]:
+    """Patients by identifier."""
+    rows = svc.archive.patients(limit=page.limit, offset=page.offset)
+    for p in rows:
+        note.touch(p.id)
+    return [patient_out(p, caller, svc.pseudonyms) for p in rows]
+
+
+@router.post("/patients", name="add_patient", response_model=PatientOut, status_code=201)
+def add_patient(body: PatientIn, svc: ServicesDep, caller: CallerDep,
+                note: NoteDep) -> PatientOut:
+    """Register a patient under the site's identifier."""
+    row = svc.archive.add_patient(body.identifier, name=body.name,
+                                  birth_date=body.birth_date, sex=body.sex)
+    note.touch(row.id)
+    return patient_out(row, caller, svc.pseudonyms)
+
+
+@router.get("/patients/{patient}", name="get_patient", response_model=PatientOut)
+def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
+                note: NoteDep) -> PatientOut:
+    """One patient."""
+    row = svc.archive.patient(resolve_patient(caller, patient, svc.pseudonyms))
+    note.touch(row.id)
+    return patient_out(row, caller, svc.pseudonyms)
+
+
+@router.get("/patients/{patient}/visits", name="list_visits", response_model=list[VisitOut])
+def list_visits(patient: PatientRef, svc: ServicesDep, caller: CallerDep, note: NoteDep,
+                page: PageDep) -> list[VisitOut]:
+    """The patient's visits, oldest first."""
+    identifier = resolve_patient(caller, patient, svc.pseudonyms)
+    row = svc.archive.patient(identifier)
+    note.touch(row.id)
+    # the archive service has no visit listing yet; this is the one query of its own
+    with svc.archive.session() as s:
+        visits = list(s.scalars(select(Visit).where(Visit.patient_id == row.id)
+                                .order_by(Visit.visit_date)
+                                .limit(page.limit).offset(page.offset)))
+    return [visit_out(v, identifier, caller, svc.pseudonyms) for v in visits]

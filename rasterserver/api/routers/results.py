@@ -1,0 +1,155 @@
+"""Stored results of an acquisition, its pipeline runs, and exports (PLY/OBJ/STL/CSV)."""
+
+from __future__ import annotations
+
+import tempfile
+from enum import StrEnum
+from pathlib import Path as FilePath
+from typing import Annotated
+
+from fastapi import Path, Query, Request
+from fastapi.responses import Response
+
+from rasterserver.api.deps import (
+    NoteDep,
+    PageDep,
+    ServicesDep,
+    not_modified,
+    protected_router,
+    utc,
+)
+from rasterserver.api.schemas import ResultOut, RunOut
+from rasterserver.catalog.models import PipelineRun, StageResult
+from rasterserver.errors import InputError, NotFoundError
+from rasterserver.export import write_mesh, write_points
+from rasterserver.records_surface import MeshRecord, Points, Surface
+
+router = protected_router("results")
+
+Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
+Plugin = Annotated[str | None, Query(max_length=100, description="Only this plugin's.")]
+
+
+class ExportFormat(StrEnum):
+    """File format of an export."""
+
+    ply = "ply"
+    obj = "obj"
+    stl = "stl"
+    csv = "csv"
+
+
+class ExportWhat(StrEnum):
+    """Which result to export."""
+
+    mesh = "mesh"
+    points = "points"
+    smoothed = "smoothed"
+
+
+_MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "stl": "model/stl",
+          "csv": "text/csv"}
+
+
+def _result(row: StageResult) -> ResultOut:
+    return ResultOut(
+        id=row.id, stage=row.stage, plugin=row.plugin, plugin_version=row.plugin_version,
+        plugin_package=row.plugin_package, frame_index=row.frame_index, params=row.params,
+        params_hash=row.params_hash, chain_key=row.chain_key,
+        input_checksum=row.input_checksum, output_checksum=row.output_checksum,
+        record_kind=row.record_kind, calibration_id=row.calibration_id, reason=row.reason,
+        package_version=row.package_version, duration_s=row.duration_s,
+        created_at=utc(row.created_at))  # type: ignore[arg-type]
+
+
+def _run(row: PipelineRun) -> RunOut:
+    return RunOut(id=row.id, status=row.status, chain=row.chain,
+                  started_at=utc(row.started_at),  # type: ignore[arg-type]
+                  finished_at=utc(row.finished_at), error=row.error,
+                  computed=row.computed, reused=row.reused)
+
+
+def _touch(svc: ServicesDep, note: NoteDep, uid: str) -> None:
+    acq = svc.archive.acquisition(uid)
+    note.touch(acq.patient_id, acq.uid)
+
+
+@router.get("/acquisitions/{uid}/results", name="list_results", response_model=list[ResultOut])
+def list_results(
+    uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
+    stage: Annotated[str | None, Query(max_length=32)] = None, plugin: Plugin = None,
+) -> list[ResultOut]:
+    """Every stored stage result of the acquisition with its provenance, oldest first."""
+    _touch(svc, note, uid)
+    rows = [r for r in svc.pipeline.results(uid)
+            if (stage is None or r.stage == stage) and (plugin is None or r.plugin == plugin)]
+    return [_result(r) for r in rows[page.offset: page.offset + page.limit]]
+
+
+@router.get("/acquisitions/{uid}/results/{stage}", name="get_result", response_model=ResultOut,
+            responses={304: {"description": "Not modified"}})
+def get_result(uid: Uid, stage: Annotated[str, Path(max_length=32)], request: Request,
+               svc: ServicesDep, note: NoteDep, plugin: Plugin = None) -> ResultOut | Response:
+    """The newest stored result of one stage; stored results never change (ETag)."""
+    _touch(svc, note, uid)
+    rows = [r for r in svc.pipeline.results(uid)
+            if r.stage == stage and (plugin is None or r.plugin == plugin)]
+    if not rows:
+        raise NotFoundError(f"acquisition {uid} has no stored {stage} result")
+    row = max(rows, key=lambda r: (utc(r.created_at), r.id))
+    if (cached := not_modified(request, row.output_checksum)) is not None:
+        return cached
+    out = _result(row)
+    return Response(out.model_dump_json(), media_type="application/json",
+                    headers={"ETag": f'"{row.output_checksum}"'})
+
+
+@router.get("/acquisitions/{uid}/runs", name="list_runs", response_model=list[RunOut])
+def list_runs(uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
+              status: Annotated[str | None, Query(max_length=16)] = None) -> list[RunOut]:
+    """Pipeline runs of the acquisition, oldest first."""
+    _touch(svc, note, uid)
+    rows = [r for r in svc.pipeline.runs(uid) if status is None or r.status == status]
+    return [_run(r) for r in rows[page.offset: page.offset + page.limit]]
+
+
+@router.get("/acquisitions/{uid}/export", name="export_result", response_class=Response,
+            responses={200: {"content": {m: {} for m in sorted(set(_MEDIA.values()))},
+                             "description": "The exported file"},
+                       304: {"description": "Not modified"}})
+def export_result(
+    uid: Uid, request: Request, svc: ServicesDep, note: NoteDep,
+    fmt: Annotated[ExportFormat, Query(alias="format")] = ExportFormat.ply,
+    what: Annotated[ExportWhat | None, Query(description="mesh (default), points or smoothed; "
+                                             "points for csv")] = None,
+    plugin: Plugin = None,
+) -> Response:
+    """The newest stored mesh or point cloud, as ``rasterserver export`` writes it."""
+    what = what or (ExportWhat.points if fmt is ExportFormat.csv else ExportWhat.mesh)
+    if what is ExportWhat.mesh and fmt is ExportFormat.csv:
+        raise InputError("csv holds points: use what=points or smoothed, or a mesh format")
+    if what is not ExportWhat.mesh and fmt in (ExportFormat.obj, ExportFormat.stl):
+        raise InputError(f"{fmt.value} holds meshes: use ply or csv for points")
+    _touch(svc, note, uid)
+    stage = {"mesh": "mesh", "points": "points", "smoothed": "surface"}[what.value]
+    row, record = svc.pipeline.result(uid, stage, plugin=plugin)
+    etag = f"{row.output_checksum}-{what.value}.{fmt.value}"
+    if (cached := not_modified(request, etag)) is not None:
+        return cached
+    with tempfile.TemporaryDirectory(prefix="rasterserver-export-") as tmp:
+        path = FilePath(tmp) / f"{uid}.{fmt.value}"
+        if isinstance(record, MeshRecord):
+            write_mesh(record, path, fmt=fmt.value)  # type: ignore[arg-type]
+        else:
+            if isinstance(record, Surface):
+                samples = record.sample_points()
+                if samples is None:
+                    raise InputError(f"the stored surface of {uid} keeps no smoothed points")
+                record = samples
+            if not isinstance(record, Points):
+                raise InputError(f"the stored {stage} result is not points")
+            write_points(record, path, fmt=fmt.value)  # type: ignore[arg-type]
+        data = path.read_bytes()
+    return Response(data, media_type=_MEDIA[fmt.value], headers={
+        "ETag": f'"{etag}"',
+        "Content-Disposition": f'attachment; filename="{uid}-{what.value}.{fmt.value}"'})

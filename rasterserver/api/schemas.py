@@ -1,0 +1,202 @@
+"""Request and response bodies of the HTTP API (pydantic models, published in OpenAPI)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+
+class Health(BaseModel):
+    status: str
+    version: str
+    schema_revision: str | None
+
+
+class AccountIn(BaseModel):
+    name: str = Field(min_length=1, max_length=100)
+    role: str = Field(description="admin, clinician, station or researcher")
+    kind: str = Field("user", description="user or service")
+
+
+class AccountOut(BaseModel):
+    name: str
+    role: str
+    kind: str
+
+
+class PluginOut(BaseModel):
+    name: str
+    entry_point: str
+    status: str
+    stage: str | None = None
+    version: str | None = None
+    input_kind: str | None = None
+    output_kind: str | None = None
+    package: str | None = None
+    package_version: str | None = None
+    summary: str | None = None
+    error: str | None = None
+
+
+class StationIn(BaseModel):
+    name: str = Field(min_length=1, max_length=100)
+    description: str = ""
+
+
+class StationOut(BaseModel):
+    name: str
+    description: str
+    created_at: dt.datetime
+
+
+class RasterIn(BaseModel):
+    name: str = Field(min_length=1, max_length=100)
+    definition: dict[str, Any]
+
+
+class RasterOut(BaseModel):
+    name: str
+    sha256: str
+    definition: dict[str, Any]
+    created_at: dt.datetime
+
+
+class CalibrationIn(BaseModel):
+    parameters: dict[str, Any]
+    residuals: dict[str, Any] | None = None
+    raster: str | None = None
+    valid_from: dt.datetime | None = None
+    source_acquisition: str | None = None
+    notes: str = ""
+
+
+class CalibrationOut(BaseModel):
+    station: str
+    version: int
+    sha256: str
+    raster_id: int | None
+    parameters: dict[str, Any]
+    residuals: dict[str, Any]
+    valid_from: dt.datetime
+    notes: str
+    created_at: dt.datetime
+
+
+class PatientIn(BaseModel):
+    identifier: str = Field(min_length=1, max_length=64)
+    name: str = Field("", max_length=200)
+    birth_date: dt.date | None = None
+    sex: str = "unknown"
+
+
+class PatientOut(BaseModel):
+    id: str = Field(description="Site identifier, or a pseudonym for researchers.")
+    pseudonymised: bool
+    name: str | None = Field(None, description="Absent for researchers.")
+    birth_date: dt.date | None = Field(None, description="Absent for researchers.")
+    sex: str
+    created_at: dt.datetime
+
+
+class VisitOut(BaseModel):
+    visit_date: dt.date = Field(description="Shifted per patient for researchers.")
+    notes: str | None
+
+
+class FrameOut(BaseModel):
+    index: int
+    role: str
+    height: int
+    width: int
+    dtype: str
+    sha256: str
+
+
+class AcquisitionOut(BaseModel):
+    uid: str
+    kind: str
+    patient: str | None = Field(description="Identifier, or pseudonym for researchers.")
+    station_id: int | None
+    calibration_id: int | None
+    acquired_at: dt.datetime = Field(description="Shifted per patient for researchers.")
+    operator: str | None
+    notes: str | None
+    frames: list[FrameOut]
+
+
+class ResultOut(BaseModel):
+    id: int
+    stage: str
+    plugin: str
+    plugin_version: str
+    plugin_package: str
+    frame_index: int
+    params: dict[str, Any]
+    params_hash: str
+    chain_key: str
+    input_checksum: str
+    output_checksum: str
+    record_kind: str
+    calibration_id: int | None
+    reason: str
+    package_version: str
+    duration_s: float
+    created_at: dt.datetime
+
+
+class RunOut(BaseModel):
+    id: int
+    status: str
+    chain: list[dict[str, Any]]
+    started_at: dt.datetime
+    finished_at: dt.datetime | None
+    error: str
+    computed: int
+    reused: int
+
+
+class JobIn(BaseModel):
+    uids: list[str] = Field(min_length=1, max_length=10_000)
+    chain: dict[str, str] = Field(default_factory=dict, description="stage kind -> plugin")
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    calibration_station: str | None = None
+    calibration_version: int | None = Field(None, ge=1, le=2**31)
+    until: str = "mesh"
+
+
+class JobOutcomeOut(BaseModel):
+    uid: str
+    status: str
+    computed: int
+    reused: int
+    reason: str
+    error: str
+
+
+class JobOut(BaseModel):
+    id: str
+    status: str
+    done: int
+    total: int
+    created_at: dt.datetime
+    finished_at: dt.datetime | None
+    error: str
+    outcomes: list[JobOutcomeOut]
+
+
+class AuditOut(BaseModel):
+    id: int
+    request_id: str
+    recorded_at: str
+    actor: str
+    actor_kind: str
+    role: str
+    action: str
+    method: str
+    route: str
+    status: int
+    patient: str | None
+    acquisition: str | None
+    client: str

@@ -1,0 +1,123 @@
+"""Catalogue tables of the HTTP API: accounts, API tokens, the audit trail, pseudonym keys.
+
+Kept apart from :mod:`rasterserver.catalog.models` because they describe who may see the
+archive, not what it holds. Tokens are stored only as SHA-256 digests: a copied database
+grants no access. Audit events are append-only: the ORM refuses to change or delete one, and
+the migration adds database triggers that refuse it too (so neither a bug nor a hand-typed
+``UPDATE`` rewrites history).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+
+from sqlalchemy import (
+    CheckConstraint,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    event,
+)
+from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
+
+from rasterserver.catalog.models import Base, utcnow
+
+ROLES = ("admin", "clinician", "station", "researcher")
+ACCOUNT_KINDS = ("user", "service")
+#: FHIR AuditEvent.action codes: create, read, update, delete, execute.
+AUDIT_ACTIONS = ("C", "R", "U", "D", "E")
+
+
+class ApiAccount(Base):
+    """A person (``user``) or a machine (``service``, e.g. an acquisition station)."""
+
+    __tablename__ = "api_account"
+    __table_args__ = (
+        CheckConstraint(f"role IN {ROLES!r}", name="role"),
+        CheckConstraint(f"kind IN {ACCOUNT_KINDS!r}", name="kind"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    role: Mapped[str] = mapped_column(String(16))
+    kind: Mapped[str] = mapped_column(String(8), default="user")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+    tokens: Mapped[list[ApiToken]] = relationship(back_populates="account")
+
+
+class ApiToken(Base):
+    """A bearer token of an account; only its SHA-256 digest is kept.
+
+    ``prefix`` (the first characters of the token) lets a person tell tokens apart in
+    ``token list`` without the secret being stored.
+    """
+
+    __tablename__ = "api_token"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    account_id: Mapped[int] = mapped_column(ForeignKey("api_account.id", ondelete="RESTRICT"))
+    token_sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    prefix: Mapped[str] = mapped_column(String(16))
+    label: Mapped[str] = mapped_column(String(100), default="")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    revoked_at: Mapped[dt.datetime | None] = mapped_column()
+
+    account: Mapped[ApiAccount] = relationship(back_populates="tokens")
+
+
+class AuditEvent(Base):
+    """One access to the archive: who, what, which patient's data, when, with what outcome.
+
+    A request that touches several patients (a list) writes one row per patient, sharing
+    ``request_id``, so "who saw patient X" is one indexed query.
+    """
+
+    __tablename__ = "audit_event"
+    __table_args__ = (
+        CheckConstraint(f"action IN {AUDIT_ACTIONS!r}", name="action"),
+        Index("ix_audit_event_patient_recorded", "patient_id", "recorded_at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    request_id: Mapped[str] = mapped_column(String(32), index=True)
+    recorded_at: Mapped[dt.datetime] = mapped_column(default=utcnow, index=True)
+    actor: Mapped[str] = mapped_column(String(100))
+    actor_kind: Mapped[str] = mapped_column(String(8), default="")
+    role: Mapped[str] = mapped_column(String(16), default="")
+    action: Mapped[str] = mapped_column(String(1))
+    method: Mapped[str] = mapped_column(String(8))
+    # the route template, never the concrete path: that may carry a patient identifier
+    route: Mapped[str] = mapped_column(String(200))
+    status: Mapped[int] = mapped_column(Integer)
+    patient_id: Mapped[int | None] = mapped_column(
+        ForeignKey("patient.id", ondelete="RESTRICT")
+    )
+    acquisition_uid: Mapped[str | None] = mapped_column(String(32))
+    client: Mapped[str] = mapped_column(String(100), default="")
+    detail: Mapped[str] = mapped_column(Text, default="")
+
+
+class PseudonymKey(Base):
+    """The secret of the researchers' pseudonyms, made once per archive.
+
+    Without it nobody can map a pseudonym back or undo the date shift; with it the mapping is
+    stable across restarts and workers. ``RASTERSERVER_PSEUDONYM_KEY`` overrides it, so a
+    site can keep the key outside the database.
+    """
+
+    __tablename__ = "pseudonym_key"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    key_hex: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+@event.listens_for(Session, "before_flush")
+def _audit_is_append_only(session: Session, _ctx: object, _instances: object) -> None:
+    """Refuse to change or delete an audit event through the ORM."""
+    for obj in (*session.dirty, *session.deleted):
+        if isinstance(obj, AuditEvent):
+            raise ValueError("audit events are append-only")

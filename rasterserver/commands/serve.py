@@ -1,0 +1,49 @@
+"""``rasterserver serve``: run the HTTP API on uvicorn."""
+
+from __future__ import annotations
+
+import os
+from typing import Annotated
+
+import typer
+
+from rasterserver.commands.common import settings
+
+
+def serve(
+    ctx: typer.Context,
+    host: Annotated[str, typer.Option(envvar="RASTERSERVER_HOST",
+                                      help="Interface to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(envvar="RASTERSERVER_PORT", help="TCP port.")] = 8000,
+    workers: Annotated[int, typer.Option(envvar="RASTERSERVER_WORKERS",
+                                         help="Worker processes.")] = 1,
+    log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+) -> None:
+    """Serve the HTTP API (OpenAPI at /docs); every route but /health needs a bearer token.
+
+    Create the first admin account and its token with `rasterserver user add` and
+    `rasterserver token create`. Uvicorn's own access log is off: it would print request
+    paths, which can carry patient identifiers; rasterserver logs route templates instead.
+    """
+    import uvicorn
+
+    from rasterserver.api.app import create_app
+    from rasterserver.archive import Archive
+
+    resolved = settings(ctx)
+    # refuse to start on an old schema, with the message that says what to run
+    Archive(resolved).close()
+    common = {"host": host, "port": port, "access_log": False, "log_level": log_level,
+              "proxy_headers": False}
+    if workers <= 1:
+        uvicorn.run(create_app(resolved), **common)
+        return
+    # worker processes build their own app from the environment
+    os.environ["RASTERSERVER_ARCHIVE"] = str(resolved.archive)
+    os.environ["RASTERSERVER_DATABASE_URL"] = resolved.database_url
+    uvicorn.run("rasterserver.api.app:app_from_env", factory=True, workers=workers, **common)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``serve`` command to ``app``."""
+    app.command("serve")(serve)
