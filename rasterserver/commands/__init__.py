@@ -9,6 +9,7 @@ from types import ModuleType
 
 from rasterserver.commands import (
     calibrate,
+    calibrate,
     db,
     demo,
     export,
@@ -40,5 +41,6 @@ COMMAND_MODULES: list[ModuleType] = [
     export,
     serve,
     tokens,
+    calibrate,
     calibrate,
 ]

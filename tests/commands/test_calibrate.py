@@ -1,0 +1,106 @@
+"""``rasterserver calibrate`` and ``export-calibration`` end to end, on SQLite and PostgreSQL:
+the verdict, the stored version with its frames, and reprocessing an old acquisition with it."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import geometry_truth as gt
+import numpy as np
+import pytest
+
+from rasterserver.archive import Archive
+from rasterserver.cli import main
+from rasterserver.config import Settings
+from rasterserver.optics import Station
+from rasterserver.pipeline import Pipeline
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "calibration"))
+from calibration_frames import rendered_dir
+
+
+@pytest.fixture
+def setup(settings: Settings):
+    archive, uids = gt.archive_with_frames(settings, {"back": gt.rendering("back").image})
+    archive.close()
+    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
+
+    def run(*args: str) -> int:
+        return main([*base, *args])
+
+    return run, uids
+
+
+def test_dry_run_reports_and_stores_nothing(tmp_path: Path, capsys) -> None:
+    frames = rendered_dir()
+    report = tmp_path / "report.png"
+    code = main(["calibrate", str(frames), "--station", "sim", "--dry-run",
+                 "--report", str(report), "--output", str(tmp_path / "cal.json")])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "c0-high-6" in out and "verdict: PASS" in out and "dry run: nothing stored" in out
+    assert report.stat().st_size > 10_000 and report.with_suffix(".txt").exists()
+    station = Station.load(tmp_path / "cal.json")
+    assert station.camera.width == 576
+
+
+def test_worse_than_the_bounds_exits_6(tmp_path: Path, capsys) -> None:
+    code = main(["calibrate", str(rendered_dir()), "--dry-run", "--max-rms-px", "0.001"])
+    captured = capsys.readouterr()
+    assert code == 6
+    assert "verdict: FAIL: control points" in captured.out
+    assert "calibration rejected, nothing stored" in captured.err
+
+
+def test_bad_inputs_say_what_is_wrong(tmp_path: Path, capsys) -> None:
+    assert main(["calibrate", str(tmp_path / "nowhere"), "--dry-run"]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    assert main(["calibrate", str(tmp_path), "--dry-run"]) == 2
+    assert "no config<k>-projector-on/off frames" in capsys.readouterr().err
+
+
+def test_calibrate_stores_a_version_and_old_acquisitions_reprocess_with_it(
+    setup, settings: Settings, tmp_path: Path, capsys
+) -> None:
+    cli, uids = setup
+    back = uids["back"]
+    assert cli("process", back, "--until", "points") == 0
+    capsys.readouterr()
+
+    assert cli("calibrate", str(rendered_dir()), "--station", gt.STATION_NAME) == 0
+    out = capsys.readouterr().out
+    assert f"station {gt.STATION_NAME}: calibration version 2 stored" in out
+
+    with Archive(settings) as archive:
+        rows = archive.calibrations(gt.STATION_NAME)
+        assert [r.version for r in rows] == [1, 2]
+        new = rows[1]
+        assert new.residuals["camera"]["rms_px"] <= 0.1
+        assert new.source_acquisition_id is not None
+        source = next(
+            a for a in archive.acquisitions(limit=100) if a.id == new.source_acquisition_id
+        )
+        acq = archive.acquisition(source.uid)
+        assert acq.kind == "calibration"
+        roles = sorted(f.role for f in acq.frames)
+        assert roles == ["projector-off"] * 3 + ["projector-on"] * 3
+        assert new.raster_id == rows[0].raster_id  # the same diapositive, stored once
+
+    # the old acquisition keeps its v1 results and gains v2 results beside them
+    assert cli("process", back, "--until", "points", "--calibration", f"{gt.STATION_NAME}:2") == 0
+    capsys.readouterr()
+    with Archive(settings) as archive:
+        results = Pipeline(archive).results(back)
+        points = [r for r in results if r.stage == "points"]
+        assert len(points) == 2
+        assert {r.calibration_id for r in points} == {rows[0].id, rows[1].id}
+        # image stages do not depend on the calibration: computed once, reused
+        assert len([r for r in results if r.stage == "peaks"]) == 1
+
+    exported = tmp_path / "v2.json"
+    assert cli("export-calibration", f"{gt.STATION_NAME}:2", "-o", str(exported)) == 0
+    station = Station.load(exported)
+    assert np.allclose(station.camera.K, Station.from_dict(rows[1].parameters).camera.K)
+    assert json.loads(exported.read_text())["name"] == gt.STATION_NAME
