@@ -9,7 +9,6 @@ from types import ModuleType
 
 from rasterserver.commands import (
     calibrate,
-    calibrate,
     db,
     demo,
     export,
@@ -41,6 +40,5 @@ COMMAND_MODULES: list[ModuleType] = [
     export,
     serve,
     tokens,
-    calibrate,
     calibrate,
 ]
