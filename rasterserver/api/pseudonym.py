@@ -96,11 +96,22 @@ class Pseudonymiser:
 
     def shift_date(self, identifier: str, day: dt.date | None) -> dt.date | None:
         """Shift a date of the patient by their offset."""
-        return None if day is None else day + dt.timedelta(days=self.shift_days(identifier))
+        if day is None:
+            return None
+        try:
+            return day + dt.timedelta(days=self.shift_days(identifier))
+        except OverflowError:  # a date at the calendar's end: clamp rather than fail
+            return dt.date.max if self.shift_days(identifier) > 0 else dt.date.min
 
     def shift_time(self, identifier: str, when: dt.datetime | None) -> dt.datetime | None:
         """Shift a time of the patient by their offset (whole days: time of day kept)."""
-        return None if when is None else when + dt.timedelta(days=self.shift_days(identifier))
+        if when is None:
+            return None
+        try:
+            return when + dt.timedelta(days=self.shift_days(identifier))
+        except OverflowError:
+            edge = dt.datetime.max if self.shift_days(identifier) > 0 else dt.datetime.min
+            return edge.replace(tzinfo=when.tzinfo)
 
     def identifier(self, pseudonym: str) -> str:
         """The site identifier behind ``pseudonym``.

@@ -3,9 +3,23 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+import json
+from typing import Annotated, Any
 
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field
+
+
+def _finite_json(document: dict[str, Any]) -> dict[str, Any]:
+    """Refuse NaN and infinities: they are not JSON and break the canonical checksums."""
+    try:
+        json.dumps(document, allow_nan=False)
+    except ValueError:
+        # a ValueError becomes an ordinary 422 validation error naming the field
+        raise ValueError("numbers must be finite (no NaN or Infinity)") from None
+    return document
+
+
+JsonObject = Annotated[dict[str, Any], AfterValidator(_finite_json)]
 
 
 class Health(BaseModel):
@@ -53,7 +67,7 @@ class StationOut(BaseModel):
 
 class RasterIn(BaseModel):
     name: str = Field(min_length=1, max_length=100)
-    definition: dict[str, Any]
+    definition: JsonObject
 
 
 class RasterOut(BaseModel):
@@ -64,8 +78,8 @@ class RasterOut(BaseModel):
 
 
 class CalibrationIn(BaseModel):
-    parameters: dict[str, Any]
-    residuals: dict[str, Any] | None = None
+    parameters: JsonObject
+    residuals: JsonObject | None = None
     raster: str | None = None
     valid_from: dt.datetime | None = None
     source_acquisition: str | None = None
@@ -160,7 +174,7 @@ class RunOut(BaseModel):
 class JobIn(BaseModel):
     uids: list[str] = Field(min_length=1, max_length=10_000)
     chain: dict[str, str] = Field(default_factory=dict, description="stage kind -> plugin")
-    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    params: dict[str, JsonObject] = Field(default_factory=dict)
     calibration_station: str | None = None
     calibration_version: int | None = Field(None, ge=1, le=2**31)
     until: str = "mesh"
