@@ -393,7 +393,7 @@ def calibrate_projector(
     rot, t, fy, cy = _start_from_dlt(rows, reference)
     aspect = reference.K[0, 0] / reference.K[1, 1]
     cx = reference.K[0, 2]
-    t1 = t[0]
+    ref_centre = reference.centre
     rvec, _ = cv2.Rodrigues(rot)
     nd = len(free_dist)
 
@@ -404,7 +404,8 @@ def calibrate_projector(
         f = params[5]
         return Projector(
             K=np.array([[f * aspect, 0.0, cx], [0.0, f, params[6]], [0.0, 0.0, 1.0]]),
-            dist=dist, R=r, t=np.array([t1, params[3], params[4]]),
+            # t_x follows the rotation so the centre keeps the reference's x position exactly
+            dist=dist, R=r, t=np.array([-float(ref_centre @ r[0]), params[3], params[4]]),
             width=reference.width, height=reference.height,
         )
 
