@@ -24,6 +24,10 @@ from rasterserver.errors import RasterServerError
 log = logging.getLogger(__name__)
 
 
+_HTTP_KINDS = {400: "BadRequest", 401: "Unauthorized", 403: "Forbidden", 404: "NotFound",
+               405: "MethodNotAllowed", 413: "PayloadTooLarge"}
+
+
 def error_body(status: int, detail: object, kind: str) -> dict[str, object]:
     """The JSON body of an error response."""
     return {"detail": detail, "error": kind, "status": status}
@@ -39,7 +43,8 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        return JSONResponse(error_body(exc.status_code, exc.detail, "HTTPError"),
+        kind = _HTTP_KINDS.get(exc.status_code, "HTTPError")
+        return JSONResponse(error_body(exc.status_code, exc.detail, kind),
                             status_code=exc.status_code, headers=exc.headers)
 
     @app.exception_handler(RequestValidationError)

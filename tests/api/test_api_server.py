@@ -144,7 +144,7 @@ def test_tokens_revoked_or_invalid_are_refused(live: LiveServer) -> None:
         assert c.get("/patients").status_code == 401
     with live.client(token="rs_forged") as c:
         refused = c.get("/patients")
-        assert refused.status_code == 401 and refused.json()["error"] == "HTTPError"
+        assert refused.status_code == 401 and refused.json()["error"] == "Unauthorized"
 
 
 def test_limits_and_json_errors(live: LiveServer) -> None:
