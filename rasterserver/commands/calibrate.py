@@ -50,8 +50,10 @@ def calibrate(
         ),
     ] = None,
     station: Annotated[
-        str, typer.Option(help="Station name (registered if new).")
-    ] = "default",
+        str | None,
+        typer.Option(help="Station to store the calibration for (registered if new); "
+                     "needed unless --dry-run.", show_default=False),
+    ] = None,
     raster: Annotated[
         Path | None,
         typer.Option(
@@ -105,11 +107,14 @@ def calibrate(
     from rasterserver.optics import default_station
     from rasterserver.raster import Raster, default_raster
 
+    if station is None and not dry_run:
+        raise InputError("--station is needed to store the calibration (or use --dry-run)")
+    name = station or "calibrated"
     when = parse_datetime(valid_from, "--valid-from")
-    for name, value in (("--max-rms-px", max_rms_px), ("--max-point-px", max_point_px),
-                        ("--max-line-mm", max_line_mm)):
+    for option, value in (("--max-rms-px", max_rms_px), ("--max-point-px", max_point_px),
+                          ("--max-line-mm", max_line_mm)):
         if not value > 0:
-            raise InputError(f"{name} must be positive, got {value}")
+            raise InputError(f"{option} must be positive, got {value}")
     frames = load_frames(frames_dir)
     control = load_control_points(control_points or frames_dir / "control_points.json")
     raster_path = raster or frames_dir / "raster.json"
@@ -121,11 +126,11 @@ def calibrate(
     else:
         raster_def = default_raster()
     height, width = next(iter(frames.off.values() or frames.on.values())).shape
-    ref = _reference(ctx, reference, station, dry_run=dry_run)
+    ref = _reference(ctx, reference, name, dry_run=dry_run)
     if ref is None:
         ref = default_station(width, height)
         typer.echo("reference: the nominal design (no earlier calibration)", err=True)
-    result = calibrate_station(frames, control, raster=raster_def, reference=ref, name=station)
+    result = calibrate_station(frames, control, raster=raster_def, reference=ref, name=name)
     bounds = Bounds(max_rms_px=max_rms_px, max_point_px=max_point_px,
                     max_line_rms_mm=max_line_mm)
     verdict = judge(result, bounds)
@@ -148,7 +153,7 @@ def calibrate(
     from rasterserver.calibration.store import store_calibration
 
     with open_archive(ctx) as archive:
-        stored = store_calibration(archive, result, frames, station=station, valid_from=when,
+        stored = store_calibration(archive, result, frames, station=name, valid_from=when,
                                    notes=notes)
     typer.echo(
         f"station {stored.station}: calibration version {stored.version} stored "

@@ -59,6 +59,8 @@ def test_bad_inputs_say_what_is_wrong(tmp_path: Path, capsys) -> None:
     assert "no such folder" in capsys.readouterr().err
     assert main(["calibrate", str(tmp_path), "--dry-run"]) == 2
     assert "no config<k>-projector-on/off frames" in capsys.readouterr().err
+    assert main(["calibrate", str(rendered_dir())]) == 2
+    assert "--station is needed" in capsys.readouterr().err
 
 
 def test_calibrate_stores_a_version_and_old_acquisitions_reprocess_with_it(
