@@ -88,7 +88,7 @@ def scaled_params(scale: float) -> dict[str, dict[str, Any]]:
         return {"peaks": {}, "lines": {}, "order": {}, "numbers": {}}
     k = float(scale)
     return {
-        "peaks": {"max_width": round(25 * k), "min_slope": 3.0 / k},
+        "peaks": {"max_width": round(25 * k), "min_slope": 2.5 / k},
         "lines": {
             "corner": 1.5 / k**0.5,
             "dip_window": round(20 * k),

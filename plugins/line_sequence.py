@@ -66,8 +66,8 @@ def line_neighbours(
     -------
     upper, lower, count : numpy.ndarray
         int64 arrays, one entry per pair: ``upper`` is directly above ``lower`` in
-        ``count`` columns (pairs seen in both arrangements keep only the dominant one, with
-        the difference of the counts).
+        ``count`` columns more than it is below it, or above it with unlined peaks between
+        (only pairs with a positive count).
     """
     n = col.size
     empty = np.zeros(0, dtype=np.int64)
@@ -110,23 +110,44 @@ def line_neighbours(
     ok &= (gap <= gap_ratio * ref) & (gap <= gap_ratio * cell_ref)
     if not np.any(ok):
         return empty, empty, empty
-    pair_key = a[ok] * n_lines + b[ok]
+    keys, counts = _count_pairs(a[ok] * n_lines + b[ok], n_lines)
+    if keys.size == 0:
+        return empty, empty, empty
+    upper, lower = keys // n_lines, keys % n_lines
+    # The same two lines seen the other way round somewhere: keep the dominant arrangement.
+    net = counts - _lookup(keys, counts, lower * n_lines + upper)
+    # Columns where the two lines follow each other with unlined peaks between them: a line
+    # is there that the pair skips (a line too broken to be searched, where lines crowd at
+    # a fold), so where it is not detected the two are not neighbours either. Such columns
+    # count against the pair.
+    lined = np.flatnonzero(line_id >= 0)
+    if lined.size > 1:
+        la, lb = line_id[lined[:-1]].astype(np.int64), line_id[lined[1:]].astype(np.int64)
+        skipped = (col[lined[1:]] == col[lined[:-1]]) & (lined[1:] - lined[:-1] > 1) & (la != lb)
+        s_keys, s_counts = _count_pairs(la[skipped] * n_lines + lb[skipped], n_lines)
+        net = net - _lookup(s_keys, s_counts, keys)
+    keep = net > 0
+    return upper[keep], lower[keep], net[keep]
+
+
+def _count_pairs(pair_key: np.ndarray, n_lines: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct pair keys (sorted) and how often each occurs."""
+    if pair_key.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     if n_lines * n_lines <= 1 << 22:
         # counting beats sorting while the pair table stays small (a few MB)
         table = np.bincount(pair_key, minlength=n_lines * n_lines)
         keys = np.flatnonzero(table)
-        counts = table[keys]
-    else:
-        keys, counts = np.unique(pair_key, return_counts=True)
-    upper, lower = keys // n_lines, keys % n_lines
-    # The same two lines seen the other way round somewhere: keep the dominant arrangement.
-    rev = lower * n_lines + upper
-    pos = np.searchsorted(keys, rev)
-    pos = np.minimum(pos, keys.size - 1)
-    back = np.where(keys[pos] == rev, counts[pos], 0)
-    net = counts - back
-    keep = net > 0
-    return upper[keep], lower[keep], net[keep]
+        return keys, table[keys]
+    return np.unique(pair_key, return_counts=True)
+
+
+def _lookup(keys: np.ndarray, counts: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Count of each ``query`` key in the sorted ``keys`` (0 when absent)."""
+    if keys.size == 0:
+        return np.zeros(query.size, dtype=np.int64)
+    pos = np.minimum(np.searchsorted(keys, query), keys.size - 1)
+    return np.where(keys[pos] == query, counts[pos], 0)
 
 
 @dataclass(frozen=True)

@@ -4,18 +4,21 @@ The seed's method, vectorised over the whole frame (no loop over columns or peak
 
 1. each column is lightly smoothed (``[1, 2, 1] / 4``) only to *find* extrema, so that a
    noise wiggle on a flank does not split a peak; the moments use the raw grey values;
-2. a maximum is where the (plateau-filled) slope turns from positive to negative; its pixels
-   run from the nearest minimum on its left to the nearest minimum on its right (column ends
-   count as minima), found for all maxima at once with a running max/min of minimum indices;
-3. the peak is kept when the rise and the fall are high enough (``min_height``) and steep
-   enough (``min_slope``, the steepest single-pixel step on each flank);
+2. a maximum is where the slope turns from positive to negative (zero slopes skipped, so a
+   plateau belongs to the flank it continues); its pixels run from the nearest minimum on
+   its left to the nearest minimum on its right (column ends count as minima), found for
+   all maxima at once by a binary search in the sorted minima;
+3. the peak is kept when its rise and fall are high enough (``min_height``) and steep enough
+   (``min_slope``: the height over the number of pixels above the bias on each flank, which
+   rejects broad shading humps but keeps the broad dim lines of inclined skin);
 4. a bias is subtracted: the larger of the two bounding minima, raised by ``bias_fraction``
    of the peak's height, which keeps background noise (always positive after clipping) out of
    the moment; only the contiguous run of pixels above the bias around the maximum counts;
 5. row = first moment (intensity-weighted mean row) of the bias-subtracted pixels,
    area = their sum.
 
-All pixels of all peaks are gathered into one ``(peaks, window)`` array for steps 3-5.
+Steps 3-5 walk outwards from all maxima at once, one pixel offset per step, over the peaks
+whose run has not ended: a loop over a handful of offsets, never over peaks.
 """
 
 from __future__ import annotations
@@ -97,7 +100,7 @@ def detect_peaks(
     image: np.ndarray,
     *,
     min_height: float = 5.0,
-    min_slope: float = 3.0,
+    min_slope: float = 2.5,
     bias: BiasMode = "max-minimum",
     bias_fraction: float = 0.1,
     min_width: int = 2,
@@ -232,7 +235,7 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
 
         min_height: float = Field(5.0, ge=0, description="Least rise and fall of a peak (DN).")
         min_slope: float = Field(
-            3.0, ge=0, description="Least steepest single-pixel step on each flank (DN/px)."
+            2.5, ge=0, description="Least mean slope of each flank above the bias (DN/px)."
         )
         bias: BiasMode = Field(
             "max-minimum", description="Base subtracted: larger/smaller bounding minimum or 0."

@@ -185,3 +185,14 @@ def test_agreeing_short_neighbourhoods_link_together() -> None:
     result = order_lines(*_sorted(col, row, line), min_link=6)
     assert result.component[0] == result.component[1]
     assert result.order.tolist() == [0, 1]
+
+
+def test_unlined_peaks_between_two_lines_count_against_them() -> None:
+    # Line 1 is too broken to be searched (its peaks are unlined, -1) in columns 0-9 and
+    # missing in columns 10-13: there lines 0 and 2 follow each other directly, but the
+    # unlined peaks show that a line lies between them.
+    col, row, line = _grid(3, np.arange(14))
+    line = np.where(line == 1, -1, line)
+    keep = ~((line == -1) & (col >= 10))
+    up, low, _ = line_neighbours(col[keep], row[keep], line[keep], 3, gap_ratio=10.0)
+    assert (0, 2) not in set(zip(up.tolist(), low.tolist(), strict=True))
