@@ -12,8 +12,13 @@ import shutil
 import tempfile
 from functools import cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rasterserver.cli import main
+
+if TYPE_CHECKING:
+    from rasterserver.calibration.station_calibration import CalibrationFrames
+    from rasterserver.optics import Station
 
 
 @cache
@@ -26,3 +31,51 @@ def rendered_dir() -> Path:
     if code != 0:
         raise RuntimeError(f"simulate calibration-body failed with exit code {code}")
     return out
+
+
+def perturbed_station() -> Station:
+    """The default station with both devices turned, moved and re-focused a little.
+
+    Not the simulator's identity rotations: shows the calibration does not lean on them, and
+    that what the lines cannot determine (taken from the nominal reference) does no harm.
+    """
+    import numpy as np
+
+    from rasterserver.optics import Camera, Projector, Station, default_station, rotation_matrix
+
+    base = default_station()
+    cam, proj = base.camera, base.projector
+    r_cam = rotation_matrix(0.6, -0.3, 0.5)
+    camera = Camera(
+        K=cam.K + np.array([[40.0, 0, 3.0], [0, 40.0, -2.0], [0, 0, 0]]),
+        dist=np.array([-0.07, 0.0, 0.0, 0.0, 0.0]),
+        R=r_cam, t=-r_cam @ np.array([5.0, -8.0, -1985.0]), width=cam.width, height=cam.height,
+    )
+    r_proj = rotation_matrix(-1.5, 2.0, -0.7)
+    projector = Projector(
+        K=proj.K + np.array([[30.0, 0, 0], [0, 30.0, 12.0], [0, 0, 0]]),
+        dist=np.array([-0.02, 0.0, 0.0, 0.0, 0.0]),
+        R=r_proj, t=-r_proj @ np.array([-20.0, -790.0, -2010.0]),
+        width=proj.width, height=proj.height,
+    )
+    return Station(camera=camera, projector=projector, raster=base.raster, name="perturbed")
+
+
+@cache
+def perturbed_frames() -> CalibrationFrames:
+    """The six frames of :func:`perturbed_station` (supersampling 2, default noise, seed 5)."""
+    from rasterserver.calibration.station_calibration import (
+        CalibrationFrames,
+    )
+    from rasterserver.simulator.calibration_body import make_calibration_body
+    from rasterserver.simulator.render import RenderSettings, render
+
+    lit = RenderSettings(supersampling=2)
+    dark = lit.replace(projector_electrons=0.0, ambient_electrons=15000.0, line_rows=False)
+    station = perturbed_station()
+    off, on = {}, {}
+    for i, (k, projector_on) in enumerate((k, p) for k in range(3) for p in (True, False)):
+        image = render(make_calibration_body(k), station, settings=lit if projector_on else dark,
+                       seed=5 + i).image
+        (on if projector_on else off)[k] = image
+    return CalibrationFrames(off, on)

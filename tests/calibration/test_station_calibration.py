@@ -187,3 +187,20 @@ def test_a_plate_without_raster_lines_is_refused(inputs) -> None:
     on[0] = image
     with pytest.raises(InputError, match="low plate: 0 raster lines found"):
         _calibrate(inputs, frames=dataclasses.replace(frames, on=on))
+
+
+def test_a_turned_and_moved_station_is_calibrated_from_the_nominal_reference(inputs) -> None:
+    from calibration_frames import perturbed_frames, perturbed_station
+
+    true = perturbed_station()
+    res = calibrate_station(perturbed_frames(), inputs[1], raster=inputs[2],
+                            reference=default_station())
+    assert res.camera.rms <= 0.1
+    # orientation and principal point trade off (0.05° ~ 1.7 px): both are close, not exact
+    assert np.allclose(res.station.camera.R, true.camera.R, atol=1.5e-3)
+    assert np.allclose(res.station.camera.K, true.camera.K, atol=3.0)
+    assert np.linalg.norm(res.station.camera.centre - true.camera.centre) < 3.0
+    assert abs(res.station.camera.dist[0] - true.camera.dist[0]) < 0.01
+    estimated = _points(res.station, inputs[2])
+    exact = _points(true, inputs[2])
+    assert gt.rms(np.linalg.norm(estimated - exact, axis=1)) <= 0.1
