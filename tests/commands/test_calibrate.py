@@ -106,3 +106,13 @@ def test_calibrate_stores_a_version_and_old_acquisitions_reprocess_with_it(
     station = Station.load(exported)
     assert np.allclose(station.camera.K, Station.from_dict(rows[1].parameters).camera.K)
     assert json.loads(exported.read_text())["name"] == gt.STATION_NAME
+
+
+def test_a_missing_frame_is_refused_with_its_name(tmp_path: Path, capsys) -> None:
+    import shutil
+
+    frames = tmp_path / "frames"
+    shutil.copytree(rendered_dir(), frames)
+    (frames / "config1-projector-on.png").unlink()
+    assert main(["calibrate", str(frames), "--dry-run"]) == 2
+    assert "frame config1-projector-on is missing" in capsys.readouterr().err
