@@ -100,12 +100,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start(settings: Settings, workers: int) -> tuple[subprocess.Popen[bytes], str]:
+def _start(settings: Settings, workers: int,
+           log: Path) -> tuple[subprocess.Popen[bytes], str]:
     port = _free_port()
     cmd = [sys.executable, "-m", "rasterserver", "--archive", str(settings.archive),
            "--database-url", settings.database_url, "serve", "--host", "127.0.0.1",
            "--port", str(port), "--workers", str(workers), "--log-level", "warning"]
-    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    # the server's log goes to a file: an unread pipe would fill and stall the server
+    server = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log.open("wb"),
                               env=os.environ | {"RASTERSERVER_REQUEST_TIMEOUT": "300"})
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 120
@@ -115,8 +117,7 @@ def _start(settings: Settings, workers: int) -> tuple[subprocess.Popen[bytes], s
             return server, url
         except httpx.HTTPError:
             if server.poll() is not None:
-                raise RuntimeError(
-                    server.stderr.read().decode() if server.stderr else "died") from None
+                raise RuntimeError(log.read_text()) from None
             time.sleep(0.3)
     server.kill()
     raise RuntimeError("server did not start")
@@ -132,6 +133,8 @@ async def _readers(url: str, token: str, clients: int, seconds: float, uids: lis
     latencies: list[float] = []
     errors = 0
     kinds: dict[str, int] = {}
+    failures: dict[str, int] = {}
+    samples: list[str] = []
     stop = time.monotonic() + seconds
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
     async with httpx.AsyncClient(base_url=url, headers={"Authorization": f"Bearer {token}"},
@@ -156,13 +159,21 @@ async def _readers(url: str, token: str, clients: int, seconds: float, uids: lis
                 try:
                     response = await client.get(req[0], params=req[1])
                     ok = response.status_code == 200
-                except httpx.HTTPError:
-                    ok = False
+                    why = str(response.status_code)
+                    if not ok and len(samples) < 5:
+                        samples.append(f"{kind} {response.status_code} {response.text[:200]}")
+                except httpx.HTTPError as exc:
+                    ok, why = False, type(exc).__name__
+                if not ok:
+                    failures[why] = failures.get(why, 0) + 1
                 latencies.append(time.perf_counter() - t)
                 kinds[kind] = kinds.get(kind, 0) + 1
                 errors += not ok
 
         await asyncio.gather(*(one(i) for i in range(clients)))
+    if failures:
+        print("reader failures:", failures, *samples, sep="\n  ", flush=True)
+    kinds |= {f"failed {k}": v for k, v in failures.items()}
     return latencies, errors, len(latencies), kinds
 
 
@@ -222,7 +233,8 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
                     uids = list(s.scalars(select(Acquisition.uid).limit(20_000)))
                 rng = random.Random(3)
                 patients = [f"P{rng.randrange(args.patients):06d}" for _ in range(500)]
-            server, base = _start(settings, args.workers)
+            server_log = Path(tmp) / "server.log"
+            server, base = _start(settings, args.workers, server_log)
             try:
                 lat, errors, n, kinds = asyncio.run(
                     _readers(base, reader, args.clients, args.seconds, uids, patients))
@@ -233,6 +245,8 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
             finally:
                 server.terminate()
                 server.wait(timeout=60)
+                if server_log.stat().st_size:
+                    print("server log (tail):", server_log.read_text()[-3000:], flush=True)
             with Archive(settings) as archive:
                 with archive.session() as s:
                     rows = s.execute(
