@@ -91,6 +91,13 @@ def calibrate(
     max_line_mm: Annotated[
         float, typer.Option(help="Bound on the raster peaks' rms residual across lines (mm).")
     ] = 0.1,
+    camera_distortion: Annotated[
+        str, typer.Option(help="Camera distortion terms to estimate, comma-separated "
+                          "(of k1,k2,p1,p2,k3; 'none' for a distortion-free model).")
+    ] = "k1",
+    projector_distortion: Annotated[
+        str, typer.Option(help="Projector distortion terms to estimate, as above.")
+    ] = "k1",
     valid_from: Annotated[
         str | None,
         typer.Option(help="From when the calibration applies (ISO date/time); default now.",
@@ -130,7 +137,11 @@ def calibrate(
     if ref is None:
         ref = default_station(width, height)
         typer.echo("reference: the nominal design (no earlier calibration)", err=True)
-    result = calibrate_station(frames, control, raster=raster_def, reference=ref, name=name)
+    result = calibrate_station(
+        frames, control, raster=raster_def, reference=ref, name=name,
+        camera_distortion=_terms(camera_distortion),
+        projector_distortion=_terms(projector_distortion),
+    )
     bounds = Bounds(max_rms_px=max_rms_px, max_point_px=max_point_px,
                     max_line_rms_mm=max_line_mm)
     verdict = judge(result, bounds)
@@ -159,6 +170,12 @@ def calibrate(
         f"station {stored.station}: calibration version {stored.version} stored "
         f"(frames in acquisition {stored.acquisition}, raster {stored.raster})"
     )
+
+
+def _terms(text: str) -> tuple[str, ...]:
+    """Parse a comma-separated list of distortion terms ('none' or empty: no term)."""
+    terms = tuple(t.strip().lower() for t in text.split(",") if t.strip())
+    return () if terms in ((), ("none",)) else terms
 
 
 def _reference(
