@@ -378,6 +378,35 @@ class Archive:
             raise NotFoundError(f"station {station!r} has {which}")
         return found
 
+    def calibration_at(
+        self, station: str, when: dt.datetime, session: Session | None = None
+    ) -> Calibration:
+        """Return the calibration of ``station`` valid at ``when``.
+
+        That is the newest version whose ``valid_from`` is not after ``when``: an acquisition
+        is reconstructed with the calibration in force when it was taken, even if the
+        station has been recalibrated since.
+
+        Raises
+        ------
+        NotFoundError
+            No calibration of the station was valid yet at ``when``.
+        """
+        with self._maybe_session(session) as s:
+            st = self.station(station, s)
+            found = s.scalar(
+                select(Calibration)
+                .where(Calibration.station_id == st.id, Calibration.valid_from <= when)
+                .order_by(Calibration.valid_from.desc(), Calibration.version.desc())
+                .limit(1)
+            )
+        if found is None:
+            raise NotFoundError(
+                f"station {station!r} has no calibration valid at {when:%Y-%m-%d %H:%M} UTC; "
+                "give a calibration version explicitly"
+            )
+        return found
+
     def calibrations(self, station: str) -> list[Calibration]:
         """Return every calibration of ``station``, oldest version first."""
         with self.session() as s:
@@ -491,7 +520,7 @@ class Archive:
             _check_spec(spec)
         # References first: an unknown patient or calibration stores nothing.
         with self.session() as s:
-            refs = [self._references(s, spec) for spec in specs]
+            refs = [self._references(s, spec, now) for spec in specs]
         decoded = [
             [self._decode(src, shape=shape, dtype=dtype, convert_color=convert_color)
              for src in spec.frames]
@@ -527,7 +556,7 @@ class Archive:
             log.info("ingested acquisition %s (%d frames)", acq.uid, len(acq.frames))
         return acquisitions
 
-    def _references(self, s: Session, spec: AcquisitionSpec) -> _References:
+    def _references(self, s: Session, spec: AcquisitionSpec, now: dt.datetime) -> _References:
         patient_row = self.patient(spec.patient, s) if spec.patient else None
         station_row = self.station(spec.station, s) if spec.station else None
         cal_row = None
@@ -537,8 +566,10 @@ class Archive:
             has_any = s.scalar(
                 select(func.count()).where(Calibration.station_id == station_row.id)
             )
-            if spec.calibration_version is not None or has_any:
+            if spec.calibration_version is not None:
                 cal_row = self.calibration(station_row.name, spec.calibration_version, s)
+            elif has_any:
+                cal_row = self.calibration_at(station_row.name, spec.acquired_at or now, s)
         return _References(
             patient_id=patient_row.id if patient_row else None,
             station_id=station_row.id if station_row else None,

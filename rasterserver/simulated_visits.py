@@ -73,7 +73,11 @@ def register_station(archive: Archive, station: Station, name: str) -> None:
     calibration = station.to_dict()
     newest = archive.calibrations(name)
     if not newest or newest[-1].sha256 != canonical_json_sha256(calibration):
-        archive.add_calibration(name, calibration, raster=raster_name, notes="simulator station")
+        # Valid from before the first simulated visit, so every visit finds it in force.
+        archive.add_calibration(
+            name, calibration, raster=raster_name, valid_from=FIRST_VISIT - VISIT_INTERVAL,
+            notes="simulator station",
+        )
 
 
 def archive_visits(

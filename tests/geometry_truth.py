@@ -171,7 +171,11 @@ def archive_with_frames(settings: Any, frames: dict[str, np.ndarray], *, calibra
     if calibrate:
         st = station()
         archive.add_raster("default", st.raster_definition.to_dict())
-        archive.add_calibration(STATION_NAME, st.to_dict(), raster="default")
+        # in force before the frames below were taken (they carry past acquisition times)
+        archive.add_calibration(
+            STATION_NAME, st.to_dict(), raster="default",
+            valid_from=dt.datetime(2000, 1, 1, tzinfo=dt.UTC),
+        )
     uids = {}
     for k, (name, pixels) in enumerate(frames.items()):
         acq = archive.ingest(

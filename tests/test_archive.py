@@ -290,3 +290,27 @@ def test_concurrent_ingests_share_the_visit(archive: Archive) -> None:
     assert sorted(a.uid for a in rows) == sorted(uids)
     assert len({a.visit_id for a in rows}) == 1
     assert archive.verify().ok
+
+
+def test_ingest_attaches_the_calibration_valid_when_taken(archive: Archive) -> None:
+    archive.add_station("S2")
+    jan = dt.datetime(2025, 1, 1, tzinfo=dt.UTC)
+    old = archive.add_calibration("S2", {"v": 1}, valid_from=jan)
+    new = archive.add_calibration("S2", {"v": 2}, valid_from=jan + dt.timedelta(days=90))
+    frame = _frame(14, shape=(20, 20))
+
+    def taken(days: int) -> Acquisition:
+        return archive.ingest(
+            [FrameSource(frame, name="f")], patient="P001", station="S2",
+            acquired_at=jan + dt.timedelta(days=days),
+        )
+
+    assert taken(30).calibration_id == old.id
+    assert taken(120).calibration_id == new.id
+    with pytest.raises(NotFoundError, match="valid at"):
+        taken(-10)
+    explicit = archive.ingest(
+        [FrameSource(frame, name="f")], patient="P001", station="S2", calibration_version=2,
+        acquired_at=jan + dt.timedelta(days=30),
+    )
+    assert explicit.calibration_id == new.id

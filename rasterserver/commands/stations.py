@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 import typer
 
-from rasterserver.commands.common import open_archive
+from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError
 
 station_app = typer.Typer(
@@ -72,12 +72,22 @@ def add_calibration(
     raster: Annotated[
         str | None, typer.Option(help="Name of the stored raster it was made with.")
     ] = None,
+    valid_from: Annotated[
+        str | None,
+        typer.Option(
+            help="From when it applies, ISO 8601 (default: now). Acquisitions are given the "
+            "calibration valid when they were taken.",
+        ),
+    ] = None,
     notes: Annotated[str, typer.Option(help="Free text.")] = "",
 ) -> None:
     """Import a calibration as the station's next version (calibrations are immutable)."""
     document = _load_json(calibration, "calibration")
     with open_archive(ctx) as archive:
-        row = archive.add_calibration(station, document, raster=raster, notes=notes)
+        row = archive.add_calibration(
+            station, document, raster=raster, notes=notes,
+            valid_from=parse_datetime(valid_from, "--valid-from"),
+        )
     typer.echo(f"station {station}: calibration version {row.version} stored")
 
 
