@@ -9,7 +9,7 @@ import time
 import geometry_truth as gt
 import numpy as np
 import open3d as o3d
-from conftest import PATIENT_ID, LiveServer, npy_bytes
+from api_helpers import PATIENT_ID, LiveServer, npy_bytes
 
 
 def test_process_job_results_and_exports(live_sqlite: LiveServer, tmp_path) -> None:

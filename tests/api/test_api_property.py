@@ -15,7 +15,7 @@ from typing import Any
 from urllib.parse import quote
 
 import pytest
-from conftest import PATIENT_ID, ROLES, LiveServer, frame, npy_bytes
+from api_helpers import PATIENT_ID, ROLES, LiveServer, frame, npy_bytes
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from conftest import PATIENT_ID, ROLES, LiveServer, frame, npy_bytes
+from api_helpers import PATIENT_ID, ROLES, LiveServer, frame, npy_bytes
 from fastapi.routing import APIRoute
 
 from rasterserver.api.app import create_app

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import anyio
 import httpx
-from conftest import free_port
+from api_helpers import free_port
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 

@@ -8,7 +8,7 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import PATIENT_ID, PATIENT_NAME, LiveServer, frame, npy_bytes
+from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, frame, npy_bytes
 from sqlalchemy import select, text
 
 from rasterserver.api.audit import audit_events
