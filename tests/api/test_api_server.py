@@ -185,3 +185,26 @@ def test_patient_data_never_reaches_the_log(live: LiveServer, caplog) -> None:
     for secret in (PATIENT_ID, PATIENT_NAME, "MRN-99", "Max Muster", "2010-05-04",
                    "MRN-unknown-77", "Erika"):
         assert secret not in text_logged
+
+
+def test_metrics_name_route_templates_only(live: LiveServer) -> None:
+    _upload(live)
+    with live.client("clinician") as c:
+        c.get(f"/patients/{PATIENT_ID}")
+    with live.client("admin") as a:
+        text_out = a.get("/metrics").text
+    assert 'route="/patients/{patient}",status="200"' in text_out
+    assert "rasterserver_request_seconds_bucket" in text_out and PATIENT_ID not in text_out
+
+
+def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypatch) -> None:
+    from rasterserver.api import audit
+
+    def broken(*_args, **_kwargs) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(audit, "write_events", broken)
+    with live_sqlite.client("clinician") as c:
+        response = c.get(f"/patients/{PATIENT_ID}")
+    assert response.status_code == 503 and response.json()["error"] == "AuditUnavailable"
+    assert PATIENT_NAME not in response.text
