@@ -1,5 +1,5 @@
-"""Every route with every role, on a live server: allowed -> neither 401 nor 403, refused ->
-403, no token -> 401. And every route is in the published OpenAPI document."""
+"""Every route with every role, on a live server (SQLite and PostgreSQL): allowed -> neither
+401 nor 403, refused -> 403, no token -> 401. And every route is in the OpenAPI document."""
 
 from __future__ import annotations
 
@@ -70,8 +70,7 @@ def _sample_path(path: str, uid: str) -> str:
     return path
 
 
-def test_every_route_with_every_role(live_sqlite: LiveServer, app_routes: list[Any]) -> None:
-    live = live_sqlite
+def test_every_route_with_every_role(live: LiveServer, app_routes: list[Any]) -> None:
     with live.client("clinician") as c:
         uid = c.post("/acquisitions", files=[("files", ("a.npy", npy_bytes(frame())))],
                      data={"patient": PATIENT_ID}).json()["uid"]
