@@ -142,9 +142,13 @@ class RequestMiddleware:
                         await anyio.to_thread.run_sync(lambda: write_events(
                             self.services.archive, note, method=scope["method"], route=template,
                             route_name=name, status=status, client=_client(scope)))
-                    except Exception:
+                    except Exception as exc:
                         # fail closed: no data without its audit row
-                        log.exception("audit row of request %s not written", note.request_id)
+                        from rasterserver.api.errors import traceback_without_values
+
+                        log.error("audit row of request %s not written: %s\n%s",
+                                  note.request_id, type(exc).__name__,
+                                  traceback_without_values(exc))
                         replaced = True
                         body = json.dumps({"detail": "audit trail unavailable",
                                            "error": "AuditUnavailable"}).encode()
@@ -158,7 +162,29 @@ class RequestMiddleware:
                                       (b"x-request-id", note.request_id.encode())]
             await send(message)
 
-        await self.app(scope, receive, send_audited)
+        started_response = False
+
+        async def send_tracked(message: Message) -> None:
+            nonlocal started_response
+            if message["type"] == "http.response.start":
+                started_response = True
+            await send_audited(message)
+
+        try:
+            await self.app(scope, receive, send_tracked)
+        except Exception as exc:
+            # Answered and audited here, and not re-raised: the server would log the
+            # exception's message, and a database error's message quotes patient data.
+            from rasterserver.api.errors import error_body, traceback_without_values
+
+            log.error("unexpected %s while handling a request\n%s", type(exc).__name__,
+                      traceback_without_values(exc))
+            if not started_response:
+                body = json.dumps(error_body(500, "internal error", "InternalError")).encode()
+                await send_tracked({"type": "http.response.start", "status": 500,
+                                    "headers": [(b"content-type", b"application/json"),
+                                                (b"content-length", str(len(body)).encode())]})
+                await send_tracked({"type": "http.response.body", "body": body})
 
 
 def audit_events(

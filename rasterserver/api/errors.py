@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import traceback
 
 import anyio
 from fastapi import FastAPI, Request
@@ -22,6 +23,15 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from rasterserver.errors import RasterServerError
 
 log = logging.getLogger(__name__)
+
+
+def traceback_without_values(exc: BaseException) -> str:
+    """Where an exception came from, without its message.
+
+    Messages of database errors quote the statement's parameters, which may be a patient's
+    identifier or name; the log gets the frames only.
+    """
+    return "".join(traceback.format_tb(exc.__traceback__))
 
 
 _HTTP_KINDS = {400: "BadRequest", 401: "Unauthorized", 403: "Forbidden", 404: "NotFound",
@@ -62,7 +72,8 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(_request: Request, exc: Exception) -> JSONResponse:
-        log.error("unexpected %s while handling a request", type(exc).__name__, exc_info=exc)
+        log.error("unexpected %s while handling a request\n%s", type(exc).__name__,
+                  traceback_without_values(exc))
         return JSONResponse(error_body(500, "internal error", "InternalError"), status_code=500)
 
 

@@ -208,3 +208,23 @@ def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypat
         response = c.get(f"/patients/{PATIENT_ID}")
     assert response.status_code == 503 and response.json()["error"] == "AuditUnavailable"
     assert PATIENT_NAME not in response.text
+
+
+def test_unexpected_errors_log_no_values(live_sqlite: LiveServer, monkeypatch, caplog) -> None:
+    from rasterserver.archive import Archive
+
+    def broken(self, identifier, session=None):
+        raise RuntimeError(f"statement failed with parameters ({identifier!r})")
+
+    monkeypatch.setattr(Archive, "patient", broken)
+    caplog.set_level(logging.DEBUG)
+    with live_sqlite.client("clinician") as c:
+        response = c.get(f"/patients/{PATIENT_ID}")
+    assert response.status_code == 500 and response.json()["error"] == "InternalError"
+    assert PATIENT_ID not in response.text
+    logged = "\n".join(r.getMessage() + (r.exc_text or "") for r in caplog.records
+                       if not r.name.startswith(("httpx", "httpcore")))
+    assert "RuntimeError" in logged and PATIENT_ID not in logged
+    monkeypatch.undo()
+    with live_sqlite.archive() as archive:  # the failed request is audited like any other
+        assert [e.status for e, _ in audit_events(archive, actor="clinician-1")] == [500]
