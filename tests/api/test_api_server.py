@@ -228,3 +228,24 @@ def test_unexpected_errors_log_no_values(live_sqlite: LiveServer, monkeypatch, c
     monkeypatch.undo()
     with live_sqlite.archive() as archive:  # the failed request is audited like any other
         assert [e.status for e, _ in audit_events(archive, actor="clinician-1")] == [500]
+
+
+def test_patient_and_visit_filters(live: LiveServer) -> None:
+    _upload(live, acquired_at="2025-03-01T10:00:00Z")
+    _upload(live, acquired_at="2025-09-15T08:30:00Z")
+    with live.client("clinician") as c:
+        for ident, sex in (("MRN-1_x", "female"), ("MRN-1%y", "male"), ("OTHER-1", "female")):
+            assert c.post("/patients", json={"identifier": ident, "sex": sex}).status_code == 201
+
+        def ids(**params: str) -> list[str]:
+            return [p["id"] for p in c.get("/patients", params=params).json()]
+
+        assert ids(identifier_prefix="MRN-1_") == ["MRN-1_x"]  # _ and % are literal
+        assert ids(identifier_prefix="MRN-1%") == ["MRN-1%y"]
+        assert ids(sex="female") == ["MRN-1_x", "OTHER-1"]
+        assert ids(identifier_prefix="MRN-", sex="female", limit="1", offset="0") == ["MRN-1_x"]
+        visits = c.get(f"/patients/{PATIENT_ID}/visits", params={"since": "2025-06-01"}).json()
+        assert [v["visit_date"] for v in visits] == ["2025-09-15"]
+    with live.client("researcher") as r:
+        assert r.get("/patients", params={"identifier_prefix": "MRN"}).status_code == 422
+        assert len(r.get("/patients", params={"sex": "female"}).json()) == 2

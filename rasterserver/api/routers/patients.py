@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+import datetime as dt
 from typing import Annotated
 
-from fastapi import Path
+from fastapi import Path, Query
 from sqlalchemy import select
 
 from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router
 from rasterserver.api.schemas import PatientIn, PatientOut, VisitOut
-from rasterserver.api.views import patient_out, resolve_patient, visit_out
-from rasterserver.catalog.models import Visit
+from rasterserver.api.views import (
+    patient_out,
+    pseudonymised,
+    refuse_date_filters_for,
+    resolve_patient,
+    visit_out,
+)
+from rasterserver.catalog.models import Patient, Visit
+from rasterserver.errors import InputError
 
 router = protected_router("patients")
 
@@ -19,10 +27,28 @@ PatientRef = Annotated[str, Path(max_length=64,
 
 
 @router.get("/patients", name="list_patients", response_model=list[PatientOut])
-def list_patients(svc: ServicesDep, caller: CallerDep, note: NoteDep,
-                  page: PageDep) -> list[PatientOut]:
-    """Patients by identifier."""
-    rows = svc.archive.patients(limit=page.limit, offset=page.offset)
+def list_patients(
+    svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
+    identifier_prefix: Annotated[str | None, Query(
+        max_length=64, description="Identifiers starting with this (not for researchers).")]
+    = None,
+    sex: Annotated[str | None, Query(max_length=8)] = None,
+) -> list[PatientOut]:
+    """Patients by identifier, optionally filtered by identifier prefix and sex."""
+    if identifier_prefix is None and sex is None:
+        rows = svc.archive.patients(limit=page.limit, offset=page.offset)
+    else:
+        if identifier_prefix is not None and pseudonymised(caller):
+            raise InputError("researchers cannot filter on identifiers")
+        # the archive service lists without filters; this query is the API's own
+        query = select(Patient).order_by(Patient.identifier)
+        if identifier_prefix is not None:
+            query = query.where(Patient.identifier.startswith(identifier_prefix,
+                                                              autoescape=True))
+        if sex is not None:
+            query = query.where(Patient.sex == sex)
+        with svc.archive.session() as s:
+            rows = list(s.scalars(query.limit(page.limit).offset(page.offset)))
     for p in rows:
         note.touch(p.id)
     return [patient_out(p, caller, svc.pseudonyms) for p in rows]
@@ -48,15 +74,25 @@ def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
 
 
 @router.get("/patients/{patient}/visits", name="list_visits", response_model=list[VisitOut])
-def list_visits(patient: PatientRef, svc: ServicesDep, caller: CallerDep, note: NoteDep,
-                page: PageDep) -> list[VisitOut]:
-    """The patient's visits, oldest first."""
+def list_visits(
+    patient: PatientRef, svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
+    since: Annotated[dt.date | None, Query(description="On or after (not for researchers).")]
+    = None,
+    until: Annotated[dt.date | None, Query(description="Before (not for researchers).")]
+    = None,
+) -> list[VisitOut]:
+    """The patient's visits, oldest first, optionally in a date range."""
+    refuse_date_filters_for(caller, since, until)
     identifier = resolve_patient(caller, patient, svc.pseudonyms)
     row = svc.archive.patient(identifier)
     note.touch(row.id)
     # the archive service has no visit listing yet; this is the one query of its own
+    query = select(Visit).where(Visit.patient_id == row.id)
+    if since is not None:
+        query = query.where(Visit.visit_date >= since)
+    if until is not None:
+        query = query.where(Visit.visit_date < until)
     with svc.archive.session() as s:
-        visits = list(s.scalars(select(Visit).where(Visit.patient_id == row.id)
-                                .order_by(Visit.visit_date)
+        visits = list(s.scalars(query.order_by(Visit.visit_date)
                                 .limit(page.limit).offset(page.offset)))
     return [visit_out(v, identifier, caller, svc.pseudonyms) for v in visits]
