@@ -15,21 +15,32 @@ Coordinates are millimetres in the world frame of the calibration used.
 from __future__ import annotations
 
 import colorsys
+from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import cv2
 import numpy as np
 import open3d as o3d
 
 from rasterserver.errors import InputError
-from rasterserver.records_surface import MeshRecord, Points
+from rasterserver.records import Record
+from rasterserver.records_surface import MeshRecord, Points, Surface
+
+if TYPE_CHECKING:
+    from rasterserver.catalog.models import StageResult
+    from rasterserver.pipeline import Pipeline
 
 __all__ = [
     "MESH_FORMATS",
     "POINT_FORMATS",
+    "ExportFormat",
+    "ExportWhat",
+    "StoredExport",
     "line_colours",
     "overlay_image",
+    "select_export",
     "write_mesh",
     "write_points",
 ]
@@ -38,6 +49,99 @@ POINT_FORMATS = ("ply", "csv")
 MESH_FORMATS = ("ply", "obj", "stl")
 
 _GOLDEN = 0.618033988749895
+
+
+class ExportFormat(StrEnum):
+    """File format of an export."""
+
+    ply = "ply"
+    obj = "obj"
+    stl = "stl"
+    csv = "csv"
+
+
+class ExportWhat(StrEnum):
+    """Which stored result to export."""
+
+    mesh = "mesh"
+    points = "points"
+    smoothed = "smoothed"
+
+
+_STAGE_OF = {ExportWhat.mesh: "mesh", ExportWhat.points: "points", ExportWhat.smoothed: "surface"}
+
+
+@dataclass(frozen=True)
+class StoredExport:
+    """A stored result chosen for export: its provenance row and the record to write."""
+
+    row: StageResult
+    record: MeshRecord | Points
+    fmt: ExportFormat
+    what: ExportWhat
+
+    def write(self, path: Path) -> Path:
+        """Write the record to ``path`` in the chosen format."""
+        if isinstance(self.record, MeshRecord):
+            return write_mesh(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
+        return write_points(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
+
+
+def select_export(
+    pipeline: Pipeline,
+    uid: str,
+    *,
+    fmt: ExportFormat,
+    what: ExportWhat | None = None,
+    plugin: str | None = None,
+) -> StoredExport:
+    """Choose the newest stored mesh or point cloud of ``uid`` for export as ``fmt``.
+
+    The one implementation behind ``rasterserver export`` and the HTTP export route.
+
+    Parameters
+    ----------
+    pipeline : Pipeline
+        The pipeline of the archive holding the results.
+    uid : str
+        Acquisition uid.
+    fmt : ExportFormat
+        ``ply``, ``obj``, ``stl`` (meshes) or ``csv`` (points).
+    what : ExportWhat, optional
+        ``mesh`` (default), ``points`` (one per peak) or ``smoothed``; ``points`` for csv.
+    plugin : str, optional
+        Use the newest result of this plugin.
+
+    Returns
+    -------
+    StoredExport
+
+    Raises
+    ------
+    InputError
+        The format cannot hold what is asked, or the stored result holds nothing to write.
+    NotFoundError
+        The acquisition has no such stored result.
+    """
+    what = what or (ExportWhat.points if fmt is ExportFormat.csv else ExportWhat.mesh)
+    if what is ExportWhat.mesh and fmt is ExportFormat.csv:
+        raise InputError("csv holds points: export points or smoothed, or use a mesh format")
+    if what is not ExportWhat.mesh and fmt in (ExportFormat.obj, ExportFormat.stl):
+        raise InputError(f"{fmt.value} holds meshes: use ply or csv for points")
+    stage = _STAGE_OF[what]
+    row, record = pipeline.result(uid, stage, plugin=plugin)
+    return StoredExport(row, _exportable(record, uid, stage), fmt, what)
+
+
+def _exportable(record: Record, uid: str, stage: str) -> MeshRecord | Points:
+    if isinstance(record, Surface):
+        samples = record.sample_points()
+        if samples is None:
+            raise InputError(f"the stored surface of {uid} keeps no smoothed points")
+        return samples
+    if not isinstance(record, MeshRecord | Points):
+        raise InputError(f"the stored {stage} result is a {record.kind} record, not exportable")
+    return record
 
 
 def _check_target(path: Path) -> Path:

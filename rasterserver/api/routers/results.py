@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import tempfile
-from enum import StrEnum
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -20,31 +19,13 @@ from rasterserver.api.deps import (
 )
 from rasterserver.api.schemas import ResultOut, RunOut
 from rasterserver.catalog.models import PipelineRun, StageResult
-from rasterserver.errors import InputError, NotFoundError
-from rasterserver.export import write_mesh, write_points
-from rasterserver.records_surface import MeshRecord, Points, Surface
+from rasterserver.errors import NotFoundError
+from rasterserver.export import ExportFormat, ExportWhat, select_export
 
 router = protected_router("results")
 
 Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
 Plugin = Annotated[str | None, Query(max_length=100, description="Only this plugin's.")]
-
-
-class ExportFormat(StrEnum):
-    """File format of an export."""
-
-    ply = "ply"
-    obj = "obj"
-    stl = "stl"
-    csv = "csv"
-
-
-class ExportWhat(StrEnum):
-    """Which result to export."""
-
-    mesh = "mesh"
-    points = "points"
-    smoothed = "smoothed"
 
 
 _MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "stl": "model/stl",
@@ -125,31 +106,15 @@ def export_result(
     plugin: Plugin = None,
 ) -> Response:
     """The newest stored mesh or point cloud, as ``rasterserver export`` writes it."""
-    what = what or (ExportWhat.points if fmt is ExportFormat.csv else ExportWhat.mesh)
-    if what is ExportWhat.mesh and fmt is ExportFormat.csv:
-        raise InputError("csv holds points: use what=points or smoothed, or a mesh format")
-    if what is not ExportWhat.mesh and fmt in (ExportFormat.obj, ExportFormat.stl):
-        raise InputError(f"{fmt.value} holds meshes: use ply or csv for points")
     _touch(svc, note, uid)
-    stage = {"mesh": "mesh", "points": "points", "smoothed": "surface"}[what.value]
-    row, record = svc.pipeline.result(uid, stage, plugin=plugin)
-    etag = f"{row.output_checksum}-{what.value}.{fmt.value}"
+    chosen = select_export(svc.pipeline, uid, fmt=fmt, what=what, plugin=plugin)
+    etag = f"{chosen.row.output_checksum}-{chosen.what.value}.{fmt.value}"
     if (cached := not_modified(request, etag)) is not None:
         return cached
     with tempfile.TemporaryDirectory(prefix="rasterserver-export-") as tmp:
-        path = FilePath(tmp) / f"{uid}.{fmt.value}"
-        if isinstance(record, MeshRecord):
-            write_mesh(record, path, fmt=fmt.value)  # type: ignore[arg-type]
-        else:
-            if isinstance(record, Surface):
-                samples = record.sample_points()
-                if samples is None:
-                    raise InputError(f"the stored surface of {uid} keeps no smoothed points")
-                record = samples
-            if not isinstance(record, Points):
-                raise InputError(f"the stored {stage} result is not points")
-            write_points(record, path, fmt=fmt.value)  # type: ignore[arg-type]
+        path = chosen.write(FilePath(tmp) / f"{uid}.{fmt.value}")
         data = path.read_bytes()
     return Response(data, media_type=_MEDIA[fmt.value], headers={
         "ETag": f'"{etag}"',
-        "Content-Disposition": f'attachment; filename="{uid}-{what.value}.{fmt.value}"'})
+        "Content-Disposition":
+            f'attachment; filename="{uid}-{chosen.what.value}.{fmt.value}"'})
