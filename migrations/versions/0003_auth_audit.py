@@ -1,4 +1,5 @@
-"""HTTP API: accounts, API tokens (digests only), append-only audit trail, pseudonym key
+"""HTTP API: accounts, API tokens (digests only), append-only audit trail, pseudonym key,
+processing jobs
 
 Revision ID: 0003
 Revises: 0002
@@ -107,6 +108,26 @@ def upgrade() -> None:
         batch_op.create_index(
             batch_op.f("ix_audit_event_request_id"), ["request_id"], unique=False
         )
+    op.create_table(
+        "api_job",
+        sa.Column("id", sa.String(length=32), nullable=False),
+        sa.Column("owner", sa.String(length=100), nullable=False),
+        sa.Column("uids", sa.JSON(), nullable=False),
+        sa.Column("status", sa.String(length=16), nullable=False),
+        sa.Column("done", sa.Integer(), nullable=False),
+        sa.Column("total", sa.Integer(), nullable=False),
+        sa.Column("runner", sa.String(length=300), nullable=False),
+        sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
+        sa.Column("finished_at", sa.DateTime(timezone=True), nullable=True),
+        sa.Column("error", sa.Text(), nullable=False),
+        sa.Column("outcomes", sa.JSON(), nullable=False),
+        sa.CheckConstraint(
+            "status IN ('queued', 'running', 'done', 'failed')", name=op.f("ck_api_job_status")
+        ),
+        sa.PrimaryKeyConstraint("id", name=op.f("pk_api_job")),
+    )
+    with op.batch_alter_table("api_job", schema=None) as batch_op:
+        batch_op.create_index("ix_api_job_created_at", ["created_at"], unique=False)
     dialect = op.get_bind().dialect.name
     if dialect == "sqlite":
         for statement in _SQLITE_TRIGGERS:
@@ -128,6 +149,9 @@ def downgrade() -> None:
         batch_op.drop_index(batch_op.f("ix_audit_event_request_id"))
         batch_op.drop_index(batch_op.f("ix_audit_event_recorded_at"))
         batch_op.drop_index("ix_audit_event_patient_recorded")
+    with op.batch_alter_table("api_job", schema=None) as batch_op:
+        batch_op.drop_index("ix_api_job_created_at")
+    op.drop_table("api_job")
     op.drop_table("audit_event")
     op.drop_table("api_token")
     op.drop_table("pseudonym_key")

@@ -1,65 +1,67 @@
 """Processing jobs of the HTTP API: a small in-process executor over :func:`process_many`.
 
 A POST starts a job and returns at once; the job runs :func:`rasterserver.jobs.process_many`
-(the CLI's ``process``) in a worker thread, and its status and progress can be polled. Jobs
-live in this process's memory: with several uvicorn workers, poll the worker that answered
-(or run one worker), and a restart forgets the jobs, though never their stored results.
+(the CLI's ``process``) in a worker thread of the server process that accepted it. Its state
+lives in the catalogue (``api_job``), so any server worker can report status and progress,
+and a restart keeps the history. A job whose process has gone (a restart mid-job) is
+reported as failed: its finished acquisitions' results are stored, the rest can be
+resubmitted and will reuse them.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import threading
+import os
+import socket
 import uuid
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
+
+from sqlalchemy import select, update
 
 from rasterserver.archive import Archive
+from rasterserver.catalog.auth_models import ApiJob
 from rasterserver.errors import NotFoundError
-from rasterserver.jobs import JobOutcome, process_many
+from rasterserver.jobs import process_many
 from rasterserver.pipeline import DEFAULT_TARGET
 
-JobStatus = Literal["queued", "running", "done", "failed"]
+_HOST = socket.gethostname()
 
 
-@dataclass
-class Job:
-    """One processing job: its acquisitions, status, progress and outcomes."""
+def _runner() -> str:
+    return f"{_HOST}:{os.getpid()}"
 
-    id: str
-    owner: str
-    uids: list[str]
-    status: JobStatus = "queued"
-    done: int = 0
-    total: int = 0
-    created_at: dt.datetime = field(default_factory=lambda: dt.datetime.now(dt.UTC))
-    finished_at: dt.datetime | None = None
-    outcomes: list[JobOutcome] = field(default_factory=list)
-    error: str = ""
+
+def _gone(runner: str) -> bool:
+    """Whether the process ``host:pid`` is known to be gone (only on this host)."""
+    host, _, pid = runner.rpartition(":")
+    if host != _HOST or not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
 
 
 class JobRunner:
-    """Runs processing jobs in ``workers`` background threads.
+    """Runs processing jobs in ``workers`` background threads of this process.
 
     Parameters
     ----------
     archive : Archive
-        The archive.
+        The archive (and its catalogue, where jobs are kept).
     workers : int
-        Jobs run at the same time (each processes its acquisitions one by one).
-    keep : int
-        Finished jobs remembered, newest first.
+        Jobs run at the same time here (each processes its acquisitions one by one).
     """
 
-    def __init__(self, archive: Archive, *, workers: int = 1, keep: int = 1000) -> None:
+    def __init__(self, archive: Archive, *, workers: int = 1) -> None:
         self.archive = archive
         self._pool = ThreadPoolExecutor(max_workers=max(1, workers),
                                         thread_name_prefix="rasterserver-job")
-        self._jobs: dict[str, Job] = {}
-        self._lock = threading.Lock()
-        self._keep = keep
 
     def submit(
         self,
@@ -70,55 +72,60 @@ class JobRunner:
         params: Mapping[str, Mapping[str, Any]] | None = None,
         calibration: tuple[str, int | None] | None = None,
         until: str = DEFAULT_TARGET,
-    ) -> Job:
-        """Queue a job over ``uids`` and return it (status ``queued``)."""
-        job = Job(id=uuid.uuid4().hex, owner=owner, uids=list(uids), total=len(uids))
-        with self._lock:
-            self._jobs[job.id] = job
-            self._forget_old()
+    ) -> ApiJob:
+        """Queue a job over ``uids`` and return its row (status ``queued``)."""
+        job = ApiJob(id=uuid.uuid4().hex, owner=owner, uids=list(uids), status="queued",
+                     done=0, total=len(uids), runner=_runner(), error="", outcomes=[])
+        with self.archive.session() as s:
+            s.add(job)
+        job_id = job.id
 
-        def progress(done: int, total: int) -> None:
-            job.done, job.total = done, total
+        def set_state(**values: Any) -> None:
+            with self.archive.session() as s:
+                s.execute(update(ApiJob).where(ApiJob.id == job_id).values(**values))
 
         def run() -> None:
-            job.status = "running"
+            set_state(status="running")
             try:
-                job.outcomes = process_many(
-                    self.archive, job.uids, chain=chain, params=params,
-                    calibration=calibration, until=until, progress=progress,
+                outcomes = process_many(
+                    self.archive, list(uids), chain=chain, params=params,
+                    calibration=calibration, until=until,
+                    progress=lambda done, _total: set_state(done=done),
                 )
-                job.status = ("failed" if any(o.status == "failed" for o in job.outcomes)
-                              else "done")
+                failed = any(o.status == "failed" for o in outcomes)
+                set_state(status="failed" if failed else "done",
+                          outcomes=[dict(o.__dict__) for o in outcomes],
+                          finished_at=dt.datetime.now(dt.UTC))
             except Exception as exc:  # a bad chain or parameters: the whole job failed
-                job.error = str(exc) or type(exc).__name__
-                job.status = "failed"
-            finally:
-                job.finished_at = dt.datetime.now(dt.UTC)
+                set_state(status="failed", error=str(exc)[:2000] or type(exc).__name__,
+                          finished_at=dt.datetime.now(dt.UTC))
 
         self._pool.submit(run)
         return job
 
-    def get(self, job_id: str) -> Job:
+    def get(self, job_id: str) -> ApiJob:
         """Return job ``job_id`` or raise :class:`NotFoundError`."""
-        with self._lock:
-            job = self._jobs.get(job_id)
+        with self.archive.session() as s:
+            job = s.get(ApiJob, job_id)
         if job is None:
             raise NotFoundError(f"unknown job {job_id}")
-        return job
+        return self._checked(job)
 
-    def list(self, *, status: str | None = None, limit: int = 100, offset: int = 0) -> list[Job]:
+    def list(self, *, status: str | None = None, limit: int = 100,
+             offset: int = 0) -> list[ApiJob]:
         """Jobs, newest first, optionally with one status."""
-        with self._lock:
-            jobs = sorted(self._jobs.values(), key=lambda j: j.created_at, reverse=True)
+        query = select(ApiJob).order_by(ApiJob.created_at.desc(), ApiJob.id)
         if status is not None:
-            jobs = [j for j in jobs if j.status == status]
-        return jobs[offset: offset + limit]
+            query = query.where(ApiJob.status == status)
+        with self.archive.session() as s:
+            return [self._checked(j) for j in s.scalars(query.limit(limit).offset(offset))]
 
-    def _forget_old(self) -> None:
-        finished = [j for j in self._jobs.values() if j.finished_at is not None]
-        finished.sort(key=lambda j: j.created_at)
-        for job in finished[: max(0, len(finished) - self._keep)]:
-            del self._jobs[job.id]
+    @staticmethod
+    def _checked(job: ApiJob) -> ApiJob:
+        if job.status in ("queued", "running") and _gone(job.runner):
+            job.status = "failed"
+            job.error = "the server process running this job stopped; submit it again"
+        return job
 
     def close(self) -> None:
         """Stop accepting jobs; running ones finish."""

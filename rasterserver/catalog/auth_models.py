@@ -10,8 +10,10 @@ the migration adds database triggers that refuse it too (so neither a bug nor a 
 from __future__ import annotations
 
 import datetime as dt
+from typing import Any
 
 from sqlalchemy import (
+    JSON,
     CheckConstraint,
     ForeignKey,
     Index,
@@ -113,6 +115,36 @@ class PseudonymKey(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     key_hex: Mapped[str] = mapped_column(String(128))
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
+JOB_STATUSES = ("queued", "running", "done", "failed")
+
+
+class ApiJob(Base):
+    """A processing job started over HTTP, kept in the catalogue so that any server worker
+    can report it and it survives a restart.
+
+    ``runner`` is ``host:pid`` of the process running it: a job whose runner is gone is
+    reported as failed instead of running forever.
+    """
+
+    __tablename__ = "api_job"
+    __table_args__ = (
+        CheckConstraint(f"status IN {JOB_STATUSES!r}", name="status"),
+        Index("ix_api_job_created_at", "created_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    owner: Mapped[str] = mapped_column(String(100))
+    uids: Mapped[list[str]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    done: Mapped[int] = mapped_column(Integer, default=0)
+    total: Mapped[int] = mapped_column(Integer, default=0)
+    runner: Mapped[str] = mapped_column(String(300), default="")
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column()
+    error: Mapped[str] = mapped_column(Text, default="")
+    outcomes: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
 
 
 @event.listens_for(Session, "before_flush")

@@ -98,3 +98,23 @@ def test_cli_users_tokens_and_fhir_audit_export(archive: Archive, tmp_path: Path
     assert event["resourceType"] == "AuditEvent" and event["action"] == "R"
     assert event["recorded"].endswith("+00:00")
     assert event["entity"][0]["what"]["identifier"]["value"] == "P-1"
+
+
+def test_a_job_whose_process_is_gone_reports_failed(archive: Archive) -> None:
+    import socket
+
+    from rasterserver.api.jobs import JobRunner
+    from rasterserver.catalog.auth_models import ApiJob
+
+    with archive.session() as s:
+        s.add(ApiJob(id="a" * 32, owner="x", uids=["u"], status="running", done=0, total=1,
+                     runner=f"{socket.gethostname()}:{2**22 + 12345}", error="", outcomes=[]))
+    runner = JobRunner(archive)
+    try:
+        job = runner.get("a" * 32)
+        assert job.status == "failed" and "stopped" in job.error
+        assert [j.id for j in runner.list(status="running")] == ["a" * 32]  # stored as it was
+        with pytest.raises(NotFoundError):
+            runner.get("b" * 32)
+    finally:
+        runner.close()

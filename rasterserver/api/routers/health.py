@@ -26,8 +26,7 @@ def health(svc: ServicesDep) -> Health:
             responses={200: {"content": {"text/plain": {}}}})
 def metrics(svc: ServicesDep) -> PlainTextResponse:
     """Request counts and latencies of this worker, in the Prometheus text format."""
-    jobs = svc.jobs.list(limit=10**6)
-    extra = {"rasterserver_jobs_running": sum(j.status == "running" for j in jobs),
-             "rasterserver_jobs_queued": sum(j.status == "queued" for j in jobs)}
+    extra = {f"rasterserver_jobs_{state}": len(svc.jobs.list(status=state, limit=10**6))
+             for state in ("running", "queued")}
     return PlainTextResponse(svc.metrics.render(extra),
                              media_type="text/plain; version=0.0.4")

@@ -7,19 +7,19 @@ from typing import Annotated
 from fastapi import Path, Query
 
 from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router, utc
-from rasterserver.api.jobs import Job
 from rasterserver.api.schemas import JobIn, JobOut, JobOutcomeOut
+from rasterserver.catalog.auth_models import ApiJob
 from rasterserver.errors import InputError
 
 router = protected_router("jobs")
 
 
-def _job(job: Job) -> JobOut:
+def _job(job: ApiJob) -> JobOut:
     return JobOut(
         id=job.id, status=job.status, done=job.done, total=job.total,
         created_at=utc(job.created_at), finished_at=utc(job.finished_at),  # type: ignore[arg-type]
         error=job.error,
-        outcomes=[JobOutcomeOut(**o.__dict__) for o in job.outcomes])
+        outcomes=[JobOutcomeOut(**o) for o in job.outcomes])
 
 
 @router.post("/jobs", name="start_job", response_model=JobOut, status_code=202)
@@ -46,7 +46,7 @@ def start_job(body: JobIn, svc: ServicesDep, caller: CallerDep, note: NoteDep) -
 @router.get("/jobs", name="list_jobs", response_model=list[JobOut])
 def list_jobs(svc: ServicesDep, page: PageDep,
               status: Annotated[str | None, Query(max_length=16)] = None) -> list[JobOut]:
-    """Jobs of this server process, newest first."""
+    """Processing jobs, newest first."""
     return [_job(j) for j in svc.jobs.list(status=status, limit=page.limit,
                                              offset=page.offset)]
 
