@@ -140,7 +140,8 @@ def main() -> None:
             "`ray_casting`, `shadow_rays`, `shading`) are summed over its worker threads. "
             f"The machine was shared with other jobs: 1-min load average {load_start:.1f} "
             f"before and {load_end:.1f} after the runs (2 cores), so medians are "
-            "pessimistic; *best* is the fastest run.",
+            "pessimistic; *best* is the fastest run. Wall time close to CPU time means the "
+            "process effectively had one core.",
             "",
             *lines,
         ]
