@@ -24,6 +24,16 @@ from rasterserver.config import Settings, sqlite_url
 from rasterserver.demo import raster_like_frame
 
 
+def raster_like_frame(seed: int, shape: tuple[int, int] = (604, 576)) -> np.ndarray:
+    """A stand-in camera frame: bright horizontal lines, one per 10 rows, on noise."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    bend = 6.0 * np.sin(cols / shape[1] * np.pi) * (1 + 0.2 * rng.standard_normal())
+    lines = np.exp(-0.5 * ((((rows - bend) % 10.0) - 5.0) / 1.1) ** 2)
+    image = 20 + 180 * lines + rng.normal(0, 2.0, shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
 def _npy(frame: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, frame)
