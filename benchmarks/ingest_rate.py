@@ -21,7 +21,6 @@ from _machine import machine, write_section
 
 from rasterserver.archive import AcquisitionSpec, Archive, FrameSource
 from rasterserver.config import Settings, sqlite_url
-from rasterserver.demo import raster_like_frame
 
 
 def raster_like_frame(seed: int, shape: tuple[int, int] = (604, 576)) -> np.ndarray:
