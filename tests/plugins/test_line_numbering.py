@@ -171,3 +171,27 @@ def test_raster_is_required() -> None:
         run_stage(CodeWindowNumbering, ordered)
     with pytest.raises(InputError, match="Raster"):
         run_stage(CodeWindowNumbering, ordered, context=StageContext(raster="default"))
+
+
+def test_numbers_come_from_the_raster_definition() -> None:
+    from rasterserver.raster import DEFAULT_CODE, make_raster
+
+    col, row, area, number = truth_lines(back("normal"))
+    shifted = make_raster(code=DEFAULT_CODE, first_number=101)
+    result = run_stage(
+        CodeWindowNumbering,
+        _ordered_truth(col, row, area, number),
+        context=StageContext(raster=shifted),
+    )
+    assert np.array_equal(result.number, number + 100)
+
+
+def test_min_lines_parameter() -> None:
+    col, row, area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    keep = np.isin(number, numbers[20:32])  # 12 lines
+    ordered = _ordered_truth(col[keep], row[keep], area[keep], number[keep])
+    numbered = run_stage(CodeWindowNumbering, ordered, context=_context())
+    assert np.array_equal(numbered.number, number[keep])
+    refused = run_stage(CodeWindowNumbering, ordered, {"min_lines": 13}, context=_context())
+    assert np.all(refused.number == -1) and "too few lines" in refused.reason
