@@ -153,9 +153,12 @@ def test_ambiguous_component_is_refused() -> None:
     [
         np.zeros((604, 576), np.uint8),
         np.full((604, 576), 255, np.uint8),
+        np.full((604, 576), 80, np.uint8),
+        np.zeros((1, 576), np.uint8),
+        np.full((604, 1), 30, np.uint8),
         np.zeros((1, 1), np.uint8),
     ],
-    ids=["black", "saturated", "1x1"],
+    ids=["black", "saturated", "uniform", "1-row", "1-column", "1x1"],
 )
 def test_degenerate_images_give_an_empty_result_with_a_reason(pixels: np.ndarray) -> None:
     result = _chain(pixels)
