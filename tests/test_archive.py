@@ -314,3 +314,25 @@ def test_ingest_attaches_the_calibration_valid_when_taken(archive: Archive) -> N
         acquired_at=jan + dt.timedelta(days=30),
     )
     assert explicit.calibration_id == new.id
+
+
+def test_find_returns_the_same_acquisitions_as_summaries(archive: Archive) -> None:
+    archive.add_patient("P002")
+    frame = _frame(15, shape=(20, 20))
+    t0 = dt.datetime(2024, 5, 1, tzinfo=dt.UTC)
+    for i in range(5):
+        archive.ingest(
+            [FrameSource(frame, name="a"), FrameSource(frame, name="b")][: 1 + i % 2],
+            patient="P001" if i < 3 else "P002",
+            acquired_at=t0 + dt.timedelta(days=i),
+        )
+    since, until = t0 + dt.timedelta(days=1), t0 + dt.timedelta(days=4)
+    full = archive.acquisitions(since=since, until=until)
+    found = archive.find(since=since, until=until)
+    assert [f.uid for f in found] == [a.uid for a in full]
+    assert [f.frames for f in found] == [len(a.frames) for a in full]
+    assert [f.patient for f in found] == ["P002", "P001", "P001"]
+    assert [f.uid for f in archive.find(patient="P002")] == [
+        a.uid for a in archive.acquisitions(patient="P002")
+    ]
+    assert len(archive.find(limit=2, offset=4)) == 1
