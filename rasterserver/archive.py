@@ -728,19 +728,18 @@ class Archive:
         building full :class:`Acquisition` objects with their frames would cost more than the
         query. Filters as for :meth:`acquisitions`.
         """
+        # Counted per returned row through the (acquisition_id, index) key, not by
+        # aggregating the whole frame table first.
         frames = (
-            select(Frame.acquisition_id, func.count().label("n"))
-            .group_by(Frame.acquisition_id)
-            .subquery()
+            select(func.count())
+            .where(Frame.acquisition_id == Acquisition.id)
+            .correlate(Acquisition)
+            .scalar_subquery()
         )
-        query = (
-            select(
-                Acquisition.uid, Patient.identifier, Acquisition.kind,
-                Acquisition.acquired_at, func.coalesce(frames.c.n, 0),
-            )
-            .outerjoin(Patient, Patient.id == Acquisition.patient_id)
-            .outerjoin(frames, frames.c.acquisition_id == Acquisition.id)
-        )
+        query = select(
+            Acquisition.uid, Patient.identifier, Acquisition.kind, Acquisition.acquired_at,
+            frames,
+        ).outerjoin(Patient, Patient.id == Acquisition.patient_id)
         with self.session() as s:
             if patient is not None:
                 query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
