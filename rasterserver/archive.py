@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Engine, func, select
+from sqlalchemy import Engine, Select, func, select
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -701,16 +701,28 @@ class Archive:
             selectinload(Acquisition.frames), selectinload(Acquisition.patient)
         )
         with self.session() as s:
-            if patient is not None:
-                query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
-            if since is not None:
-                query = query.where(Acquisition.acquired_at >= since)
-            if until is not None:
-                query = query.where(Acquisition.acquired_at < until)
-            if kind is not None:
-                query = query.where(Acquisition.kind == kind)
-            query = query.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
+            query = self._newest_first(s, query, patient, since, until, kind)
             return list(s.scalars(query.limit(limit).offset(offset)))
+
+    def _newest_first(
+        self,
+        s: Session,
+        query: Select[Any],
+        patient: str | None,
+        since: dt.datetime | None,
+        until: dt.datetime | None,
+        kind: str | None,
+    ) -> Select[Any]:
+        """Apply the listing filters (``since`` inclusive, ``until`` exclusive) and order."""
+        if patient is not None:
+            query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
+        if since is not None:
+            query = query.where(Acquisition.acquired_at >= since)
+        if until is not None:
+            query = query.where(Acquisition.acquired_at < until)
+        if kind is not None:
+            query = query.where(Acquisition.kind == kind)
+        return query.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
 
     def find(
         self,
@@ -741,15 +753,7 @@ class Archive:
             frames,
         ).outerjoin(Patient, Patient.id == Acquisition.patient_id)
         with self.session() as s:
-            if patient is not None:
-                query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
-            if since is not None:
-                query = query.where(Acquisition.acquired_at >= since)
-            if until is not None:
-                query = query.where(Acquisition.acquired_at < until)
-            if kind is not None:
-                query = query.where(Acquisition.kind == kind)
-            query = query.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
+            query = self._newest_first(s, query, patient, since, until, kind)
             rows = s.execute(query.limit(limit).offset(offset)).all()
         return [AcquisitionSummary(*row) for row in rows]
 
