@@ -16,7 +16,10 @@ The seed's method, one hierarchical level above line search:
    overturn a long one. A neighbourhood shorter than ``min_link`` columns does not link two
    groups by itself: where lines crowd at a fold a missing line is easily taken for none,
    so short neighbourhoods link groups only when several agree on the shift and add up to
-   ``min_link`` columns. Lines left alone are not numbered, which is better than wrongly.
+   ``min_link`` columns. A line whose neighbourhoods contradict its place about as much as
+   they support it (a line vanishing behind a fold leaves its neighbours above and below
+   disagreeing) is *contested*: it is left out and the order rebuilt without it. Lines left
+   alone are not numbered, which is better than wrongly.
 3. Groups that no pair links stay separate *components*, each with its own relative order
    from 0 (top) down; line numbering decides each component's offset on its own.
 
@@ -163,50 +166,26 @@ class LineOrder:
         ``(L,)`` int32 component of each line, numbered by size (peaks) descending; -1 when
         unordered.
     rejected : int
-        Neighbourhood columns of the pairs that contradicted the order and were rejected.
+        Neighbourhood columns of the pairs that contradict the final order.
+    contested : int
+        Lines left out because their neighbourhoods contradict each other.
     """
 
     order: np.ndarray
     component: np.ndarray
     rejected: int
+    contested: int = 0
 
 
-def order_lines(
-    col: np.ndarray,
-    row: np.ndarray,
-    line_id: np.ndarray,
-    *,
-    gap_ratio: float = 1.6,
-    min_overlap: int = 3,
-    min_link: int = 6,
-) -> LineOrder:
-    """Relative order of the lines, component by component.
-
-    Parameters
-    ----------
-    col, row, line_id : numpy.ndarray
-        Peaks sorted by ``(col, row)`` and their lines (-1: none).
-    gap_ratio : float
-        See :func:`line_neighbours`.
-    min_overlap : int
-        Least number of columns of a neighbourhood considered at all.
-    min_link : int
-        Least number of columns of a neighbourhood that links two groups of lines by
-        itself; shorter ones link groups only together, when they agree.
-
-    Returns
-    -------
-    LineOrder
-        Lines without any neighbourhood are components of their own (order 0).
-    """
-    n_lines = int(line_id.max()) + 1 if line_id.size else 0
-    if n_lines == 0:
-        z = np.zeros(0, dtype=np.int32)
-        return LineOrder(order=z, component=z.copy(), rejected=0)
-    upper, lower, count = line_neighbours(col, row, line_id, n_lines, gap_ratio=gap_ratio)
-    sizes = np.bincount(line_id[line_id >= 0], minlength=n_lines)
-    usable = count >= min_overlap
-    upper, lower, count = upper[usable], lower[usable], count[usable]
+def _build_order(
+    n_lines: int,
+    upper: np.ndarray,
+    lower: np.ndarray,
+    count: np.ndarray,
+    sizes: np.ndarray,
+    min_link: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Group and level of every line from the neighbourhoods (both phases)."""
     # Groups with explicit member lists: merging relabels the smaller group, so the whole
     # loop costs O(pairs + lines log lines).
     group = list(range(n_lines))
@@ -256,13 +235,72 @@ def order_lines(
             break
         best = int(np.flatnonzero(ok)[np.argmax(votes[ok])])
         merge(int(keys[best, 0]), int(keys[best, 1]), int(keys[best, 2]))
-    # Neighbourhoods contradicting the final order (rejected ones) are counted.
-    g = np.asarray(group, dtype=np.int64)
-    lv = np.asarray(level, dtype=np.int64)
-    inside = g[upper] == g[lower]
-    rejected = int(count[inside & (lv[lower] - lv[upper] != 1)].sum())
-    group_arr = np.asarray(group, dtype=np.int64)
-    level_arr = np.asarray(level, dtype=np.int64)
+    return np.asarray(group, dtype=np.int64), np.asarray(level, dtype=np.int64)
+
+
+def order_lines(
+    col: np.ndarray,
+    row: np.ndarray,
+    line_id: np.ndarray,
+    *,
+    gap_ratio: float = 1.6,
+    min_overlap: int = 3,
+    min_link: int = 6,
+    max_conflict: float = 0.5,
+) -> LineOrder:
+    """Relative order of the lines, component by component.
+
+    Parameters
+    ----------
+    col, row, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)`` and their lines (-1: none).
+    gap_ratio : float
+        See :func:`line_neighbours`.
+    min_overlap : int
+        Least number of columns of a neighbourhood considered at all.
+    min_link : int
+        Least number of columns of a neighbourhood that links two groups of lines by
+        itself; shorter ones link groups only together, when they agree.
+    max_conflict : float
+        A line whose neighbourhood columns contradicting its place reach this share of those
+        supporting it is left out (a component of its own, not numbered).
+
+    Returns
+    -------
+    LineOrder
+        Lines without any neighbourhood are components of their own (order 0).
+    """
+    n_lines = int(line_id.max()) + 1 if line_id.size else 0
+    if n_lines == 0:
+        z = np.zeros(0, dtype=np.int32)
+        return LineOrder(order=z, component=z.copy(), rejected=0)
+    upper, lower, count = line_neighbours(col, row, line_id, n_lines, gap_ratio=gap_ratio)
+    sizes = np.bincount(line_id[line_id >= 0], minlength=n_lines)
+    usable = count >= min_overlap
+    upper, lower, count = upper[usable], lower[usable], count[usable]
+    # A line whose neighbourhoods contradict its place almost as much as they support it
+    # (where a line vanishes behind a fold, its neighbours above and below disagree) is
+    # contested: it is left out, and the order rebuilt without it.
+    excluded = np.zeros(n_lines, dtype=bool)
+    for attempt in range(5):
+        keep = ~excluded[upper] & ~excluded[lower]
+        group_arr, level_arr = _build_order(
+            n_lines, upper[keep], lower[keep], count[keep], sizes, min_link
+        )
+        inside = keep & (group_arr[upper] == group_arr[lower])
+        agree = inside & (level_arr[lower] - level_arr[upper] == 1)
+        clash = inside & ~agree
+        support = np.bincount(upper[agree], count[agree], n_lines) + np.bincount(
+            lower[agree], count[agree], n_lines
+        )
+        against = np.bincount(upper[clash], count[clash], n_lines) + np.bincount(
+            lower[clash], count[clash], n_lines
+        )
+        contested = ~excluded & (against > 0) & (against >= max_conflict * support)
+        if attempt == 4 or not np.any(contested):
+            break
+        excluded |= contested
+    rejected = int(count[clash].sum())
     # normalise each component's order to start at 0, number components by size
     roots, comp = np.unique(group_arr, return_inverse=True)
     lowest = np.full(roots.size, np.iinfo(np.int64).max)
@@ -274,6 +312,7 @@ def order_lines(
         order=(level_arr - lowest[comp]).astype(np.int32),
         component=rank[comp].astype(np.int32),
         rejected=rejected,
+        contested=int(excluded.sum()),
     )
 
 
@@ -305,6 +344,9 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
         min_link: int = Field(
             6, ge=1, description="Least neighbourhood (columns) that links lines by itself."
         )
+        max_conflict: float = Field(
+            0.5, gt=0, description="Contradicting/supporting columns that leave a line out."
+        )
 
     def run(self, data: Lines, params: Params, context: StageContext) -> OrderedLines:
         """Order the lines of ``data``; no lines give empty tables."""
@@ -315,6 +357,7 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
             gap_ratio=params.gap_ratio,
             min_overlap=params.min_overlap,
             min_link=params.min_link,
+            max_conflict=params.max_conflict,
         )
         lid = data.line_id
         table = np.append(result.order, -1).astype(np.int32)

@@ -196,3 +196,19 @@ def test_unlined_peaks_between_two_lines_count_against_them() -> None:
     keep = ~((line == -1) & (col >= 10))
     up, low, _ = line_neighbours(col[keep], row[keep], line[keep], 3, gap_ratio=10.0)
     assert (0, 2) not in set(zip(up.tolist(), low.tolist(), strict=True))
+
+
+def test_contested_line_is_left_out() -> None:
+    # Lines 0-3 in order over columns 0-49; lines 0 and 3 go on to column 69 (1 and 2 are
+    # hidden there). Line 4 lies between 0 and 3 in columns 55-65: directly below 0 (so it
+    # would be 1) and directly above 3 (so it would be 2), equally long. It is left out.
+    col, row, line = _grid(4, np.arange(50))
+    ext = np.arange(50, 70)
+    c4 = np.arange(55, 66)
+    col = np.r_[col, ext, ext, c4]
+    row = np.r_[row, np.full(20, 50.0), np.full(20, 80.0), np.full(11, 65.0)]
+    line = np.r_[line, np.zeros(20, int), np.full(20, 3), np.full(11, 4)]
+    result = order_lines(*_sorted(col, row, line))
+    assert result.order[:4].tolist() == [0, 1, 2, 3]
+    assert result.component[4] != result.component[0]
+    assert result.contested == 1
