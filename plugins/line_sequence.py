@@ -226,15 +226,21 @@ def _build_order(
         flip = gu > gv
         ga, gb = np.where(flip, gv, gu), np.where(flip, gu, gv)
         shift = np.where(flip, -shift, shift)
-        keys, inv = np.unique(np.column_stack([ga, gb, shift]), axis=0, return_inverse=True)
-        votes = np.bincount(inv.ravel(), weights=w)
-        _, pinv = np.unique(keys[:, :2], axis=0, return_inverse=True)
-        pair_total = np.bincount(pinv.ravel(), weights=votes)[pinv.ravel()]
+        # one integer key per (group pair, shift): 1-D unique is far cheaper than rows
+        # (levels stay within ±n_lines, so shifts within ±2 n_lines)
+        span = 4 * n_lines + 3
+        pair = ga * n_lines + gb
+        keys, inv = np.unique(pair * span + (shift + 2 * n_lines + 1), return_inverse=True)
+        votes = np.bincount(inv, weights=w)
+        key_pair = keys // span
+        _, pinv = np.unique(key_pair, return_inverse=True)
+        pair_total = np.bincount(pinv, weights=votes)[pinv]
         ok = (votes >= min_link) & (votes >= 2.0 * (pair_total - votes))
         if not np.any(ok):
             break
         best = int(np.flatnonzero(ok)[np.argmax(votes[ok])])
-        merge(int(keys[best, 0]), int(keys[best, 1]), int(keys[best, 2]))
+        a_best, b_best = divmod(int(key_pair[best]), n_lines)
+        merge(a_best, b_best, int(keys[best] % span) - 2 * n_lines - 1)
     return np.asarray(group, dtype=np.int64), np.asarray(level, dtype=np.int64)
 
 
