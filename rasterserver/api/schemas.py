@@ -40,20 +40,6 @@ class AccountOut(BaseModel):
     kind: str
 
 
-class PluginOut(BaseModel):
-    name: str
-    entry_point: str
-    status: str
-    stage: str | None = None
-    version: str | None = None
-    input_kind: str | None = None
-    output_kind: str | None = None
-    package: str | None = None
-    package_version: str | None = None
-    summary: str | None = None
-    error: str | None = None
-
-
 class StationIn(BaseModel):
     name: str = Field(min_length=1, max_length=100)
     description: str = ""
