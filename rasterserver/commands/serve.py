@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from typing import Annotated
 
 import typer
 
 from rasterserver.commands.common import settings
+
+# read by prometheus_client in each worker (rasterserver.api.metrics)
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 
 def serve(
@@ -27,6 +32,8 @@ def serve(
     Create the first admin account and its token with `rasterserver user add` and
     `rasterserver token create`. Uvicorn's own access log is off: it would print request
     paths, which can carry patient identifiers; rasterserver logs route templates instead.
+    With several workers, /metrics sums the counts of all of them through a private
+    directory (PROMETHEUS_MULTIPROC_DIR), made at start and removed at exit.
     """
     import uvicorn
 
@@ -44,7 +51,22 @@ def serve(
     # worker processes build their own app from the environment
     os.environ["RASTERSERVER_ARCHIVE"] = str(resolved.archive)
     os.environ["RASTERSERVER_DATABASE_URL"] = resolved.database_url
-    uvicorn.run("rasterserver.api.app:app_from_env", factory=True, workers=workers, **common)
+    # A fresh private directory for prometheus_client's multiprocess mode: it must be empty
+    # at start (stale files from an earlier run would be summed in), so a value already in
+    # the environment is replaced. Set here, before uvicorn spawns the workers, which
+    # inherit it and import prometheus_client afresh.
+    multiproc_dir = tempfile.mkdtemp(prefix="rasterserver-metrics-")
+    previous = os.environ.get(MULTIPROC_ENV)
+    os.environ[MULTIPROC_ENV] = multiproc_dir
+    try:
+        uvicorn.run("rasterserver.api.app:app_from_env", factory=True, workers=workers,
+                    **common)
+    finally:
+        if previous is None:
+            os.environ.pop(MULTIPROC_ENV, None)
+        else:
+            os.environ[MULTIPROC_ENV] = previous
+        shutil.rmtree(multiproc_dir, ignore_errors=True)
 
 
 def register(app: typer.Typer) -> None:

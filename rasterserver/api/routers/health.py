@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 from fastapi.responses import PlainTextResponse
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
 from rasterserver import __version__
 from rasterserver.api.auth import authorize
@@ -25,8 +26,7 @@ def health(svc: ServicesDep) -> Health:
             dependencies=[Depends(authorize)],
             responses={200: {"content": {"text/plain": {}}}})
 def metrics(svc: ServicesDep) -> PlainTextResponse:
-    """Request counts and latencies of this worker, in the Prometheus text format."""
+    """Request counts and latencies of every worker, and the jobs, as Prometheus text."""
     extra = {f"rasterserver_jobs_{state}": len(svc.jobs.list(status=state, limit=10**6))
              for state in ("running", "queued")}
-    return PlainTextResponse(svc.metrics.render(extra),
-                             media_type="text/plain; version=0.0.4")
+    return PlainTextResponse(svc.metrics.render(extra), media_type=CONTENT_TYPE_PLAIN_0_0_4)
