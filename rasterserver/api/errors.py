@@ -1,9 +1,14 @@
 """JSON error bodies for every refusal, and the request limits (size, time).
 
-Every error response is ``{"detail": ..., "error": <type>}``: the service's
+Every error response is ``{"detail": ..., "error": <type>, "status": <code>}``: the service's
 :class:`~rasterserver.errors.RasterServerError` subclasses keep their ``http_status`` (422 bad
 input, 404, 409, 500 integrity), FastAPI's validation errors stay 422 with the per-field list,
 and anything unexpected is a 500 whose body says nothing about the data.
+
+The OpenAPI document says so too (:func:`document_errors`): every protected operation lists
+401, 403 and 404, every POST 409, every operation with a body 400 and 413, all with the
+:class:`~rasterserver.api.schemas.ErrorOut` body, which also replaces FastAPI's
+``HTTPValidationError`` for 422 (a service's 422 carries a sentence, not a field list).
 """
 
 from __future__ import annotations
@@ -11,6 +16,8 @@ from __future__ import annotations
 import json
 import logging
 import traceback
+from collections.abc import Callable
+from typing import Any
 
 import anyio
 from fastapi import FastAPI, Request
@@ -20,6 +27,7 @@ from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from rasterserver.api.schemas import ErrorOut
 from rasterserver.errors import RasterServerError
 
 log = logging.getLogger(__name__)
@@ -43,8 +51,58 @@ def error_body(status: int, detail: object, kind: str) -> dict[str, object]:
     return {"detail": detail, "error": kind, "status": status}
 
 
+_ERROR_DOCS = {
+    400: "The body could not be parsed (e.g. not UTF-8), or a bad Content-Length",
+    401: "No or invalid token",
+    403: "The role may not use this route",
+    404: "Something the request names does not exist",
+    409: "Conflicts with what is stored (e.g. exists already)",
+    413: "Request body too large",
+    422: "A parameter or field was refused",
+}
+
+
+def document_errors(document: dict[str, Any]) -> dict[str, Any]:
+    """Add the error responses the handlers give to every operation of an OpenAPI document.
+
+    In place; returns ``document``. Descriptions a route gives itself are kept.
+    """
+    schemas = document.setdefault("components", {}).setdefault("schemas", {})
+    error_schema = ErrorOut.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas.update(error_schema.pop("$defs", {}))
+    schemas["ErrorOut"] = error_schema
+    content = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}
+    for item in document.get("paths", {}).values():
+        for method, operation in item.items():
+            responses = operation.setdefault("responses", {})
+            codes = {"422"} & set(responses)
+            if operation.get("security"):
+                codes |= {"401", "403", "404"}
+            if method == "post":
+                codes.add("409")
+            if "requestBody" in operation:
+                codes |= {"400", "413"}
+            for code in codes:
+                response = responses.setdefault(code, {"description": _ERROR_DOCS[int(code)]})
+                response["content"] = content
+    return document
+
+
+def _openapi_with_errors(app: FastAPI) -> Callable[[], dict[str, Any]]:
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = document_errors(build())
+        return app.openapi_schema
+
+    return openapi
+
+
 def install_handlers(app: FastAPI) -> None:
-    """Register the exception handlers that turn every error into a JSON body."""
+    """Register the exception handlers that turn every error into a JSON body, and document
+    their responses in the app's OpenAPI document."""
+    app.openapi = _openapi_with_errors(app)  # type: ignore[method-assign]
 
     @app.exception_handler(RasterServerError)
     async def _service_error(_request: Request, exc: RasterServerError) -> JSONResponse:

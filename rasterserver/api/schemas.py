@@ -200,3 +200,20 @@ class AuditOut(BaseModel):
     patient: str | None
     acquisition: str | None
     client: str
+
+
+class FieldErrorOut(BaseModel):
+    """One refused field of a request (FastAPI's validation)."""
+
+    loc: list[str | int] = Field(description="Where: body, query, path or header, then names.")
+    msg: str
+    type: str
+
+
+class ErrorOut(BaseModel):
+    """The body of every error response (see :mod:`rasterserver.api.errors`)."""
+
+    detail: str | list[FieldErrorOut] = Field(
+        description="What was wrong: a sentence, or the refused fields of a validation error.")
+    error: str = Field(description="Kind of error, e.g. NotFoundError, ValidationError.")
+    status: int = Field(description="The HTTP status code, repeated.")

@@ -4,8 +4,8 @@ Hypothesis generates, for every operation of the OpenAPI document, path values, 
 parameters (right and wrong types), JSON bodies shaped by the request schema (and random
 ones) and multipart uploads of random bytes, sent with every role's token to a live server.
 Bounded: a fixed number of examples and a wall-clock budget well under 60 s.
-(schemathesis was not used: it is not installable offline here; these strategies read the
-same document.)
+(test_api_schemathesis.py runs schemathesis over the same document with its response
+checks; these hand-written strategies add random multipart uploads and wilder values.)
 """
 
 from __future__ import annotations
