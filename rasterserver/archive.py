@@ -16,11 +16,12 @@ logged by their uid only.
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import hashlib
 import json
 import logging
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -28,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sqlalchemy import Engine, Select, func, select
+from sqlalchemy import Engine, Integer, Select, bindparam, func, select
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -100,14 +101,34 @@ class AcquisitionSpec:
 
 
 @dataclass(frozen=True)
-class AcquisitionSummary:
-    """One row of :meth:`Archive.find`: what a search result list shows."""
+class FrameInfo:
+    """A frame's catalogue entry, as :meth:`Archive.find` and :meth:`Archive.info` give it."""
+
+    index: int
+    role: str
+    height: int
+    width: int
+    dtype: str
+    sha256: str
+
+
+@dataclass(frozen=True)
+class AcquisitionInfo:
+    """An acquisition's catalogue entry read without ORM objects.
+
+    What a listing, a search or a metadata request shows; ``acquired_at`` is in UTC.
+    """
 
     uid: str
-    patient: str | None
     kind: str
+    patient_id: int | None
+    patient: str | None
+    station_id: int | None
+    calibration_id: int | None
     acquired_at: dt.datetime
-    frames: int
+    operator: str
+    notes: str
+    frames: tuple[FrameInfo, ...]
 
 
 @dataclass(frozen=True)
@@ -141,6 +162,71 @@ def canonical_json_sha256(document: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+# The statements of find() and info() are built once, with bound parameters: building a
+# SQLAlchemy statement costs more Python than running it on a page of a hundred rows.
+_INFO_COLUMNS = (
+    Acquisition.id, Acquisition.uid, Acquisition.kind, Acquisition.patient_id,
+    Patient.identifier, Acquisition.station_id, Acquisition.calibration_id,
+    Acquisition.acquired_at, Acquisition.operator, Acquisition.notes,
+)
+_FRAME_COLUMNS = (Frame.index, Frame.role, Frame.height, Frame.width, Frame.dtype, Frame.sha256)
+_PATIENT_ID = select(Patient.id).where(Patient.identifier == bindparam("identifier"))
+
+
+def _with_frames(page: Select[Any]) -> Select[Any]:
+    """``page`` (the info columns, ordered) joined to its frames, in the same order."""
+    sub = page.subquery()
+    return (select(sub, *_FRAME_COLUMNS)
+            .outerjoin(Frame, Frame.acquisition_id == sub.c.id)
+            .order_by(sub.c.acquired_at.desc(), sub.c.id.desc(), Frame.index))
+
+
+@functools.cache
+def _find_statement(patient: bool, since: bool, until: bool, kind: bool) -> Select[Any]:
+    """The statement of :meth:`Archive.find` for one combination of filters."""
+    page = select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
+    if patient:
+        page = page.where(Acquisition.patient_id == bindparam("patient_id"))
+    if since:
+        page = page.where(Acquisition.acquired_at >= bindparam("since"))
+    if until:
+        page = page.where(Acquisition.acquired_at < bindparam("until"))
+    if kind:
+        page = page.where(Acquisition.kind == bindparam("kind"))
+    page = (page.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
+            .limit(bindparam("limit", type_=Integer)).offset(bindparam("offset", type_=Integer)))
+    return _with_frames(page)
+
+
+_INFO_BY_UID = _with_frames(
+    select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
+    .where(Acquisition.uid == bindparam("uid")).order_by(Acquisition.acquired_at.desc(),
+                                                         Acquisition.id.desc()))
+
+
+def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:
+    """Group the rows of a :func:`_with_frames` statement (one per frame) by acquisition."""
+    grouped: list[tuple[Sequence[Any], list[FrameInfo]]] = []
+    current: int | None = None
+    for row in rows:
+        if row[0] != current:
+            current = row[0]
+            grouped.append((row, []))
+        if row[10] is not None:  # an acquisition without frames has one row of NULLs
+            grouped[-1][1].append(FrameInfo(*row[10:]))
+    return [
+        AcquisitionInfo(uid=r[1], kind=r[2], patient_id=r[3], patient=r[4], station_id=r[5],
+                        calibration_id=r[6], acquired_at=_as_utc(r[7]), operator=r[8],
+                        notes=r[9], frames=tuple(frames))
+        for r, frames in grouped
+    ]
+
+
+def _as_utc(value: dt.datetime) -> dt.datetime:
+    # SQLite hands times back without their zone; the catalogue stores UTC
+    return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
+
+
 class Archive:
     """The archive at ``settings.archive`` with its catalogue at ``settings.database_url``.
 
@@ -152,6 +238,9 @@ class Archive:
         Test hook called after each durable ingest step.
     check_schema : bool, default True
         Refuse to work on a catalogue that is not migrated to the current revision.
+    connections : int, optional
+        Catalogue connections kept open for reuse: as many as threads that use the archive
+        at once (the HTTP server's). By default SQLAlchemy's pool of 5.
     """
 
     def __init__(
@@ -160,9 +249,13 @@ class Archive:
         *,
         crash_hook: CrashHook | None = None,
         check_schema: bool = True,
+        connections: int | None = None,
     ) -> None:
         self.settings = settings
-        self.engine: Engine = make_engine(settings.database_url)
+        # Connections beyond the pool are closed when given back: a busy server would open
+        # (and, on SQLite, set up) one per request. So the pool holds them all.
+        pool = {} if connections is None else {"pool_size": connections, "max_overflow": 4}
+        self.engine: Engine = make_engine(settings.database_url, **pool)
         self._sessions = session_factory(self.engine)
         self._crash_hook = crash_hook
         self.raw = RawStore(settings.archive, crash_hook=crash_hook)
@@ -733,29 +826,39 @@ class Archive:
         kind: str | None = None,
         limit: int = 10_000,
         offset: int = 0,
-    ) -> list[AcquisitionSummary]:
-        """Find acquisitions as light summaries, newest first: one query, no ORM objects.
+    ) -> list[AcquisitionInfo]:
+        """Find acquisitions with their frames, newest first, as plain records.
 
-        For searches that may return thousands of rows (a month of a clinic's work), where
-        building full :class:`Acquisition` objects with their frames would cost more than the
-        query. Filters as for :meth:`acquisitions`.
+        One query (the page joined to its frames) and no ORM objects: what the HTTP API's
+        lists and ``rasterserver list`` show, and cheap enough for a month of a clinic's work,
+        where building full :class:`Acquisition` objects would cost more than the query.
+        Filters as for :meth:`acquisitions`.
         """
-        # Counted per returned row through the (acquisition_id, index) key, not by
-        # aggregating the whole frame table first.
-        frames = (
-            select(func.count())
-            .where(Frame.acquisition_id == Acquisition.id)
-            .correlate(Acquisition)
-            .scalar_subquery()
-        )
-        query = select(
-            Acquisition.uid, Patient.identifier, Acquisition.kind, Acquisition.acquired_at,
-            frames,
-        ).outerjoin(Patient, Patient.id == Acquisition.patient_id)
-        with self.session() as s:
-            query = self._newest_first(s, query, patient, since, until, kind)
-            rows = s.execute(query.limit(limit).offset(offset)).all()
-        return [AcquisitionSummary(*row) for row in rows]
+        params: dict[str, Any] = {"since": since, "until": until, "kind": kind,
+                                  "limit": limit, "offset": offset}
+        with self.engine.connect() as conn:
+            if patient is not None:
+                params["patient_id"] = conn.execute(_PATIENT_ID, {"identifier": patient}).scalar()
+                if params["patient_id"] is None:
+                    raise NotFoundError(
+                        "unknown patient: register it first with `rasterserver patient add`")
+            query = _find_statement(*(params.get(k) is not None
+                                      for k in ("patient_id", "since", "until", "kind")))
+            return _infos(conn.execute(query, params))
+
+    def info(self, uid: str) -> AcquisitionInfo:
+        """The catalogue entry of acquisition ``uid`` (see :meth:`find`).
+
+        Raises
+        ------
+        NotFoundError
+            No such acquisition.
+        """
+        with self.engine.connect() as conn:
+            found = _infos(conn.execute(_INFO_BY_UID, {"uid": uid}))
+        if not found:
+            raise NotFoundError(f"unknown acquisition {uid}")
+        return found[0]
 
     def acquisition(self, uid: str) -> Acquisition:
         """Return the acquisition ``uid`` with its frames, or raise :class:`NotFoundError`."""

@@ -330,7 +330,13 @@ def test_find_returns_the_same_acquisitions_as_summaries(archive: Archive) -> No
     full = archive.acquisitions(since=since, until=until)
     found = archive.find(since=since, until=until)
     assert [f.uid for f in found] == [a.uid for a in full]
-    assert [f.frames for f in found] == [len(a.frames) for a in full]
+    assert [[(x.index, x.sha256, x.height) for x in f.frames] for f in found] == [
+        [(x.index, x.sha256, x.height) for x in a.frames] for a in full]
+    assert all(f.acquired_at.tzinfo is not None for f in found)
+    one = archive.info(full[0].uid)
+    assert one == found[0] and one.patient_id == full[0].patient_id
+    with pytest.raises(NotFoundError):
+        archive.info("0" * 32)
     assert [f.patient for f in found] == ["P002", "P001", "P001"]
     assert [f.uid for f in archive.find(patient="P002")] == [
         a.uid for a in archive.acquisitions(patient="P002")

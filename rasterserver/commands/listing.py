@@ -24,7 +24,7 @@ def list_acquisitions(
 ) -> None:
     """List acquisitions, newest first."""
     with open_archive(ctx) as archive:
-        rows = archive.acquisitions(
+        rows = archive.find(
             patient=patient,
             since=parse_datetime(since, "--since"),
             until=parse_datetime(until, "--until"),
@@ -35,7 +35,7 @@ def list_acquisitions(
     for acq in rows:
         record = {
             "uid": acq.uid,
-            "patient": acq.patient.identifier if acq.patient else None,
+            "patient": acq.patient,
             "kind": acq.kind,
             "acquired_at": acq.acquired_at.isoformat(),
             "frames": [
