@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 
 from rasterserver.archive import Archive
@@ -157,18 +157,25 @@ def revoke_token(archive: Archive, token_id: int) -> None:
             row.revoked_at = dt.datetime.now(dt.UTC)
 
 
+# Built once: every request runs it, and building the statement cost more than running it.
+_OWNER = (
+    select(ApiAccount.id, ApiAccount.name, ApiAccount.role, ApiAccount.kind)
+    .join(ApiToken, ApiToken.account_id == ApiAccount.id)
+    .where(ApiToken.token_sha256 == bindparam("digest"), ApiToken.revoked_at.is_(None))
+)
+
+
 def authenticate(archive: Archive, token: str) -> Principal | None:
-    """Return the owner of a valid, unrevoked ``token``, or None."""
+    """Return the owner of a valid, unrevoked ``token``, or None.
+
+    Looked up on every request, not cached: a revoked token is refused from the next
+    request on.
+    """
     if not token.startswith(TOKEN_PREFIX) or len(token) > 200:
         return None
-    query = (
-        select(ApiAccount)
-        .join(ApiToken)
-        .where(ApiToken.token_sha256 == token_digest(token), ApiToken.revoked_at.is_(None))
-    )
-    with archive.session() as s:
-        row = s.scalar(query)
-        return None if row is None else Principal(row.id, row.name, row.role, row.kind)
+    with archive.engine.connect() as conn:
+        row = conn.execute(_OWNER, {"digest": token_digest(token)}).first()
+    return None if row is None else Principal(*row)
 
 
 _bearer = HTTPBearer(auto_error=False, description="An API token from `rasterserver token create`.")

@@ -19,7 +19,11 @@ MAX_PAGE = 1000
 MAX_OFFSET = 10**12
 
 
-def services(request: Request) -> Services:
+# The dependencies below that do no I/O are ``async def``: FastAPI runs a plain ``def``
+# dependency in a worker thread, and the hand-over costs more than the function.
+
+
+async def services(request: Request) -> Services:
     """The app's :class:`~rasterserver.api.app.Services`."""
     return request.app.state.services
 
@@ -32,7 +36,7 @@ class Page:
     offset: int
 
 
-def page(
+async def page(
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE, description="Items per page.")] = 100,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="Items to skip.")] = 0,
 ) -> Page:
@@ -45,7 +49,7 @@ CallerDep = Annotated[Principal, Depends(authorize)]
 PageDep = Annotated[Page, Depends(page)]
 
 
-def audit_note(request: Request) -> AuditNote:
+async def audit_note(request: Request) -> AuditNote:
     """The request's audit note, for handlers to record which patient they touched."""
     return note_of(request)
 

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+import orjson
+from fastapi import Response
+
 from rasterserver.api.auth import Principal
 from rasterserver.api.deps import utc
 from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.api.roles import RESEARCHER
-from rasterserver.api.schemas import AcquisitionOut, FrameOut, PatientOut, VisitOut
-from rasterserver.catalog.models import Acquisition, Patient, Visit
+from rasterserver.api.schemas import PatientOut, VisitOut
+from rasterserver.archive import AcquisitionInfo
+from rasterserver.catalog.models import Patient, Visit
 from rasterserver.errors import InputError
 
 
@@ -43,27 +49,37 @@ def visit_out(visit: Visit, identifier: str, caller: Principal,
     return VisitOut(visit_date=visit.visit_date, notes=visit.notes)
 
 
-def acquisition_out(acq: Acquisition, caller: Principal,
-                    pseudonyms: Pseudonymiser) -> AcquisitionOut:
-    """An acquisition as ``caller`` may see it."""
-    frames = [FrameOut(index=f.index, role=f.role, height=f.height, width=f.width,
-                       dtype=f.dtype, sha256=f.sha256) for f in acq.frames]
-    when = utc(acq.acquired_at)
-    assert when is not None
-    identifier = acq.patient.identifier if acq.patient is not None else None
+def acquisition_body(info: AcquisitionInfo, caller: Principal,
+                     pseudonyms: Pseudonymiser) -> dict[str, Any]:
+    """An acquisition as ``caller`` may see it: the JSON form of
+    :class:`~rasterserver.api.schemas.AcquisitionOut`.
+
+    Built as a plain dict for :func:`json_response`: lists of a hundred acquisitions are the
+    API's busiest answer, and validating them through pydantic models cost more than the
+    catalogue query. The OpenAPI schema is still that model, and the property
+    tests check every answer against it.
+    """
+    frames = [{"index": f.index, "role": f.role, "height": f.height, "width": f.width,
+               "dtype": f.dtype, "sha256": f.sha256} for f in info.frames]
+    identifier = info.patient
     if pseudonymised(caller):
         # free text may name people; the time is shifted with the patient's offset
-        shifted = pseudonyms.shift_time(identifier, when) if identifier else when
-        assert shifted is not None
-        return AcquisitionOut(
-            uid=acq.uid, kind=acq.kind,
-            patient=pseudonyms.pseudonym(identifier) if identifier else None,
-            station_id=acq.station_id, calibration_id=acq.calibration_id,
-            acquired_at=shifted, operator=None, notes=None, frames=frames)
-    return AcquisitionOut(
-        uid=acq.uid, kind=acq.kind, patient=identifier, station_id=acq.station_id,
-        calibration_id=acq.calibration_id, acquired_at=when, operator=acq.operator,
-        notes=acq.notes, frames=frames)
+        return {"uid": info.uid, "kind": info.kind,
+                "patient": pseudonyms.pseudonym(identifier) if identifier else None,
+                "station_id": info.station_id, "calibration_id": info.calibration_id,
+                "acquired_at": (pseudonyms.shift_time(identifier, info.acquired_at)
+                                if identifier else info.acquired_at),
+                "operator": None, "notes": None, "frames": frames}
+    return {"uid": info.uid, "kind": info.kind, "patient": identifier,
+            "station_id": info.station_id, "calibration_id": info.calibration_id,
+            "acquired_at": info.acquired_at, "operator": info.operator, "notes": info.notes,
+            "frames": frames}
+
+
+def json_response(content: Any, status_code: int = 200) -> Response:
+    """A JSON response serialised by orjson, with times written as pydantic writes them."""
+    return Response(orjson.dumps(content, option=orjson.OPT_UTC_Z), status_code=status_code,
+                    media_type="application/json")
 
 
 def refuse_date_filters_for(caller: Principal, *values: object) -> None:

@@ -203,7 +203,7 @@ def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypat
     def broken(*_args, **_kwargs) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(audit, "write_events", broken)
+    monkeypatch.setattr(audit, "insert_rows", broken)
     with live_sqlite.client("clinician") as c:
         response = c.get(f"/patients/{PATIENT_ID}")
     assert response.status_code == 503 and response.json()["error"] == "AuditUnavailable"

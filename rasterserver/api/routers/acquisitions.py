@@ -22,7 +22,12 @@ from rasterserver.api.deps import (
     utc,
 )
 from rasterserver.api.schemas import AcquisitionOut
-from rasterserver.api.views import acquisition_out, refuse_date_filters_for, resolve_patient
+from rasterserver.api.views import (
+    acquisition_body,
+    json_response,
+    refuse_date_filters_for,
+    resolve_patient,
+)
 from rasterserver.archive import FrameSource
 from rasterserver.catalog.models import ACQUISITION_KINDS
 from rasterserver.errors import InputError, NotFoundError
@@ -52,15 +57,15 @@ def list_acquisitions(
     since: Annotated[dt.datetime | None, Query(description="Acquired at or after.")] = None,
     until: Annotated[dt.datetime | None, Query(description="Acquired before.")] = None,
     kind: Annotated[str | None, Query(max_length=16)] = None,
-) -> list[AcquisitionOut]:
+) -> Response:
     """Acquisitions, newest first, by patient, time range and kind."""
     refuse_date_filters_for(caller, since, until)
-    rows = svc.archive.acquisitions(
+    rows = svc.archive.find(
         patient=resolve_patient(caller, patient, svc.pseudonyms) if patient else None,
         since=utc(since), until=utc(until), kind=kind, limit=page.limit, offset=page.offset)
     for a in rows:
         note.touch(a.patient_id)
-    return [acquisition_out(a, caller, svc.pseudonyms) for a in rows]
+    return json_response([acquisition_body(a, caller, svc.pseudonyms) for a in rows])
 
 
 @router.post("/acquisitions", name="upload_acquisition", response_model=AcquisitionOut,
@@ -84,7 +89,7 @@ def upload_acquisition(
     = None,
     dtype: Annotated[str | None, Form(max_length=16)] = None,
     convert_color: Annotated[bool, Form()] = False,
-) -> AcquisitionOut:
+) -> Response:
     """Store one acquisition of one or several frames, validated like ``rasterserver ingest``.
 
     Every frame is decoded and checked before anything is written: one refused frame and
@@ -105,23 +110,23 @@ def upload_acquisition(
         acquired_at=utc(acquired_at), operator=operator, notes=notes,
         shape=_parse_shape(shape), dtype=dtype, convert_color=convert_color)
     note.touch(acq.patient_id, acq.uid)
-    # the returned row lacks its patient relationship; read it back as a reader would
-    return acquisition_out(svc.archive.acquisition(acq.uid), caller, svc.pseudonyms)
+    # read back as a reader would see it
+    return json_response(acquisition_body(svc.archive.info(acq.uid), caller, svc.pseudonyms),
+                         status_code=201)
 
 
 @router.get("/acquisitions/{uid}", name="get_acquisition", response_model=AcquisitionOut)
-def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep,
-                    note: NoteDep) -> AcquisitionOut:
+def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep) -> Response:
     """One acquisition with its frames' metadata."""
-    acq = svc.archive.acquisition(uid)
-    note.touch(acq.patient_id, acq.uid)
-    return acquisition_out(acq, caller, svc.pseudonyms)
+    info = svc.archive.info(uid)
+    note.touch(info.patient_id, info.uid)
+    return json_response(acquisition_body(info, caller, svc.pseudonyms))
 
 
 def _frame_sha(svc: ServicesDep, note: NoteDep, uid: str, index: int) -> str:
-    acq = svc.archive.acquisition(uid)
-    note.touch(acq.patient_id, acq.uid)
-    for f in acq.frames:
+    info = svc.archive.info(uid)
+    note.touch(info.patient_id, info.uid)
+    for f in info.frames:
         if f.index == index:
             return f.sha256
     raise NotFoundError(f"acquisition {uid} has no frame {index}")

@@ -1,0 +1,119 @@
+"""The audit trail's group commit, on a real catalogue (SQLite and PostgreSQL)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+import pytest
+from sqlalchemy import func, select
+
+from rasterserver.api.audit import AuditNote, event_rows, insert_rows
+from rasterserver.api.audit_writer import AuditWriter
+from rasterserver.api.auth import Principal
+from rasterserver.archive import Archive
+from rasterserver.catalog.auth_models import AuditEvent
+from rasterserver.config import Settings
+
+
+@pytest.fixture
+def archive(settings: Settings) -> Archive:
+    with Archive.create(settings) as a:
+        yield a
+
+
+def _rows(patient_ids: Sequence[int], *, action_ok: bool = True) -> list[dict[str, Any]]:
+    note = AuditNote(principal=Principal(1, "reader", "clinician", "user"),
+                     patient_ids=set(patient_ids))
+    rows = event_rows(note, method="GET", route="/acquisitions", route_name="list_acquisitions",
+                      status=200, client="127.0.0.1")
+    if not action_ok:  # refused by the table's CHECK constraint, as a corrupt note would be
+        rows = [r | {"action": "X"} for r in rows]
+    return rows
+
+
+def _count(archive: Archive) -> int:
+    with archive.session() as s:
+        return s.scalar(select(func.count()).select_from(AuditEvent))
+
+
+class _Counting:
+    """The real insert, counting its transactions; the first one waits for a signal so that
+    the other requests queue up behind it, as they do under load."""
+
+    def __init__(self, archive: Archive) -> None:
+        self.archive = archive
+        self.calls: list[int] = []
+        self.release = threading.Event()
+        self.entered = threading.Event()
+
+    def __call__(self, rows: Sequence[dict[str, Any]]) -> None:
+        if not self.calls:
+            self.entered.set()
+            self.release.wait(10)
+        self.calls.append(len(rows))
+        insert_rows(self.archive, rows)
+
+
+def test_requests_waiting_together_share_one_commit(archive: Archive) -> None:
+    archive.add_patient("P-1")
+    insert = _Counting(archive)
+    writer = AuditWriter(insert)
+    try:
+        first = writer.submit(_rows([]))
+        assert insert.entered.wait(10)
+        waiting = [writer.submit(_rows([])) for _ in range(30)]
+        insert.release.set()
+        for f in [first, *waiting]:
+            assert f.result(timeout=30) is None
+    finally:
+        writer.close()
+    # the first commit alone, then the 30 that queued behind it in one transaction
+    assert insert.calls == [1, 30]
+    assert _count(archive) == 31
+
+
+def test_a_refused_request_fails_alone(archive: Archive) -> None:
+    insert = _Counting(archive)
+    writer = AuditWriter(insert)
+    try:
+        first = writer.submit(_rows([]))
+        assert insert.entered.wait(10)
+        good = [writer.submit(_rows([])) for _ in range(5)]
+        bad = writer.submit(_rows([], action_ok=False))
+        more = writer.submit(_rows([]))
+        insert.release.set()
+        first.result(timeout=30)
+        for f in [*good, more]:
+            assert f.result(timeout=30) is None
+        with pytest.raises(Exception, match="action"):
+            bad.result(timeout=30)
+    finally:
+        writer.close()
+    assert _count(archive) == 7  # nothing of the refused request, everything of the others
+
+
+def test_close_commits_what_is_queued_and_then_refuses(archive: Archive) -> None:
+    insert = _Counting(archive)
+    writer = AuditWriter(insert)
+    futures = [writer.submit(_rows([])) for _ in range(10)]
+    insert.release.set()
+    writer.close()
+    assert all(f.done() and f.exception() is None for f in futures)
+    assert _count(archive) == 10
+    with pytest.raises(RuntimeError, match="closed"):
+        writer.submit(_rows([]))
+    writer.close()  # twice is harmless
+
+
+def test_a_list_writes_one_row_per_patient(archive: Archive) -> None:
+    ids = [archive.add_patient(f"P-{i}").id for i in range(3)]
+    writer = AuditWriter(lambda rows: insert_rows(archive, rows))
+    try:
+        writer.write(_rows(ids))
+    finally:
+        writer.close()
+    with archive.session() as s:
+        got = sorted(s.scalars(select(AuditEvent.patient_id)))
+    assert got == sorted(ids)
