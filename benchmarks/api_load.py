@@ -1,21 +1,26 @@
 """Load on the HTTP API over loopback: many readers, then many uploading stations.
 
 1. Readers: the catalogue holds 100,000 acquisitions (bulk-inserted with
-   ``catalog_queries.populate``, no pixel files); ``--clients`` concurrent clients (default
-   50) list one patient's acquisitions, list a date range (first page of 100), fetch one
-   acquisition's metadata and one patient, in a loop, for ``--seconds`` (default 60). Every
-   request is authenticated and audited (one audit row per patient touched, committed before
-   the response). Reported: requests/s, latency percentiles, errors (non-2xx or transport).
+   ``catalog_queries.populate``, no pixel files). The load comes from ``wrk`` (a C program,
+   run as its own process): 2 threads, ``--clients`` keep-alive connections (default 50),
+   closed loop, for ``--seconds`` (default 60). Each request is drawn at random from a few
+   thousand paths pre-generated here with a fixed seed and handed to wrk in a Lua script:
+   one patient's acquisitions (up to 100), a date range (first page of 100), one
+   acquisition's metadata, one patient (``--mix`` keeps one kind only). Every request is
+   authenticated and audited (one audit row per patient touched, committed before the
+   response). Reported: requests/s, wrk's latency percentiles, errors (HTTP error status or
+   socket error).
 2. Stations: ``--stations`` concurrent station accounts (default 20) each upload
-   ``--uploads`` acquisitions of one 604x576 uint8 frame (a distinct random frame each).
-   Afterwards every upload must be in the catalogue exactly once with the SHA-256 of the
-   frame that was sent, and ``Archive.verify()`` must re-hash every stored frame clean.
+   ``--uploads`` acquisitions of one 604x576 uint8 frame (a distinct random frame each),
+   with asyncio + httpx clients in this process. Afterwards every upload must be in the
+   catalogue exactly once with the SHA-256 of the frame that was sent, and
+   ``Archive.verify()`` must re-hash every stored frame clean.
 
-The server runs as ``rasterserver serve`` in its own process (``--workers``); the clients
-run here with asyncio + httpx, on the same machine (so they compete for its cores).
+The server runs as ``rasterserver serve`` in its own process (``--workers``), on the same
+machine as the load (so they compete for its cores). Needs ``wrk`` (``apt-get install wrk``).
 Only loopback traffic; every loop is bounded by time or count.
 
-Run: ``.venv/bin/python benchmarks/api_load.py [--postgres URL] [--no-write]``.
+Run: ``.venv/bin/python benchmarks/api_load.py [--postgres URL] [--mix KIND] [--no-write]``.
 """
 
 from __future__ import annotations
@@ -24,14 +29,18 @@ import argparse
 import asyncio
 import datetime as dt
 import io
+import json
 import os
 import random
+import resource
+import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from urllib.parse import quote, urlencode
 
 import httpx
 import numpy as np
@@ -128,53 +137,129 @@ def _percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
 
 
-async def _readers(url: str, token: str, clients: int, seconds: float, uids: list[str],
-                   patients: list[str]) -> tuple[list[float], int, int, dict[str, int]]:
-    latencies: list[float] = []
-    errors = 0
-    kinds: dict[str, int] = {}
-    failures: dict[str, int] = {}
-    samples: list[str] = []
-    stop = time.monotonic() + seconds
-    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
-    async with httpx.AsyncClient(base_url=url, headers={"Authorization": f"Bearer {token}"},
-                                 limits=limits, timeout=120) as client:
+KINDS = ("list", "range", "acquisition", "patient")
+PATHS = 5_000  # request paths drawn up front; wrk's threads pick among them at random
+SEED = 3
 
-        async def one(seed: int) -> None:
-            nonlocal errors
-            rng = random.Random(seed)
-            while time.monotonic() < stop:
-                kind = rng.choice(("patient-list", "range-page", "acquisition", "patient"))
-                if kind == "patient-list":
-                    req = ("/acquisitions", {"patient": rng.choice(patients), "limit": 100})
-                elif kind == "range-page":
-                    start = T0 + dt.timedelta(days=rng.uniform(0, 5 * 365 - 30))
-                    req = ("/acquisitions", {"since": start.isoformat(), "until":
-                                             (start + dt.timedelta(days=30)).isoformat()})
-                elif kind == "acquisition":
-                    req = (f"/acquisitions/{rng.choice(uids)}", {})
-                else:
-                    req = (f"/patients/{rng.choice(patients)}", {})
-                t = time.perf_counter()
-                try:
-                    response = await client.get(req[0], params=req[1])
-                    ok = response.status_code == 200
-                    why = str(response.status_code)
-                    if not ok and len(samples) < 5:
-                        samples.append(f"{kind} {response.status_code} {response.text[:200]}")
-                except httpx.HTTPError as exc:
-                    ok, why = False, type(exc).__name__
-                if not ok:
-                    failures[why] = failures.get(why, 0) + 1
-                latencies.append(time.perf_counter() - t)
-                kinds[kind] = kinds.get(kind, 0) + 1
-                errors += not ok
+# wrk script; the Python side prepends `paths = {...}`, the token header and RESULT.
+# Each thread formats every request once in init(); request() then only picks one.
+_WRK_LUA = r"""
+local counter = 0
+function setup(thread)
+  counter = counter + 1
+  thread:set("tid", counter)
+end
 
-        await asyncio.gather(*(one(i) for i in range(clients)))
-    if failures:
-        print("reader failures:", failures, *samples, sep="\n  ", flush=True)
-    kinds |= {f"failed {k}": v for k, v in failures.items()}
-    return latencies, errors, len(latencies), kinds
+local requests_ = {}
+function init(args)
+  math.randomseed(SEED + (tid or 0))
+  for i, path in ipairs(paths) do
+    requests_[i] = wrk.format("GET", path)
+  end
+end
+
+function request()
+  return requests_[math.random(#requests_)]
+end
+
+function done(summary, latency, requests)
+  local e = summary.errors
+  local f = assert(io.open(RESULT, "w"))
+  f:write(string.format(
+    '{"requests": %d, "duration_us": %d, "bytes": %d, "status": %d, "connect": %d, ' ..
+    '"read": %d, "write": %d, "timeout": %d, "p50": %f, "p90": %f, "p95": %f, ' ..
+    '"p99": %f, "p999": %f, "max": %f, "mean": %f}\n',
+    summary.requests, summary.duration, summary.bytes, e.status, e.connect, e.read,
+    e.write, e.timeout, latency:percentile(50), latency:percentile(90),
+    latency:percentile(95), latency:percentile(99), latency:percentile(99.9),
+    latency.max, latency.mean))
+  f:close()
+end
+"""
+
+
+def _paths(mix: str, uids: list[str],
+           patients: list[str]) -> tuple[list[str], dict[str, int], dict[str, str]]:
+    """Draw the request paths (seeded): the paths, how many of each kind, one of each kind."""
+    rng = random.Random(SEED)
+    paths: list[str] = []
+    first: dict[str, str] = {}
+    composition = dict.fromkeys(KINDS if mix == "all" else (mix,), 0)
+    for _ in range(PATHS):
+        kind = rng.choice(KINDS) if mix == "all" else mix
+        if kind == "list":
+            query = {"patient": rng.choice(patients), "limit": 100}
+            path = "/acquisitions?" + urlencode(query)
+        elif kind == "range":
+            start = (T0 + dt.timedelta(days=rng.uniform(0, 5 * 365 - 30))).replace(tzinfo=None)
+            query = {"since": start.isoformat(timespec="seconds"),
+                     "until": (start + dt.timedelta(days=30)).isoformat(timespec="seconds")}
+            path = "/acquisitions?" + urlencode(query)
+        elif kind == "acquisition":
+            path = f"/acquisitions/{quote(rng.choice(uids))}"
+        else:
+            path = f"/patients/{quote(rng.choice(patients))}"
+        paths.append(path)
+        composition[kind] += 1
+        first.setdefault(kind, path)
+    return paths, composition, first
+
+
+def _lua_string(value: str) -> str:
+    if not value.isascii() or any(c in value for c in '"\\\n\r'):
+        raise ValueError(f"not a plain Lua string: {value!r}")
+    return f'"{value}"'
+
+
+def _probe(url: str, token: str, paths: list[str]) -> list[str]:
+    """GET ``paths`` one by one; describe (up to 5 of) those that did not answer 200."""
+    bad: list[str] = []
+    with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
+                      timeout=120) as client:
+        for path in paths:
+            try:
+                response = client.get(path)
+                if response.status_code != 200:
+                    bad.append(f"{path} -> {response.status_code} {response.text[:200]}")
+            except httpx.HTTPError as exc:
+                bad.append(f"{path} -> {type(exc).__name__}")
+            if len(bad) >= 5:
+                break
+    return bad
+
+
+def _readers(url: str, token: str, args: argparse.Namespace, paths: list[str],
+             tmp: Path) -> dict[str, object]:
+    """Run wrk (closed loop, ``--clients`` connections) over ``paths``; its summary."""
+    result = tmp / "wrk.json"
+    script = tmp / "api_load.lua"
+    script.write_text(
+        "paths = {\n" + ",\n".join(_lua_string(p) for p in paths) + "\n}\n"
+        f'wrk.headers["Authorization"] = {_lua_string("Bearer " + token)}\n'
+        f"SEED = {SEED}\nRESULT = {_lua_string(str(result))}\n" + _WRK_LUA)
+    seconds = max(1, round(args.seconds))
+    cmd = ["wrk", "-t", "2", "-c", str(args.clients), "-d", f"{seconds}s", "--timeout", "30s",
+           "--latency", "-s", str(script), url]
+    # wrk is the only child that ends in here (the server is still running), so the
+    # children's rusage grows by exactly wrk's CPU time
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 120)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    wrk_cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    print(done.stdout, done.stderr, sep="", flush=True)
+    if done.returncode != 0 or not result.exists():
+        raise RuntimeError(f"wrk failed ({done.returncode}): {done.stderr or done.stdout}")
+    out = json.loads(result.read_text())
+    duration = out["duration_us"] / 1e6
+    socket = {k: out[k] for k in ("connect", "read", "write", "timeout") if out[k]}
+    return {
+        "requests": out["requests"], "duration": duration,
+        "rps": out["requests"] / duration if duration else 0.0,
+        "status_errors": out["status"], "socket_errors": socket,
+        "errors": out["status"] + sum(socket.values()),
+        "wrk_cpu": wrk_cpu / duration if duration else 0.0,  # cores used by wrk
+        **{q: out[q] / 1000 for q in ("p50", "p90", "p95", "p99", "p999", "max", "mean")},
+    }
 
 
 async def _stations(url: str, tokens: list[str], uploads: int,
@@ -233,11 +318,20 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
                     uids = list(s.scalars(select(Acquisition.uid).limit(20_000)))
                 rng = random.Random(3)
                 patients = [f"P{rng.randrange(args.patients):06d}" for _ in range(500)]
+            paths, composition, first = _paths(args.mix, uids, patients)
             server_log = Path(tmp) / "server.log"
             server, base = _start(settings, args.workers, server_log)
             try:
-                lat, errors, n, kinds = asyncio.run(
-                    _readers(base, reader, args.clients, args.seconds, uids, patients))
+                # one request of each kind first: a mix the server refuses outright (a
+                # malformed path, say) is reported as such, not measured as a rate
+                bad = _probe(base, reader, list(first.values()))
+                if bad:
+                    print("reader paths refused:", *bad, sep="\n  ", flush=True)
+                readers = _readers(base, reader, args, paths, Path(tmp))
+                if readers["status_errors"]:
+                    bad = _probe(base, reader, paths[:200])
+                    print("reader failures (sample, after the run):", *bad, sep="\n  ",
+                          flush=True)
                 t = time.perf_counter()
                 stored, up_lat, up_errors = asyncio.run(
                     _stations(base, stations, args.uploads, patients))
@@ -262,10 +356,8 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
                 _drop_pg(args.postgres, url)
     expected = args.stations * args.uploads
     return {
-        "backend": backend, "fill": fill, "requests": n, "errors": errors,
-        "rps": n / args.seconds, "p50": 1000 * statistics.median(lat),
-        "p95": 1000 * _percentile(lat, 95), "p99": 1000 * _percentile(lat, 99),
-        "max": 1000 * max(lat), "kinds": kinds, "uploads_expected": expected,
+        "backend": backend, "fill": fill, **readers, "composition": composition,
+        "uploads_expected": expected,
         "uploads_ok": len(stored), "upload_errors": up_errors,
         "stored_once": len(rows) == len(stored) == len(found),
         "checksums_match": all(found.get(u) == sha for u, sha in stored.items()),
@@ -281,13 +373,19 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
     }
 
 
+def _ms(value: float) -> str:
+    return f"{value:.1f}" if value < 10 else f"{value:,.0f}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--acquisitions", type=int, default=100_000)
     parser.add_argument("--patients", type=int, default=5_000)
-    parser.add_argument("--clients", type=int, default=50)
+    parser.add_argument("--clients", type=int, default=50, help="wrk connections")
     parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--mix", choices=("all", *KINDS), default="all",
+                        help="read requests of one kind only (default: all four)")
     parser.add_argument("--stations", type=int, default=20)
     parser.add_argument("--uploads", type=int, default=10, help="acquisitions per station")
     parser.add_argument("--workers", type=int, default=2, help="uvicorn worker processes")
@@ -296,20 +394,26 @@ def main() -> None:
     parser.add_argument("--dir", default=None, help="folder for the temporary archive")
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args()
+    if shutil.which("wrk") is None:
+        sys.exit("api_load: wrk not found; install wrk: apt-get install wrk")
+    if args.clients < 2:
+        parser.error("--clients must be at least 2 (wrk runs 2 threads)")
     load = os.getloadavg()[0]
     results = []
     for backend in ("sqlite", *(("postgresql",) if args.postgres else ())):
         r = run(backend, args)
         print(r, flush=True)
         results.append(r)
-    def failures(r: dict[str, object]) -> str:
-        kinds = {k[7:]: v for k, v in r["kinds"].items() if k.startswith("failed ")}  # type: ignore[union-attr]
-        return f"{r['errors']}" + (f" ({', '.join(f'{v} {k}' for k, v in kinds.items())})"
-                                   if kinds else "")
+
+    def errors(r: dict[str, object]) -> str:
+        parts = [f"{r['status_errors']} HTTP"] if r["status_errors"] else []
+        parts += [f"{v} {k}" for k, v in r["socket_errors"].items()]  # type: ignore[union-attr]
+        return f"{r['errors']}" + (f" ({', '.join(parts)})" if parts else "")
 
     rows_read = "\n".join(
-        f"| {r['backend']} | {r['requests']:,} | {r['rps']:.0f} | {r['p50']:.0f} | "
-        f"{r['p95']:.0f} | {r['p99']:.0f} | {r['max']:.0f} | {failures(r)} |" for r in results)
+        f"| {r['backend']} | {r['requests']:,} | {r['rps']:.0f} | {_ms(r['p50'])} | "
+        f"{_ms(r['p90'])} | {_ms(r['p95'])} | {_ms(r['p99'])} | {_ms(r['p999'])} | "
+        f"{_ms(r['max'])} | {errors(r)} |" for r in results)
     rows_up = "\n".join(
         f"| {r['backend']} | {r['uploads_ok']} / {r['uploads_expected']} | {r['upload_errors']} "
         f"| {r['upload_wall']:.1f} s ({r['uploads_ok'] / r['upload_wall']:.1f}/s) | "
@@ -317,35 +421,49 @@ def main() -> None:
         f"{'yes' if r['stored_once'] and r['checksums_match'] else 'NO'} | "
         f"{'clean' if r['verify_ok'] else 'PROBLEMS'} ({r['verified_frames']:,} frames, "
         f"{r['verify_s']:.1f} s) |" for r in results)
+    composition = results[0]["composition"]
+    described = {
+        "list": "one patient's acquisitions (up to 100)",
+        "range": "a 30-day range (first page of 100)",
+        "acquisition": "one acquisition's metadata",
+        "patient": "one patient",
+    }
+    mix = "; ".join(f"{described[k]}: {v:,}" for k, v in composition.items())  # type: ignore[union-attr]
     body = (
         f"Machine: {machine()}. Load average before the run: {load:.1f} (the machine was "
-        "shared with other jobs; server and clients ran on the same cores).\n\n"
+        "shared with other jobs; server and load generator ran on the same cores).\n\n"
         f"Server: `rasterserver serve --workers {args.workers}` on loopback; every request "
         "authenticated (token digest look-up) and audited (one append-only row per patient "
         "touched, committed before the response starts).\n\n"
         f"**Readers**: {args.acquisitions:,} acquisitions of {args.patients:,} patients "
-        f"catalogued; {args.clients} concurrent clients for {args.seconds:.0f} s, each looping "
-        "over: one patient's acquisitions (up to 100), a 30-day range (first page of 100), one "
-        "acquisition's metadata, one patient. Latency in ms.\n\n"
-        "| catalogue | requests | req/s | p50 | p95 | p99 | max | errors |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|\n" + rows_read + "\n\n"
+        "catalogued. The load comes from `wrk` (a C program, in its own process on the same "
+        "2 cores as the server; on average it used "
+        + ", ".join(f"{r['wrk_cpu']:.2f} of a core on {r['backend']}" for r in results)
+        + f"): 2 threads, {args.clients} keep-alive connections, closed "
+        f"loop (each connection sends its next request when the last is answered) for "
+        f"{args.seconds:.0f} s, each request drawn at random from {PATHS:,} paths "
+        f"pre-generated with a fixed seed ({mix}). Latency in ms, as wrk measures it; "
+        "errors are HTTP error statuses plus socket errors (connect, read, write, timeout "
+        "after 30 s).\n\n"
+        "| catalogue | requests | req/s | p50 | p90 | p95 | p99 | p99.9 | max | errors |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n" + rows_read + "\n\n"
         f"**Stations**: {args.stations} concurrent station accounts, {args.uploads} uploads "
-        "each of one 604x576 uint8 frame (NPY, multipart). Checked afterwards: every upload "
-        "in the catalogue exactly once with the SHA-256 of the frame sent, and "
-        "`Archive.verify()` re-hashing every stored frame (clean = no problem with an upload and "
-        "no orphaned, temporary or stray file; the bulk-inserted rows have no files by "
-        "design and are left out).\n\n"
+        "each of one 604x576 uint8 frame (NPY, multipart; asyncio + httpx clients). Checked "
+        "afterwards: every upload in the catalogue exactly once with the SHA-256 of the frame "
+        "sent, and `Archive.verify()` re-hashing every stored frame (clean = no problem with "
+        "an upload and no orphaned, temporary or stray file; the bulk-inserted rows have no "
+        "files by design and are left out).\n\n"
         "| catalogue | stored | errors | wall time | latency p50 / p99 (ms) | once, checksums "
         "equal | verify |\n|---|---:|---:|---:|---:|---|---|\n" + rows_up + "\n\n"
         "Reading the numbers: each read costs a token look-up, the catalogue query (with "
         "frames and patient), JSON for up to 100 acquisitions, and an audit transaction "
         "(up to 100 rows, committed and, on SQLite, fsynced before the response starts). "
-        "The server's two workers share the two cores with the 50 asyncio clients and with "
-        "other jobs, so the throughput is CPU-bound and the tail latencies are mostly queueing; "
-        "on a dedicated machine with the clients elsewhere expect several times more. "
-        "A transport error (ReadError) is a keep-alive connection the server closed while the "
-        "client reused it; `serve --keep-alive` (30 s default) makes it rare.\n\n"
-        "Script: `benchmarks/api_load.py`."
+        f"The server's {args.workers} workers share the two cores with wrk (its share "
+        "above) and with other jobs, so the throughput is "
+        "CPU-bound and the tail latencies are mostly queueing in a closed loop of "
+        f"{args.clients} connections; on a dedicated machine expect more.\n\n"
+        "Script: `benchmarks/api_load.py` (`--mix list|range|acquisition|patient` runs one "
+        "kind of read only)."
     )
     if not args.no_write:
         write_section("HTTP API", body)
