@@ -1,10 +1,12 @@
-"""The audit trail: one append-only row per request and patient touched, and its FHIR form.
+"""The audit trail: one append-only event per request, linked to every patient it touched,
+and its FHIR form.
 
 Every routed, non-public request is recorded, reads included, refused ones too: who (account,
-role), what (route template, method, FHIR action code), which patient's data and acquisition,
-when, from where and with what outcome. The row is committed *before* the response starts, so
-no data leaves the server without its audit row; if the row cannot be written the client gets
-a 503 instead of the data.
+role), what (route template, method, FHIR action code), which patients' data and acquisition,
+when, from where and with what outcome. The event is committed *before* the response starts
+(group-committed with other requests' events, see :mod:`rasterserver.api.audit_writer`), so
+no data leaves the server without its audit event; if it cannot be written the client gets a
+503 instead of the data.
 
 The application log gets only the route template (``/patients/{identifier}``), the status and
 the duration, never the concrete path or query, which may carry patient identifiers.
@@ -29,7 +31,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from rasterserver.api.audit_writer import AuditWriter
 from rasterserver.api.auth import Principal
 from rasterserver.archive import Archive
-from rasterserver.catalog.auth_models import AuditEvent
+from rasterserver.catalog.auth_models import AuditEvent, AuditEventPatient
 from rasterserver.catalog.models import Patient
 
 access_log = logging.getLogger("rasterserver.api.access")
@@ -80,46 +82,64 @@ def action_code(method: str, route_name: str) -> str:
     return {"POST": "C", "PUT": "U", "PATCH": "U", "DELETE": "D"}.get(method, "R")
 
 
-def event_rows(note: AuditNote, *, method: str, route: str, route_name: str, status: int,
-               client: str) -> list[dict[str, Any]]:
-    """The audit rows of one request: one per patient touched, or one without a patient."""
+@dataclass(frozen=True)
+class AuditRecord:
+    """One request's audit event (the ``audit_event`` row) and the patients it touched."""
+
+    event: dict[str, Any]
+    patient_ids: tuple[int, ...]
+
+
+def audit_record(note: AuditNote, *, method: str, route: str, route_name: str, status: int,
+                 client: str) -> AuditRecord:
+    """What one request leaves in the audit trail."""
     who = note.principal
-    base = {
-        "request_id": note.request_id,
-        "recorded_at": dt.datetime.now(dt.UTC),
-        "actor": who.name if who else "-",
-        "actor_kind": who.kind if who else "",
-        "role": who.role if who else "",
-        "action": action_code(method, route_name),
-        "method": method[:8],
-        "route": route[:200],
-        "status": status,
-        "acquisition_uid": note.acquisition_uid,
-        "client": client[:100],
-        "detail": note.detail,
-    }
-    return [base | {"patient_id": pid} for pid in sorted(note.patient_ids)] or [
-        base | {"patient_id": None}
-    ]
+    return AuditRecord(
+        event={
+            "request_id": note.request_id,
+            "recorded_at": dt.datetime.now(dt.UTC),
+            "actor": who.name if who else "-",
+            "actor_kind": who.kind if who else "",
+            "role": who.role if who else "",
+            "action": action_code(method, route_name),
+            "method": method[:8],
+            "route": route[:200],
+            "status": status,
+            "patient_id": None,  # see AuditEvent.patient_id: the links name the patients
+            "acquisition_uid": note.acquisition_uid,
+            "client": client[:100],
+            "detail": note.detail,
+        },
+        patient_ids=tuple(sorted(note.patient_ids)),
+    )
 
 
-def insert_rows(archive: Archive, rows: Sequence[dict[str, Any]]) -> None:
-    """Insert audit rows in one committed transaction (Core: no ORM objects to build)."""
+_EVENTS = AuditEvent.__table__
+_LINKS = AuditEventPatient.__table__
+
+
+def insert_records(archive: Archive, records: Sequence[AuditRecord]) -> None:
+    """Insert the events and patient links of ``records`` in one committed transaction."""
     with archive.engine.begin() as conn:
-        conn.execute(AuditEvent.__table__.insert(), list(rows))
+        ids = conn.execute(_EVENTS.insert().returning(_EVENTS.c.id, sort_by_parameter_order=True),
+                           [r.event for r in records]).scalars().all()
+        links = [{"patient_id": pid, "event_id": event_id}
+                 for event_id, r in zip(ids, records, strict=True) for pid in r.patient_ids]
+        if links:
+            conn.execute(_LINKS.insert(), links)
 
 
 def write_events(archive: Archive, note: AuditNote, *, method: str, route: str, route_name: str,
                  status: int, client: str) -> None:
-    """Insert and commit the audit rows of one request (outside the server's group commit)."""
-    insert_rows(archive, event_rows(note, method=method, route=route, route_name=route_name,
-                                    status=status, client=client))
+    """Record one request in the audit trail now (outside the server's group commit)."""
+    insert_records(archive, [audit_record(note, method=method, route=route,
+                                          route_name=route_name, status=status, client=client)])
 
 
 def audit_writer(archive: Archive) -> AuditWriter:
-    """The server's group-committing writer of audit rows into ``archive``'s catalogue."""
-    # looked up at each batch, so a test can make the catalogue refuse the rows
-    return AuditWriter(lambda rows: insert_rows(archive, rows))
+    """The server's group-committing writer of audit records into ``archive``'s catalogue."""
+    # insert_records is looked up at each batch, so a test can make the catalogue refuse
+    return AuditWriter(lambda records: insert_records(archive, records))
 
 
 def _client(scope: Scope) -> str:
@@ -167,11 +187,11 @@ class RequestMiddleware:
                                 1000 * elapsed)
                 if route is not None and name not in PUBLIC:
                     try:
-                        rows = event_rows(note, method=scope["method"], route=template,
-                                          route_name=name, status=status,
-                                          client=_client(scope))
-                        # waits, without holding a thread, for the batch with these rows
-                        await asyncio.wrap_future(self.services.audit.submit(rows))
+                        record = audit_record(note, method=scope["method"], route=template,
+                                              route_name=name, status=status,
+                                              client=_client(scope))
+                        # waits, without holding a thread, for the batch with this record
+                        await asyncio.wrap_future(self.services.audit.submit(record))
                     except Exception as exc:
                         # fail closed: no data without its audit row
                         from rasterserver.api.errors import traceback_without_values
@@ -226,16 +246,18 @@ def audit_events(
     until: dt.datetime | None = None,
     limit: int = 100,
     offset: int = 0,
-) -> list[tuple[AuditEvent, str | None]]:
-    """Audit events oldest first, each with its patient's identifier (or None).
+) -> list[tuple[AuditEvent, list[str]]]:
+    """Audit events oldest first, each with the identifiers of the patients it touched.
 
-    ``since`` is inclusive, ``until`` exclusive.
+    ``patient`` keeps the events that touched that patient; ``since`` is inclusive,
+    ``until`` exclusive.
     """
-    query = select(AuditEvent, Patient.identifier).outerjoin(
-        Patient, Patient.id == AuditEvent.patient_id
-    )
+    query = select(AuditEvent)
     if patient is not None:
-        query = query.where(Patient.identifier == patient)
+        query = query.where(AuditEvent.id.in_(
+            select(AuditEventPatient.event_id).join(
+                Patient, Patient.id == AuditEventPatient.patient_id)
+            .where(Patient.identifier == patient)))
     if actor is not None:
         query = query.where(AuditEvent.actor == actor)
     if since is not None:
@@ -244,13 +266,25 @@ def audit_events(
         query = query.where(AuditEvent.recorded_at < until)
     query = query.order_by(AuditEvent.id).limit(limit).offset(offset)
     with archive.session() as s:
-        return [(row, ident) for row, ident in s.execute(query)]
+        events = list(s.scalars(query))
+        touched: dict[int, list[str]] = {}
+        ids = [e.id for e in events]
+        # bounded IN lists: SQLite limits the number of parameters of one statement
+        for start in range(0, len(ids), 5000):
+            for event_id, identifier in s.execute(
+                select(AuditEventPatient.event_id, Patient.identifier)
+                .join(Patient, Patient.id == AuditEventPatient.patient_id)
+                .where(AuditEventPatient.event_id.in_(ids[start:start + 5000]))
+                .order_by(AuditEventPatient.event_id, Patient.identifier)
+            ):
+                touched.setdefault(event_id, []).append(identifier)
+    return [(e, touched.get(e.id, [])) for e in events]
 
 
 _SUBTYPES = {"C": "create", "R": "read", "U": "update", "D": "delete", "E": "operation"}
 
 
-def event_dict(event: AuditEvent, patient_identifier: str | None) -> dict[str, Any]:
+def event_dict(event: AuditEvent, patients: list[str]) -> dict[str, Any]:
     """The plain JSON form of one audit event."""
     return {
         "id": event.id,
@@ -263,7 +297,7 @@ def event_dict(event: AuditEvent, patient_identifier: str | None) -> dict[str, A
         "method": event.method,
         "route": event.route,
         "status": event.status,
-        "patient": patient_identifier,
+        "patients": patients,
         "acquisition": event.acquisition_uid,
         "client": event.client,
     }
@@ -274,15 +308,15 @@ def _utc(value: dt.datetime) -> dt.datetime:
     return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
 
 
-def to_fhir(event: AuditEvent, patient_identifier: str | None) -> dict[str, Any]:
+def to_fhir(event: AuditEvent, patients: list[str]) -> dict[str, Any]:
     """Return one audit event as a FHIR R4 ``AuditEvent`` resource.
 
     Parameters
     ----------
     event : AuditEvent
         The row.
-    patient_identifier : str or None
-        The site identifier of the patient concerned.
+    patients : list of str
+        The site identifiers of the patients whose data the request touched.
 
     Returns
     -------
@@ -302,9 +336,9 @@ def to_fhir(event: AuditEvent, patient_identifier: str | None) -> dict[str, Any]
     if event.client:
         agent["network"] = {"address": event.client, "type": "2"}
     entities: list[dict[str, Any]] = []
-    if patient_identifier is not None:
+    for identifier in patients:
         entities.append({
-            "what": {"identifier": {"value": patient_identifier}},
+            "what": {"identifier": {"value": identifier}},
             "type": {"system": "http://terminology.hl7.org/CodeSystem/audit-entity-type",
                      "code": "1", "display": "Person"},
             "role": {"system": "http://terminology.hl7.org/CodeSystem/object-role",
@@ -339,11 +373,11 @@ def to_fhir(event: AuditEvent, patient_identifier: str | None) -> dict[str, Any]
     }
 
 
-def fhir_bundle(events: list[tuple[AuditEvent, str | None]]) -> dict[str, Any]:
+def fhir_bundle(events: list[tuple[AuditEvent, list[str]]]) -> dict[str, Any]:
     """A FHIR ``Bundle`` (type ``collection``) of audit events."""
     return {
         "resourceType": "Bundle",
         "type": "collection",
         "total": len(events),
-        "entry": [{"resource": to_fhir(e, ident)} for e, ident in events],
+        "entry": [{"resource": to_fhir(e, patients)} for e, patients in events],
     }

@@ -1,4 +1,4 @@
-"""Group commit of the audit trail: many requests' rows, one transaction, one fsync.
+"""Group commit of the audit trail: many requests' records, one transaction, one fsync.
 
 Every audited request must have its rows committed before its response starts. Committed
 one request at a time, the catalogue's durable commit (an fsync, ~4 ms here) is the ceiling
@@ -8,8 +8,8 @@ the tail latency. One writer thread per process instead takes every request that
 and commits all their rows together: the guarantee is the same (no response before its own
 rows are durable), the fsync is shared.
 
-A batch that fails is retried request by request, so one request's bad rows cannot cost the
-others their answer.
+A batch that fails is retried request by request, so one request's bad record cannot cost
+the others their answer.
 """
 
 from __future__ import annotations
@@ -17,18 +17,18 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
 log = logging.getLogger(__name__)
 
-Rows = Sequence[dict[str, Any]]
-# inserts rows in one transaction and commits; raises when they are not stored
-Insert = Callable[[Rows], None]
+# inserts the records of several requests in one transaction and commits; raises when
+# they are not stored
+Insert = Callable[[list[Any]], None]
 
-# Bounds one transaction; a list request brings up to one row per patient on its page.
-MAX_BATCH_ROWS = 20_000
+# Bounds one transaction (a record is one request's event and its patient links).
+MAX_BATCH = 1000
 
 
 class AuditWriter:
@@ -37,22 +37,23 @@ class AuditWriter:
     Parameters
     ----------
     insert : callable
-        ``insert(rows)`` stores the rows in one committed transaction or raises.
-    max_batch_rows : int
-        Most rows in one transaction (a single larger request is still written whole).
+        ``insert(records)`` stores a list of records (each one request's) in one committed
+        transaction, or raises.
+    max_batch : int
+        Most records in one transaction.
     """
 
-    def __init__(self, insert: Insert, *, max_batch_rows: int = MAX_BATCH_ROWS) -> None:
+    def __init__(self, insert: Insert, *, max_batch: int = MAX_BATCH) -> None:
         self._insert = insert
-        self._max_rows = max_batch_rows
-        self._queue: queue.SimpleQueue[tuple[Rows, Future[None]] | None] = queue.SimpleQueue()
+        self._max_batch = max_batch
+        self._queue: queue.SimpleQueue[tuple[Any, Future[None]] | None] = queue.SimpleQueue()
         self._closed = False
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="audit-writer", daemon=True)
         self._thread.start()
 
-    def submit(self, rows: Rows) -> Future[None]:
-        """Queue one request's rows; the future is done once they are committed.
+    def submit(self, record: Any) -> Future[None]:
+        """Queue one request's record; the future is done once it is committed.
 
         Raises
         ------
@@ -63,12 +64,12 @@ class AuditWriter:
         with self._lock:
             if self._closed:
                 raise RuntimeError("the audit writer is closed")
-            self._queue.put((rows, future))
+            self._queue.put((record, future))
         return future
 
-    def write(self, rows: Rows) -> None:
-        """Queue ``rows`` and wait until they are committed (or raise why not)."""
-        self.submit(rows).result()
+    def write(self, record: Any) -> None:
+        """Queue ``record`` and wait until it is committed (or raise why not)."""
+        self.submit(record).result()
 
     def close(self) -> None:
         """Commit what is queued, then stop the thread."""
@@ -86,9 +87,8 @@ class AuditWriter:
             if item is None:
                 break
             batch = [item]
-            size = len(item[0])
             # Everything that queued while the last batch was being committed goes in this one.
-            while size < self._max_rows:
+            while len(batch) < self._max_batch:
                 try:
                     more = self._queue.get_nowait()
                 except queue.Empty:
@@ -97,15 +97,14 @@ class AuditWriter:
                     stopping = True
                     break
                 batch.append(more)
-                size += len(more[0])
             self._commit(batch)
 
-    def _commit(self, batch: list[tuple[Rows, Future[None]]]) -> None:
-        live = [(rows, f) for rows, f in batch if f.set_running_or_notify_cancel()]
+    def _commit(self, batch: list[tuple[Any, Future[None]]]) -> None:
+        live = [(record, f) for record, f in batch if f.set_running_or_notify_cancel()]
         if not live:
             return
         try:
-            self._insert([row for rows, _ in live for row in rows])
+            self._insert([record for record, _ in live])
         except Exception as exc:
             if len(live) == 1:
                 live[0][1].set_exception(exc)
@@ -116,10 +115,10 @@ class AuditWriter:
         for _, future in live:
             future.set_result(None)
 
-    def _one_by_one(self, live: list[tuple[Rows, Future[None]]]) -> None:
-        for rows, future in live:
+    def _one_by_one(self, live: list[tuple[Any, Future[None]]]) -> None:
+        for record, future in live:
             try:
-                self._insert(rows)
+                self._insert([record])
             except Exception as exc:  # handed to the waiting request, which answers 503
                 future.set_exception(exc)
             else:

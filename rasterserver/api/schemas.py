@@ -197,7 +197,8 @@ class AuditOut(BaseModel):
     method: str
     route: str
     status: int
-    patient: str | None
+    patients: list[str] = Field(description="Identifiers of the patients whose data the "
+                                "request touched.")
     acquisition: str | None
     client: str
 

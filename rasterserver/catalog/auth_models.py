@@ -71,17 +71,15 @@ class ApiToken(Base):
 
 
 class AuditEvent(Base):
-    """One access to the archive: who, what, which patient's data, when, with what outcome.
+    """One request to the archive: who, what, when, from where, with what outcome.
 
-    A request that touches several patients (a list) writes one row per patient, sharing
-    ``request_id``, so "who saw patient X" is one indexed query.
+    The patients whose data the request touched are :class:`AuditEventPatient` rows: a list
+    of a hundred acquisitions is one event and a hundred two-integer links, not a hundred
+    copies of the event. "Who saw patient X" is one range scan of that table's key.
     """
 
     __tablename__ = "audit_event"
-    __table_args__ = (
-        CheckConstraint(f"action IN {AUDIT_ACTIONS!r}", name="action"),
-        Index("ix_audit_event_patient_recorded", "patient_id", "recorded_at"),
-    )
+    __table_args__ = (CheckConstraint(f"action IN {AUDIT_ACTIONS!r}", name="action"),)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     request_id: Mapped[str] = mapped_column(String(32), index=True)
@@ -94,12 +92,33 @@ class AuditEvent(Base):
     # the route template, never the concrete path: that may carry a patient identifier
     route: Mapped[str] = mapped_column(String(200))
     status: Mapped[int] = mapped_column(Integer)
+    # Only events recorded before migration 0004 (one row per patient then) have it; the
+    # migration copied those into AuditEventPatient, which is where every query looks.
     patient_id: Mapped[int | None] = mapped_column(
         ForeignKey("patient.id", ondelete="RESTRICT")
     )
     acquisition_uid: Mapped[str | None] = mapped_column(String(32))
     client: Mapped[str] = mapped_column(String(100), default="")
     detail: Mapped[str] = mapped_column(Text, default="")
+
+
+class AuditEventPatient(Base):
+    """A patient whose data an :class:`AuditEvent` touched (append-only, like the event)."""
+
+    __tablename__ = "audit_event_patient"
+    __table_args__ = (
+        # the key answers "who saw this patient, when" (event ids grow with time); the
+        # index answers "which patients did this event touch"
+        Index("ix_audit_event_patient_event_id", "event_id"),
+        {"sqlite_with_rowid": False},
+    )
+
+    patient_id: Mapped[int] = mapped_column(
+        ForeignKey("patient.id", ondelete="RESTRICT"), primary_key=True
+    )
+    event_id: Mapped[int] = mapped_column(
+        ForeignKey("audit_event.id", ondelete="RESTRICT"), primary_key=True
+    )
 
 
 class PseudonymKey(Base):
@@ -151,5 +170,5 @@ class ApiJob(Base):
 def _audit_is_append_only(session: Session, _ctx: object, _instances: object) -> None:
     """Refuse to change or delete an audit event through the ORM."""
     for obj in (*session.dirty, *session.deleted):
-        if isinstance(obj, AuditEvent):
+        if isinstance(obj, AuditEvent | AuditEventPatient):
             raise ValueError("audit events are append-only")

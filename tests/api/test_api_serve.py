@@ -15,6 +15,9 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from rasterserver.api.errors import LimitsMiddleware, install_handlers
+from rasterserver.catalog import migrate
+from rasterserver.catalog.database import make_engine
+from rasterserver.config import sqlite_url
 
 
 def test_serve_command_runs_uvicorn_on_loopback(tmp_path: Path) -> None:
@@ -35,7 +38,9 @@ def test_serve_command_runs_uvicorn_on_loopback(tmp_path: Path) -> None:
                 assert server.poll() is None, server.stdout.read().decode()
                 assert time.monotonic() < deadline
                 time.sleep(0.2)
-        assert health.json()["schema_revision"] == "0003"
+        engine = make_engine(sqlite_url(archive))
+        assert health.json()["schema_revision"] == migrate.head_revision(engine)
+        engine.dispose()
         assert httpx.get(f"http://127.0.0.1:{port}/patients").status_code == 401
     finally:
         server.terminate()

@@ -109,7 +109,7 @@ def test_audit_rows_for_reads_writes_and_refusals(live: LiveServer) -> None:
             ("clinician-1", "C", "/acquisitions", 201),
             ("clinician-1", "R", "/acquisitions/{uid}/frames/{index}", 200),
         ]
-        assert all(ident == PATIENT_ID and e.acquisition_uid == uid for e, ident in events)
+        assert all(who == [PATIENT_ID] and e.acquisition_uid == uid for e, who in events)
         refused = audit_events(archive, actor="researcher-1")
         assert [(e.route, e.status) for e, _ in refused] == [("/audit", 403)]
         # append-only in the database itself
@@ -203,7 +203,7 @@ def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypat
     def broken(*_args, **_kwargs) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(audit, "insert_rows", broken)
+    monkeypatch.setattr(audit, "insert_records", broken)
     with live_sqlite.client("clinician") as c:
         response = c.get(f"/patients/{PATIENT_ID}")
     assert response.status_code == 503 and response.json()["error"] == "AuditUnavailable"

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Sequence
-from typing import Any
 
 import pytest
 from sqlalchemy import func, select
 
-from rasterserver.api.audit import AuditNote, event_rows, insert_rows
+from rasterserver.api.audit import AuditNote, AuditRecord, audit_record, insert_records
 from rasterserver.api.audit_writer import AuditWriter
 from rasterserver.api.auth import Principal
 from rasterserver.archive import Archive
-from rasterserver.catalog.auth_models import AuditEvent
+from rasterserver.catalog.auth_models import AuditEvent, AuditEventPatient
 from rasterserver.config import Settings
 
 
@@ -23,14 +22,14 @@ def archive(settings: Settings) -> Archive:
         yield a
 
 
-def _rows(patient_ids: Sequence[int], *, action_ok: bool = True) -> list[dict[str, Any]]:
+def _rows(patient_ids: Sequence[int], *, action_ok: bool = True) -> AuditRecord:
     note = AuditNote(principal=Principal(1, "reader", "clinician", "user"),
                      patient_ids=set(patient_ids))
-    rows = event_rows(note, method="GET", route="/acquisitions", route_name="list_acquisitions",
-                      status=200, client="127.0.0.1")
+    record = audit_record(note, method="GET", route="/acquisitions",
+                          route_name="list_acquisitions", status=200, client="127.0.0.1")
     if not action_ok:  # refused by the table's CHECK constraint, as a corrupt note would be
-        rows = [r | {"action": "X"} for r in rows]
-    return rows
+        record = AuditRecord(record.event | {"action": "X"}, record.patient_ids)
+    return record
 
 
 def _count(archive: Archive) -> int:
@@ -48,12 +47,12 @@ class _Counting:
         self.release = threading.Event()
         self.entered = threading.Event()
 
-    def __call__(self, rows: Sequence[dict[str, Any]]) -> None:
+    def __call__(self, records: list[AuditRecord]) -> None:
         if not self.calls:
             self.entered.set()
             self.release.wait(10)
-        self.calls.append(len(rows))
-        insert_rows(self.archive, rows)
+        self.calls.append(len(records))
+        insert_records(self.archive, records)
 
 
 def test_requests_waiting_together_share_one_commit(archive: Archive) -> None:
@@ -107,13 +106,17 @@ def test_close_commits_what_is_queued_and_then_refuses(archive: Archive) -> None
     writer.close()  # twice is harmless
 
 
-def test_a_list_writes_one_row_per_patient(archive: Archive) -> None:
+def test_a_list_writes_one_event_linked_to_each_patient(archive: Archive) -> None:
     ids = [archive.add_patient(f"P-{i}").id for i in range(3)]
-    writer = AuditWriter(lambda rows: insert_rows(archive, rows))
+    writer = AuditWriter(lambda records: insert_records(archive, records))
     try:
         writer.write(_rows(ids))
+        writer.write(_rows(ids[:1]))
     finally:
         writer.close()
     with archive.session() as s:
-        got = sorted(s.scalars(select(AuditEvent.patient_id)))
-    assert got == sorted(ids)
+        events = list(s.scalars(select(AuditEvent.id).order_by(AuditEvent.id)))
+        links = sorted(s.execute(select(AuditEventPatient.event_id,
+                                        AuditEventPatient.patient_id)).all())
+    assert len(events) == 2
+    assert links == sorted([(events[0], i) for i in ids] + [(events[1], ids[0])])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
@@ -44,3 +46,52 @@ def test_require_current_names_the_command_to_run(database_url: str) -> None:
     migrate.upgrade(engine)
     migrate.require_current(engine)
     engine.dispose()
+
+
+def test_0004_links_the_patients_of_recorded_events_and_guards_its_downgrade(
+    database_url: str, tmp_path: Path,
+) -> None:
+    from sqlalchemy import text
+
+    from rasterserver.api.audit import AuditNote, audit_events, write_events
+    from rasterserver.api.auth import Principal
+    from rasterserver.archive import Archive
+    from rasterserver.config import Settings
+
+    engine = make_engine(database_url)
+    migrate.upgrade(engine, "0003")
+    event = ("INSERT INTO audit_event (request_id, recorded_at, actor, actor_kind, role, "
+             "action, method, route, status, patient_id, client, detail) VALUES ('r1', "
+             "'2026-01-02 03:04:05', 'dr', 'user', 'clinician', 'R', 'GET', '/acquisitions', "
+             "200, {}, '', '')")
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO patient (identifier, name, sex, created_at) VALUES "
+                          "('P-1', '', 'unknown', '2026-01-01'), "
+                          "('P-2', '', 'unknown', '2026-01-01')"))
+        p1, p2 = conn.execute(text("SELECT id FROM patient ORDER BY identifier")).scalars()
+        # before 0004 a list touching two patients was two rows; a refusal had none
+        for pid in (p1, p2, "NULL"):
+            conn.execute(text(event.format(pid)))
+    migrate.upgrade(engine)
+    archive = Archive(Settings(archive=tmp_path / "archive", database_url=database_url))
+    try:
+        events = audit_events(archive)
+        assert [who for _, who in events] == [["P-1"], ["P-2"], []]
+        assert [e.id for e, _ in audit_events(archive, patient="P-2")] == [events[1][0].id]
+        with pytest.raises(Exception, match="append-only"), engine.begin() as conn:
+            conn.execute(text("DELETE FROM audit_event_patient"))
+        # downgrading to 0003 with nothing recorded since would lose nothing...
+        migrate.downgrade(engine, "0003")
+        migrate.upgrade(engine)
+        # ...but an event recorded since names its patients only in the links
+        write_events(archive, AuditNote(principal=Principal(1, "dr", "clinician", "user"),
+                                        patient_ids={p1, p2}),
+                     method="GET", route="/acquisitions", route_name="list_acquisitions",
+                     status=200, client="")
+        assert audit_events(archive)[-1][1] == ["P-1", "P-2"]
+        with pytest.raises(RuntimeError, match="would lose"):
+            migrate.downgrade(engine, "0003")
+        assert migrate.current_revision(engine) == migrate.head_revision(engine)
+    finally:
+        archive.close()
+        engine.dispose()

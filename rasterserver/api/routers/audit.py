@@ -29,4 +29,4 @@ def get_audit(
                           until=utc(until), limit=page.limit, offset=page.offset)
     if format == "fhir":
         return fhir_bundle(events)
-    return [AuditOut(**event_dict(e, ident)) for e, ident in events]
+    return [AuditOut(**event_dict(e, patients)) for e, patients in events]
