@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import Engine, Integer, Select, bindparam, func, select
@@ -34,7 +34,7 @@ from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session, selectinload
 
 from rasterserver.catalog import migrate
-from rasterserver.catalog.database import make_engine, session_factory
+from rasterserver.catalog.database import WriteLock, make_engine, session_factory
 from rasterserver.catalog.models import (
     ACQUISITION_KINDS,
     FRAME_ROLES,
@@ -100,8 +100,9 @@ class AcquisitionSpec:
     notes: str = ""
 
 
-@dataclass(frozen=True)
-class FrameInfo:
+# Named tuples rather than frozen dataclasses: a list of a hundred acquisitions builds a
+# few hundred of them per request, and a frozen dataclass costs several times more to make.
+class FrameInfo(NamedTuple):
     """A frame's catalogue entry, as :meth:`Archive.find` and :meth:`Archive.info` give it."""
 
     index: int
@@ -112,8 +113,18 @@ class FrameInfo:
     sha256: str
 
 
-@dataclass(frozen=True)
-class AcquisitionInfo:
+class PatientInfo(NamedTuple):
+    """A patient's catalogue entry read without ORM objects (:meth:`Archive.patient_info`)."""
+
+    id: int
+    identifier: str
+    name: str
+    birth_date: dt.date | None
+    sex: str
+    created_at: dt.datetime
+
+
+class AcquisitionInfo(NamedTuple):
     """An acquisition's catalogue entry read without ORM objects.
 
     What a listing, a search or a metadata request shows; ``acquired_at`` is in UTC.
@@ -171,6 +182,9 @@ _INFO_COLUMNS = (
 )
 _FRAME_COLUMNS = (Frame.index, Frame.role, Frame.height, Frame.width, Frame.dtype, Frame.sha256)
 _PATIENT_ID = select(Patient.id).where(Patient.identifier == bindparam("identifier"))
+_PATIENT_INFO = select(Patient.id, Patient.identifier, Patient.name, Patient.birth_date,
+                       Patient.sex, Patient.created_at).where(
+    Patient.identifier == bindparam("identifier"))
 
 
 def _with_frames(page: Select[Any]) -> Select[Any]:
@@ -214,17 +228,14 @@ def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:
             grouped.append((row, []))
         if row[10] is not None:  # an acquisition without frames has one row of NULLs
             grouped[-1][1].append(FrameInfo(*row[10:]))
+    utc = dt.UTC
     return [
-        AcquisitionInfo(uid=r[1], kind=r[2], patient_id=r[3], patient=r[4], station_id=r[5],
-                        calibration_id=r[6], acquired_at=_as_utc(r[7]), operator=r[8],
-                        notes=r[9], frames=tuple(frames))
+        # uid, kind, patient id, identifier, station, calibration, time, operator, notes
+        AcquisitionInfo(r[1], r[2], r[3], r[4], r[5], r[6],
+                        r[7] if r[7].tzinfo else r[7].replace(tzinfo=utc), r[8], r[9],
+                        tuple(frames))
         for r, frames in grouped
     ]
-
-
-def _as_utc(value: dt.datetime) -> dt.datetime:
-    # SQLite hands times back without their zone; the catalogue stores UTC
-    return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
 
 
 class Archive:
@@ -256,6 +267,8 @@ class Archive:
         # (and, on SQLite, set up) one per request. So the pool holds them all.
         pool = {} if connections is None else {"pool_size": connections, "max_overflow": 4}
         self.engine: Engine = make_engine(settings.database_url, **pool)
+        #: Taken by the catalogue's frequent writers (ingest, the audit trail): see WriteLock.
+        self.write_lock = WriteLock(self.engine)
         self._sessions = session_factory(self.engine)
         self._crash_hook = crash_hook
         self.raw = RawStore(settings.archive, crash_hook=crash_hook)
@@ -275,6 +288,7 @@ class Archive:
     def close(self) -> None:
         """Release the catalogue's connections."""
         self.engine.dispose()
+        self.write_lock.close()
 
     def __enter__(self) -> Archive:
         return self
@@ -334,6 +348,25 @@ class Archive:
                 "unknown patient: register it first with `rasterserver patient add`"
             )
         return found
+
+    def patient_info(self, identifier: str) -> PatientInfo:
+        """The catalogue entry of the patient with ``identifier``, read without ORM objects.
+
+        ``created_at`` is in UTC.
+
+        Raises
+        ------
+        NotFoundError
+            No such patient.
+        """
+        with self.engine.connect() as conn:
+            row = conn.execute(_PATIENT_INFO, {"identifier": identifier}).first()
+        if row is None:
+            raise NotFoundError(
+                "unknown patient: register it first with `rasterserver patient add`"
+            )
+        created = row[5] if row[5].tzinfo else row[5].replace(tzinfo=dt.UTC)
+        return PatientInfo(row[0], row[1], row[2], row[3], row[4], created)
 
     def patients(self, *, limit: int = 100, offset: int = 0) -> list[Patient]:
         """List patients by identifier."""
@@ -689,7 +722,7 @@ class Archive:
         now: dt.datetime,
     ) -> list[Acquisition]:
         rows = []
-        with self.session() as s:
+        with self.write_lock(), self.session() as s:
             for spec, ref, uid, frames in zip(specs, refs, uids, stored, strict=True):
                 acquired_at = spec.acquired_at or now
                 visit_id = None

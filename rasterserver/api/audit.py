@@ -120,7 +120,7 @@ _LINKS = AuditEventPatient.__table__
 
 def insert_records(archive: Archive, records: Sequence[AuditRecord]) -> None:
     """Insert the events and patient links of ``records`` in one committed transaction."""
-    with archive.engine.begin() as conn:
+    with archive.write_lock(), archive.engine.begin() as conn:
         ids = conn.execute(_EVENTS.insert().returning(_EVENTS.c.id, sort_by_parameter_order=True),
                            [r.event for r in records]).scalars().all()
         links = [{"patient_id": pid, "event_id": event_id}

@@ -25,6 +25,7 @@ from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import PseudonymKey
+from rasterserver.catalog.models import Patient
 from rasterserver.errors import InputError, NotFoundError
 
 PREFIX = "PS-"
@@ -70,6 +71,7 @@ class Pseudonymiser:
         self.archive = archive
         self._key = key
         self._reverse: dict[str, str] = {}
+        self._seen = 0  # the highest patient id in _reverse
         self._lock = threading.Lock()
 
     @property
@@ -125,23 +127,20 @@ class Pseudonymiser:
             raise NotFoundError("unknown pseudonym")
         with self._lock:
             found = self._reverse.get(pseudonym)
-        if found is not None:
-            return found
-        # a patient registered since the last look-up: recompute the table (a few ms per
-        # thousand patients, and only on a miss)
-        table: dict[str, str] = {}
-        offset, page = 0, 5000
-        while True:
-            batch = self._identifiers(offset, page)
-            table.update((self.pseudonym(i), i) for i in batch)
-            if len(batch) < page:
-                break
-            offset += page
-        with self._lock:
-            self._reverse = table
-        if pseudonym not in table:
+            if found is None:
+                # Patients are only ever added, so a miss needs only those registered since
+                # the last look-up: one indexed query, however many patients there are, and
+                # a stream of unknown pseudonyms cannot make the server rebuild its table.
+                for patient_id, identifier in self._patients_after(self._seen):
+                    self._reverse[self.pseudonym(identifier)] = identifier
+                    self._seen = patient_id
+                found = self._reverse.get(pseudonym)
+        if found is None:
             raise NotFoundError("unknown pseudonym")
-        return table[pseudonym]
+        return found
 
-    def _identifiers(self, offset: int, limit: int) -> list[str]:
-        return [p.identifier for p in self.archive.patients(limit=limit, offset=offset)]
+    def _patients_after(self, patient_id: int) -> list[tuple[int, str]]:
+        query = (select(Patient.id, Patient.identifier).where(Patient.id > patient_id)
+                 .order_by(Patient.id))
+        with self.archive.engine.connect() as conn:
+            return [(i, ident) for i, ident in conn.execute(query)]

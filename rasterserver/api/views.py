@@ -12,7 +12,7 @@ from rasterserver.api.deps import utc
 from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.api.roles import RESEARCHER
 from rasterserver.api.schemas import PatientOut, VisitOut
-from rasterserver.archive import AcquisitionInfo
+from rasterserver.archive import AcquisitionInfo, PatientInfo
 from rasterserver.catalog.models import Patient, Visit
 from rasterserver.errors import InputError
 
@@ -27,7 +27,8 @@ def resolve_patient(caller: Principal, given: str, pseudonyms: Pseudonymiser) ->
     return pseudonyms.identifier(given) if pseudonymised(caller) else given
 
 
-def patient_out(patient: Patient, caller: Principal, pseudonyms: Pseudonymiser) -> PatientOut:
+def patient_out(patient: Patient | PatientInfo, caller: Principal,
+                pseudonyms: Pseudonymiser) -> PatientOut:
     """The patient as ``caller`` may see it."""
     created = utc(patient.created_at)
     assert created is not None

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
 import sqlite3
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +45,9 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
     kwargs.setdefault("pool_pre_ping", True)
+    # fail in seconds, not minutes, when the server is unreachable: the HTTP API reads
+    # metadata on its event loop, which a hanging connect would stall
+    kwargs.setdefault("connect_args", {}).setdefault("connect_timeout", 10)
     return create_engine(parsed, **kwargs)
 
 
@@ -54,6 +62,52 @@ def _sqlite_pragmas(dbapi_conn: sqlite3.Connection, _record: object) -> None:
     # rereads index pages. 64 MB per connection, allocated only as used.
     cursor.execute("PRAGMA cache_size=-65536")
     cursor.close()
+
+
+class WriteLock:
+    """Serialises the writers of one SQLite catalogue across threads and processes.
+
+    SQLite admits one writer; another that finds the database locked waits in SQLite's busy
+    handler, which polls with sleeps growing to 100 ms. Two busy server processes writing
+    audit events turned that into tail latencies of a second. Writers that take this lock
+    first (a ``flock`` on ``<database>.lock``, plus a thread lock, since ``flock`` does not
+    exclude threads sharing the file) wait in the kernel instead and are woken the moment
+    it is free. For PostgreSQL, which locks rows, it does nothing.
+
+    Parameters
+    ----------
+    engine : sqlalchemy.Engine
+        The catalogue's engine.
+    """
+
+    def __init__(self, engine: Engine) -> None:
+        database = engine.url.database if engine.url.get_backend_name() == "sqlite" else None
+        self._path = (Path(database).with_name(Path(database).name + ".lock")
+                      if database and database != ":memory:" else None)
+        self._threads = threading.Lock()
+        self._fd: int | None = None
+
+    @contextmanager
+    def __call__(self) -> Iterator[None]:
+        """Hold the lock for the duration of the ``with`` block."""
+        if self._path is None:
+            yield
+            return
+        with self._threads:
+            if self._fd is None:
+                self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o600)
+            fcntl.flock(self._fd, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        """Close the lock file (the lock itself is released with each block)."""
+        with self._threads:
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
 
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:

@@ -118,3 +118,16 @@ def test_a_job_whose_process_is_gone_reports_failed(archive: Archive) -> None:
             runner.get("b" * 32)
     finally:
         runner.close()
+
+
+def test_pseudonyms_of_patients_registered_later_resolve(archive: Archive, monkeypatch) -> None:
+    monkeypatch.delenv("RASTERSERVER_PSEUDONYM_KEY", raising=False)
+    archive.add_patient("P-1")
+    names = Pseudonymiser(archive)
+    assert names.identifier(names.pseudonym("P-1")) == "P-1"
+    archive.add_patient("P-2")  # after the first look-up filled the table
+    assert names.identifier(names.pseudonym("P-2")) == "P-2"
+    for _ in range(3):
+        with pytest.raises(NotFoundError):
+            names.identifier("PS-" + "0" * 20)
+    assert names.identifier(names.pseudonym("P-1")) == "P-1"

@@ -213,10 +213,10 @@ def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypat
 def test_unexpected_errors_log_no_values(live_sqlite: LiveServer, monkeypatch, caplog) -> None:
     from rasterserver.archive import Archive
 
-    def broken(self, identifier, session=None):
+    def broken(self, identifier):
         raise RuntimeError(f"statement failed with parameters ({identifier!r})")
 
-    monkeypatch.setattr(Archive, "patient", broken)
+    monkeypatch.setattr(Archive, "patient_info", broken)
     caplog.set_level(logging.DEBUG)
     with live_sqlite.client("clinician") as c:
         response = c.get(f"/patients/{PATIENT_ID}")

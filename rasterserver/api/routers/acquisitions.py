@@ -34,6 +34,11 @@ from rasterserver.errors import InputError, NotFoundError
 
 router = protected_router("acquisitions")
 
+# The metadata reads (list, one acquisition) are ``async def``: each is one indexed query of
+# well under a millisecond, run on the event loop. As plain ``def`` FastAPI hands them to a
+# worker thread and back, and under 50 concurrent clients that hand-over cost more than the
+# query. Everything that reads pixels, writes or may take long stays in threads.
+
 Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
 FrameIndex = Annotated[int, Path(ge=0, le=MAX_OFFSET)]
 
@@ -49,7 +54,7 @@ def _parse_shape(text: str | None) -> tuple[int, int] | None:
 
 
 @router.get("/acquisitions", name="list_acquisitions", response_model=list[AcquisitionOut])
-def list_acquisitions(
+async def list_acquisitions(
     svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
     patient: Annotated[str | None, Query(max_length=64,
                                          description="Identifier (researchers: pseudonym).")]
@@ -116,7 +121,7 @@ def upload_acquisition(
 
 
 @router.get("/acquisitions/{uid}", name="get_acquisition", response_model=AcquisitionOut)
-def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep) -> Response:
+async def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep) -> Response:
     """One acquisition with its frames' metadata."""
     info = svc.archive.info(uid)
     note.touch(info.patient_id, info.uid)

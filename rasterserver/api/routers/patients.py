@@ -65,10 +65,11 @@ def add_patient(body: PatientIn, svc: ServicesDep, caller: CallerDep,
 
 
 @router.get("/patients/{patient}", name="get_patient", response_model=PatientOut)
-def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
+async def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
                 note: NoteDep) -> PatientOut:
     """One patient."""
-    row = svc.archive.patient(resolve_patient(caller, patient, svc.pseudonyms))
+    # async: one indexed read on the event loop, as the acquisitions' metadata reads
+    row = svc.archive.patient_info(resolve_patient(caller, patient, svc.pseudonyms))
     note.touch(row.id)
     return patient_out(row, caller, svc.pseudonyms)
 
