@@ -251,7 +251,10 @@ class Archive:
         Refuse to work on a catalogue that is not migrated to the current revision.
     connections : int, optional
         Catalogue connections kept open for reuse: as many as threads that use the archive
-        at once (the HTTP server's). By default SQLAlchemy's pool of 5.
+        at once (the HTTP server's). By default SQLAlchemy's pool of 5. Such a pool also
+        skips the liveness check (a round trip) before each use: after a database restart
+        the first use of each stale connection fails (the HTTP API answers 503) and the pool
+        replaces them all.
     """
 
     def __init__(
@@ -265,7 +268,8 @@ class Archive:
         self.settings = settings
         # Connections beyond the pool are closed when given back: a busy server would open
         # (and, on SQLite, set up) one per request. So the pool holds them all.
-        pool = {} if connections is None else {"pool_size": connections, "max_overflow": 4}
+        pool = {} if connections is None else {"pool_size": connections, "max_overflow": 4,
+                                               "pool_pre_ping": False}
         self.engine: Engine = make_engine(settings.database_url, **pool)
         #: Taken by the catalogue's frequent writers (ingest, the audit trail): see WriteLock.
         self.write_lock = WriteLock(self.engine)

@@ -5,6 +5,8 @@ rows; now it writes one event and a hundred (patient, event) links. The patients
 events already recorded are copied into the new table, so every query reads the links only;
 their ``audit_event.patient_id`` stays (the table is append-only) but nothing reads it.
 
+The links have no foreign keys, on purpose: see AuditEventPatient.
+
 Revision ID: 0004
 Revises: 0003
 Create Date: 2026-11-22 04:50:00.000000
@@ -41,14 +43,6 @@ def upgrade() -> None:
         "audit_event_patient",
         sa.Column("patient_id", sa.Integer(), nullable=False),
         sa.Column("event_id", sa.Integer(), nullable=False),
-        sa.ForeignKeyConstraint(
-            ["event_id"], ["audit_event.id"],
-            name=op.f("fk_audit_event_patient_event_id_audit_event"), ondelete="RESTRICT",
-        ),
-        sa.ForeignKeyConstraint(
-            ["patient_id"], ["patient.id"],
-            name=op.f("fk_audit_event_patient_patient_id_patient"), ondelete="RESTRICT",
-        ),
         sa.PrimaryKeyConstraint("patient_id", "event_id", name=op.f("pk_audit_event_patient")),
         sqlite_with_rowid=False,
     )

@@ -23,7 +23,7 @@ import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import DataError
+from sqlalchemy.exc import DataError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -59,6 +59,8 @@ _ERROR_DOCS = {
     409: "Conflicts with what is stored (e.g. exists already)",
     413: "Request body too large",
     422: "A parameter or field was refused",
+    503: "The catalogue or the audit trail is unavailable; nothing was done or returned. "
+         "Retry (see Retry-After)",
 }
 
 
@@ -75,7 +77,7 @@ def document_errors(document: dict[str, Any]) -> dict[str, Any]:
     for item in document.get("paths", {}).values():
         for method, operation in item.items():
             responses = operation.setdefault("responses", {})
-            codes = {"422"} & set(responses)
+            codes = ({"422"} & set(responses)) | {"503"}
             if operation.get("security"):
                 codes |= {"401", "403", "404"}
             if method == "post":
@@ -127,6 +129,16 @@ def install_handlers(app: FastAPI) -> None:
         # e.g. a NUL character PostgreSQL cannot store in text: bad input, not a server fault
         return JSONResponse(error_body(422, "a value cannot be stored (bad characters or "
                                        "out of range)", "InputError"), status_code=422)
+
+    @app.exception_handler(OperationalError)
+    async def _catalogue_unavailable(_request: Request, exc: OperationalError) -> JSONResponse:
+        # the database is down, restarting or unreachable, or a pooled connection went stale
+        # (the pool then replaces them): worth a retry, unlike a 500
+        log.error("catalogue unavailable: %s%s", type(exc.orig).__name__,
+                  " (connection invalidated)" if exc.connection_invalidated else "")
+        return JSONResponse(error_body(503, "the catalogue is unavailable; retry shortly",
+                                       "CatalogueUnavailable"),
+                            status_code=503, headers={"Retry-After": "1"})
 
     @app.exception_handler(Exception)
     async def _unexpected(_request: Request, exc: Exception) -> JSONResponse:
