@@ -199,8 +199,8 @@ def _with_frames(page: Select[Any]) -> Select[Any]:
 def _find_statement(patient: bool, since: bool, until: bool, kind: bool) -> Select[Any]:
     """The statement of :meth:`Archive.find` for one combination of filters."""
     page = select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
-    if patient:
-        page = page.where(Acquisition.patient_id == bindparam("patient_id"))
+    if patient:  # by identifier, in the same query: no round trip to look up the id first
+        page = page.where(Patient.identifier == bindparam("identifier"))
     if since:
         page = page.where(Acquisition.acquired_at >= bindparam("since"))
     if until:
@@ -871,17 +871,18 @@ class Archive:
         where building full :class:`Acquisition` objects would cost more than the query.
         Filters as for :meth:`acquisitions`.
         """
-        params: dict[str, Any] = {"since": since, "until": until, "kind": kind,
-                                  "limit": limit, "offset": offset}
+        params: dict[str, Any] = {"identifier": patient, "since": since, "until": until,
+                                  "kind": kind, "limit": limit, "offset": offset}
+        query = _find_statement(*(params[k] is not None
+                                  for k in ("identifier", "since", "until", "kind")))
         with self.engine.connect() as conn:
-            if patient is not None:
-                params["patient_id"] = conn.execute(_PATIENT_ID, {"identifier": patient}).scalar()
-                if params["patient_id"] is None:
-                    raise NotFoundError(
-                        "unknown patient: register it first with `rasterserver patient add`")
-            query = _find_statement(*(params.get(k) is not None
-                                      for k in ("patient_id", "since", "until", "kind")))
-            return _infos(conn.execute(query, params))
+            found = _infos(conn.execute(query, params))
+            # an empty page of an unknown patient is an error; one more query tells which
+            if not found and patient is not None and conn.execute(
+                    _PATIENT_ID, {"identifier": patient}).first() is None:
+                raise NotFoundError(
+                    "unknown patient: register it first with `rasterserver patient add`")
+        return found
 
     def info(self, uid: str) -> AcquisitionInfo:
         """The catalogue entry of acquisition ``uid`` (see :meth:`find`).
