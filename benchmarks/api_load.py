@@ -7,9 +7,9 @@
    thousand paths pre-generated here with a fixed seed and handed to wrk in a Lua script:
    one patient's acquisitions (up to 100), a date range (first page of 100), one
    acquisition's metadata, one patient (``--mix`` keeps one kind only). Every request is
-   authenticated and audited (one audit row per patient touched, committed before the
-   response). Reported: requests/s, wrk's latency percentiles, errors (HTTP error status or
-   socket error).
+   authenticated and audited (one audit event per request, linked to every patient it
+   touched, committed before the response). Reported: requests/s, wrk's latency
+   percentiles, errors (HTTP error status or socket error).
 2. Stations: ``--stations`` concurrent station accounts (default 20) each upload
    ``--uploads`` acquisitions of one 604x576 uint8 frame (a distinct random frame each),
    with asyncio + httpx clients in this process. Afterwards every upload must be in the
@@ -433,8 +433,9 @@ def main() -> None:
         f"Machine: {machine()}. Load average before the run: {load:.1f} (the machine was "
         "shared with other jobs; server and load generator ran on the same cores).\n\n"
         f"Server: `rasterserver serve --workers {args.workers}` on loopback; every request "
-        "authenticated (token digest look-up) and audited (one append-only row per patient "
-        "touched, committed before the response starts).\n\n"
+        "authenticated (token digest look-up) and audited (one append-only event per request, "
+        "linked to every patient it touched, committed before the response starts; concurrent "
+        "requests share the commit).\n\n"
         f"**Readers**: {args.acquisitions:,} acquisitions of {args.patients:,} patients "
         "catalogued. The load comes from `wrk` (a C program, in its own process on the same "
         "2 cores as the server; on average it used "
@@ -455,9 +456,11 @@ def main() -> None:
         "files by design and are left out).\n\n"
         "| catalogue | stored | errors | wall time | latency p50 / p99 (ms) | once, checksums "
         "equal | verify |\n|---|---:|---:|---:|---:|---|---|\n" + rows_up + "\n\n"
-        "Reading the numbers: each read costs a token look-up, the catalogue query (with "
-        "frames and patient), JSON for up to 100 acquisitions, and an audit transaction "
-        "(up to 100 rows, committed and, on SQLite, fsynced before the response starts). "
+        "Reading the numbers: each read costs a token look-up, one catalogue query (the page "
+        "joined to its frames and patients), JSON for up to 100 acquisitions, and its share "
+        "of a group-committed audit transaction (one event and up to 100 patient links, "
+        "fsynced before the response starts). On PostgreSQL the database server's own "
+        "processes also run on the same two cores. "
         f"The server's {args.workers} workers share the two cores with wrk (its share "
         "above) and with other jobs, so the throughput is "
         "CPU-bound and the tail latencies are mostly queueing in a closed loop of "
