@@ -227,13 +227,14 @@ def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:
             current = row[0]
             grouped.append((row, []))
         if row[10] is not None:  # an acquisition without frames has one row of NULLs
-            grouped[-1][1].append(FrameInfo(*row[10:]))
+            # _make: a named tuple straight from a sequence, without the generated __new__
+            grouped[-1][1].append(FrameInfo._make(row[10:]))
     utc = dt.UTC
     return [
         # uid, kind, patient id, identifier, station, calibration, time, operator, notes
-        AcquisitionInfo(r[1], r[2], r[3], r[4], r[5], r[6],
-                        r[7] if r[7].tzinfo else r[7].replace(tzinfo=utc), r[8], r[9],
-                        tuple(frames))
+        AcquisitionInfo._make((r[1], r[2], r[3], r[4], r[5], r[6],
+                               r[7] if r[7].tzinfo else r[7].replace(tzinfo=utc), r[8], r[9],
+                               tuple(frames)))
         for r, frames in grouped
     ]
 
