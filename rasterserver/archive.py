@@ -42,6 +42,7 @@ from rasterserver.catalog.models import (
     Acquisition,
     Calibration,
     Frame,
+    IngestKey,
     Patient,
     Raster,
     Station,
@@ -98,6 +99,9 @@ class AcquisitionSpec:
     acquired_at: dt.datetime | None = None
     operator: str = ""
     notes: str = ""
+    #: with ``source``: the idempotency key of :meth:`Archive.ingest_once`
+    idempotency_key: str | None = None
+    source: str = ""
 
 
 # Named tuples rather than frozen dataclasses: a list of a hundred acquisitions builds a
@@ -237,6 +241,28 @@ def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:
                                tuple(frames)))
         for r, frames in grouped
     ]
+
+
+def _fingerprint(spec: AcquisitionSpec, shape: tuple[int, int] | None, dtype: str | None,
+                 convert_color: bool) -> str:
+    """SHA-256 of an upload: every frame's bytes and role, and the metadata (not file names,
+    which a retry may change)."""
+    digest = hashlib.sha256()
+    for src in spec.frames:
+        data = src.data
+        if isinstance(data, np.ndarray):
+            digest.update(f"array {data.dtype.str} {data.shape}".encode())
+            data = np.ascontiguousarray(data).tobytes()
+        elif isinstance(data, Path):
+            data = data.read_bytes()
+        digest.update(hashlib.sha256(data).digest() + src.role.encode() + b"\0")
+    when = spec.acquired_at.isoformat() if spec.acquired_at else None
+    day = spec.visit_date.isoformat() if spec.visit_date else None
+    digest.update(canonical_json_sha256([
+        spec.patient, spec.kind, day, spec.station, spec.calibration_version, when,
+        spec.operator, spec.notes, list(shape) if shape else None, dtype, convert_color,
+    ]).encode())
+    return digest.hexdigest()
 
 
 class Archive:
@@ -626,6 +652,71 @@ class Archive:
             [spec], shape=shape, dtype=dtype, convert_color=convert_color
         )[0]
 
+    def ingest_once(
+        self,
+        frames: Sequence[FrameSource],
+        *,
+        source: str,
+        key: str,
+        patient: str | None,
+        shape: tuple[int, int] | None = None,
+        dtype: str | None = None,
+        convert_color: bool = False,
+        **metadata: Any,
+    ) -> tuple[Acquisition, bool]:
+        """:meth:`ingest` under an idempotency key: a retry does not store twice.
+
+        A station that lost the answer to an upload (a timeout, a dropped connection) sends
+        it again under the same key; the archive then returns what the first attempt stored.
+        Keys are scoped by ``source`` (the uploading account); the key is stored with the
+        acquisition in one transaction, so of two concurrent attempts only one commits.
+
+        Parameters
+        ----------
+        frames, patient, shape, dtype, convert_color, **metadata
+            As for :meth:`ingest`.
+        source : str
+            Who is uploading (the account name; ``cli`` for the command line).
+        key : str
+            The client's key for this upload, 1 to 100 characters.
+
+        Returns
+        -------
+        (Acquisition, bool)
+            The acquisition, and whether an earlier call with this key had stored it.
+
+        Raises
+        ------
+        ConflictError
+            The key was used before for a different upload (other frames or metadata).
+        """
+        if not key or len(key) > 100 or not source or len(source) > 100:
+            raise InputError("an idempotency key has 1 to 100 characters")
+        spec = AcquisitionSpec(frames=tuple(frames), patient=patient, idempotency_key=key,
+                               source=source, **metadata)
+        fingerprint = _fingerprint(spec, shape, dtype, convert_color)
+        if (earlier := self._keyed(source, key, fingerprint)) is not None:
+            return earlier, True
+        try:
+            return self.ingest_many([spec], shape=shape, dtype=dtype,
+                                    convert_color=convert_color)[0], False
+        except SQLIntegrityError:
+            # lost a race with a concurrent attempt under the same key, which committed
+            if (earlier := self._keyed(source, key, fingerprint)) is not None:
+                return earlier, True
+            raise
+
+    def _keyed(self, source: str, key: str, fingerprint: str) -> Acquisition | None:
+        with self.session() as s:
+            row = s.get(IngestKey, (source, key))
+            if row is None:
+                return None
+            if row.request_sha256 != fingerprint:
+                raise ConflictError(
+                    f"idempotency key {key!r} was used before for a different upload")
+            uid = s.scalar(select(Acquisition.uid).where(Acquisition.id == row.acquisition_id))
+        return self.acquisition(uid)
+
     def ingest_many(
         self,
         specs: Sequence[AcquisitionSpec],
@@ -685,7 +776,9 @@ class Archive:
                     stored = list(pool.map(write, range(len(specs))))
             else:
                 stored = [write(i) for i in range(len(specs))]
-            acquisitions = self._commit_rows(specs, refs, uids, stored, now)
+            fingerprints = [_fingerprint(spec, shape, dtype, convert_color)
+                            if spec.idempotency_key is not None else "" for spec in specs]
+            acquisitions = self._commit_rows(specs, refs, uids, stored, fingerprints, now)
         except BaseException:
             # No row made it: the files would only be orphans, so take them back. They were
             # never part of the archive, so this is no breach of write-once.
@@ -724,11 +817,13 @@ class Archive:
         refs: Sequence[_References],
         uids: Sequence[str],
         stored: Sequence[list[StoredFrame]],
+        fingerprints: Sequence[str],
         now: dt.datetime,
     ) -> list[Acquisition]:
         rows = []
         with self.write_lock(), self.session() as s:
-            for spec, ref, uid, frames in zip(specs, refs, uids, stored, strict=True):
+            for spec, ref, uid, frames, fingerprint in zip(specs, refs, uids, stored,
+                                                           fingerprints, strict=True):
                 acquired_at = spec.acquired_at or now
                 visit_id = None
                 if ref.patient_id is not None:
@@ -760,6 +855,11 @@ class Archive:
                 ]
                 s.add(acq)
                 rows.append(acq)
+                if spec.idempotency_key is not None:
+                    s.flush()  # the acquisition's id, for the key
+                    s.add(IngestKey(source=spec.source, key=spec.idempotency_key,
+                                    acquisition_id=acq.id,
+                                    request_sha256=fingerprint))
         return rows
 
     def _decode(

@@ -342,3 +342,42 @@ def test_find_returns_the_same_acquisitions_as_summaries(archive: Archive) -> No
         a.uid for a in archive.acquisitions(patient="P002")
     ]
     assert len(archive.find(limit=2, offset=4)) == 1
+
+
+def test_ingest_once_stores_a_retried_upload_once(archive: Archive) -> None:
+    import threading
+
+    frame = _frame(5, shape=(30, 20))
+    first, replayed = archive.ingest_once([FrameSource(frame, name="a")], source="cam-1",
+                                          key="k1", patient="P001")
+    assert not replayed
+    again, replayed = archive.ingest_once([FrameSource(frame, name="renamed")], source="cam-1",
+                                          key="k1", patient="P001")
+    assert replayed and again.uid == first.uid
+    # another source may use the same key for its own upload
+    own, replayed = archive.ingest_once([FrameSource(frame)], source="cam-2", key="k1",
+                                        patient="P001")
+    assert not replayed and own.uid != first.uid
+    with pytest.raises(ConflictError, match="different upload"):
+        archive.ingest_once([FrameSource(frame)], source="cam-1", key="k1", patient="P001",
+                            notes="other metadata")
+    with pytest.raises(InputError):
+        archive.ingest_once([FrameSource(frame)], source="cam-1", key="", patient="P001")
+    # concurrent attempts under one key: one commits, the others get its acquisition
+    results: list[tuple[str, bool]] = []
+    start = threading.Barrier(4)
+
+    def attempt() -> None:
+        start.wait()
+        acq, was = archive.ingest_once([FrameSource(_frame(9, shape=(30, 20)))], source="cam-1",
+                                       key="k2", patient="P001")
+        results.append((acq.uid, was))
+
+    threads = [threading.Thread(target=attempt) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len({uid for uid, _ in results}) == 1 and sum(not was for _, was in results) == 1
+    assert len(archive.acquisitions(limit=100)) == 3
+    assert archive.verify().ok  # no orphaned file from the attempts that lost

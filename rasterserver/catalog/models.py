@@ -204,6 +204,26 @@ class Frame(Base):
     acquisition: Mapped[Acquisition] = relationship(back_populates="frames")
 
 
+class IngestKey(Base):
+    """An idempotency key under which a source (a station's account, the CLI) stored an
+    acquisition: a retried upload finds it here instead of being stored twice.
+
+    Written in the same transaction as the acquisition, so a key never names a missing
+    acquisition, and of two concurrent uploads under one key only one commits.
+    """
+
+    __tablename__ = "ingest_key"
+
+    source: Mapped[str] = mapped_column(String(100), primary_key=True)
+    key: Mapped[str] = mapped_column(String(100), primary_key=True)
+    acquisition_id: Mapped[int] = mapped_column(
+        ForeignKey("acquisition.id", ondelete="CASCADE")
+    )
+    # of the frames' bytes and the metadata: the same key for another upload is refused
+    request_sha256: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+
+
 @event.listens_for(Session, "before_flush")
 def _calibrations_are_immutable(session: Session, _ctx: object, _instances: object) -> None:
     """Refuse any change to a stored calibration: a recalibration is a new version."""

@@ -62,6 +62,10 @@ def ingest(
     convert_color: Annotated[
         bool, typer.Option(help="Convert colour images to grey instead of refusing them.")
     ] = False,
+    idempotency_key: Annotated[str | None, typer.Option(
+        help="A key for this upload: run again with the same key and frames (a retry), it "
+             "reports the acquisition stored the first time instead of storing it twice; "
+             "with other frames or metadata it is refused (exit 4).")] = None,
 ) -> None:
     """Validate frames and store them as one acquisition (write-once HDF5 + catalogue row).
 
@@ -77,22 +81,27 @@ def ingest(
         FrameSource(path, role=r, name=path.name)
         for path, r in zip(files, roles, strict=True)
     ]
+    options = {
+        "patient": patient,
+        "kind": kind,
+        "station": station,
+        "calibration_version": calibration,
+        "visit_date": parse_date(visit_date, "--visit-date"),
+        "acquired_at": parse_datetime(acquired_at, "--acquired-at"),
+        "operator": operator,
+        "notes": notes,
+        "shape": _parse_shape(shape),
+        "dtype": dtype,
+        "convert_color": convert_color,
+    }
     with open_archive(ctx) as archive:
-        acq = archive.ingest(
-            sources,
-            patient=patient,
-            kind=kind,
-            station=station,
-            calibration_version=calibration,
-            visit_date=parse_date(visit_date, "--visit-date"),
-            acquired_at=parse_datetime(acquired_at, "--acquired-at"),
-            operator=operator,
-            notes=notes,
-            shape=_parse_shape(shape),
-            dtype=dtype,
-            convert_color=convert_color,
-        )
-    typer.echo(f"acquisition {acq.uid}: {len(acq.frames)} frame(s) stored")
+        if idempotency_key is None:
+            acq, replayed = archive.ingest(sources, **options), False
+        else:
+            acq, replayed = archive.ingest_once(sources, source="cli", key=idempotency_key,
+                                                **options)
+    done = "already stored under this key" if replayed else "stored"
+    typer.echo(f"acquisition {acq.uid}: {len(acq.frames)} frame(s) {done}")
 
 
 def register(app: typer.Typer) -> None:

@@ -249,3 +249,23 @@ def test_patient_and_visit_filters(live: LiveServer) -> None:
     with live.client("researcher") as r:
         assert r.get("/patients", params={"identifier_prefix": "MRN"}).status_code == 422
         assert len(r.get("/patients", params={"sex": "female"}).json()) == 2
+
+
+def test_a_retried_upload_with_an_idempotency_key_is_stored_once(live: LiveServer) -> None:
+    frames = [("files", ("a.npy", npy_bytes(frame(1))))]
+    fields = {"patient": PATIENT_ID, "station": "clinic-1", "acquired_at": "2025-03-01T10:00:00Z"}
+    with live.client("station") as c:
+        key = {"Idempotency-Key": "cam-3/2025-03-01/0001"}
+        first = c.post("/acquisitions", files=frames, data=fields, headers=key)
+        again = c.post("/acquisitions", files=frames, data=fields, headers=key)
+        other = c.post("/acquisitions", files=[("files", ("a.npy", npy_bytes(frame(2))))],
+                       data=fields, headers=key)
+        unkeyed = c.post("/acquisitions", files=frames, data=fields)
+    assert first.status_code == 201 and "idempotent-replayed" not in first.headers
+    assert again.status_code == 200 and again.headers["idempotent-replayed"] == "true"
+    assert again.json() == first.json()
+    assert other.status_code == 409 and other.json()["error"] == "ConflictError"
+    assert unkeyed.status_code == 201 and unkeyed.json()["uid"] != first.json()["uid"]
+    with live.archive() as archive:
+        assert len(archive.find(patient=PATIENT_ID)) == 2  # the keyed one once, the unkeyed
+        assert archive.verify().ok

@@ -117,3 +117,23 @@ def test_verify_checks_stored_results_too(
     derived[0].unlink()
     assert cli("verify") == 5
     assert "missing" in capsys.readouterr().out
+
+
+def test_ingest_with_an_idempotency_key_stores_a_retry_once(
+    cli, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cli("patient", "add", "P7")
+    np.save(tmp_path / "f.npy", np.random.default_rng(3).integers(0, 256, (32, 32), np.uint8))
+    np.save(tmp_path / "g.npy", np.random.default_rng(4).integers(0, 256, (32, 32), np.uint8))
+    args = ("ingest", str(tmp_path / "f.npy"), "--patient", "P7", "--idempotency-key", "run-1")
+    capsys.readouterr()
+    assert cli(*args) == 0
+    first = capsys.readouterr().out
+    assert cli(*args) == 0
+    again = capsys.readouterr().out
+    assert first.split()[1] == again.split()[1] and "already stored under this key" in again
+    assert cli("ingest", str(tmp_path / "g.npy"), "--patient", "P7",
+               "--idempotency-key", "run-1") == 4
+    assert "different upload" in capsys.readouterr().err
+    assert cli("list", "--json") == 0
+    assert len(capsys.readouterr().out.splitlines()) == 1

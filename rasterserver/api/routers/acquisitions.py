@@ -8,7 +8,7 @@ from typing import Annotated
 
 import cv2
 import numpy as np
-from fastapi import File, Form, Path, Query, Request, UploadFile
+from fastapi import File, Form, Header, Path, Query, Request, UploadFile
 from fastapi.responses import Response
 
 from rasterserver.api.deps import (
@@ -74,9 +74,13 @@ async def list_acquisitions(
 
 
 @router.post("/acquisitions", name="upload_acquisition", response_model=AcquisitionOut,
-             status_code=201, responses={413: {"description": "Upload too large"},
-                                         422: {"description": "A frame or field was refused; "
-                                                            "nothing was stored"}})
+             status_code=201, responses={
+                 200: {"model": AcquisitionOut,
+                       "description": "Stored before under this Idempotency-Key (a retry): "
+                                      "the acquisition that was stored then"},
+                 409: {"description": "The Idempotency-Key was used for a different upload"},
+                 413: {"description": "Upload too large"},
+                 422: {"description": "A frame or field was refused; nothing was stored"}})
 def upload_acquisition(
     svc: ServicesDep, caller: CallerDep, note: NoteDep,
     files: Annotated[list[UploadFile], File(description="Frames: PNG, TIFF, NPY or raw.")],
@@ -94,11 +98,16 @@ def upload_acquisition(
     = None,
     dtype: Annotated[str | None, Form(max_length=16)] = None,
     convert_color: Annotated[bool, Form()] = False,
+    idempotency_key: Annotated[str | None, Header(
+        min_length=1, max_length=100,
+        description="The client's key for this upload. Sent again with the same upload (a "
+                    "retry after a timeout or a lost connection), it answers 200 with what "
+                    "the first attempt stored instead of storing it twice.")] = None,
 ) -> Response:
     """Store one acquisition of one or several frames, validated like ``rasterserver ingest``.
 
     Every frame is decoded and checked before anything is written: one refused frame and
-    nothing is stored.
+    nothing is stored. With an ``Idempotency-Key`` a retried upload is stored once.
     """
     if kind not in ACQUISITION_KINDS:
         raise InputError(f"kind must be one of {', '.join(ACQUISITION_KINDS)}")
@@ -109,15 +118,24 @@ def upload_acquisition(
         raise InputError(f"{len(files)} files but {len(names)} roles")
     sources = [FrameSource(f.file.read(), role=r, name=f.filename or f"frame-{k}")
                for k, (f, r) in enumerate(zip(files, names, strict=True))]
-    acq = svc.archive.ingest(
-        sources, patient=patient, kind=kind, station=station,
-        calibration_version=calibration_version, visit_date=visit_date,
-        acquired_at=utc(acquired_at), operator=operator, notes=notes,
-        shape=_parse_shape(shape), dtype=dtype, convert_color=convert_color)
+    options = {"patient": patient, "kind": kind, "station": station,
+               "calibration_version": calibration_version, "visit_date": visit_date,
+               "acquired_at": utc(acquired_at), "operator": operator, "notes": notes,
+               "shape": _parse_shape(shape), "dtype": dtype, "convert_color": convert_color}
+    replayed = False
+    if idempotency_key is None:
+        acq = svc.archive.ingest(sources, **options)
+    else:
+        acq, replayed = svc.archive.ingest_once(sources, source=caller.name,
+                                                key=idempotency_key, **options)
     note.touch(acq.patient_id, acq.uid)
     # read back as a reader would see it
-    return json_response(acquisition_body(svc.archive.info(acq.uid), caller, svc.pseudonyms),
-                         status_code=201)
+    response = json_response(acquisition_body(svc.archive.info(acq.uid), caller,
+                                              svc.pseudonyms),
+                             status_code=200 if replayed else 201)
+    if replayed:
+        response.headers["Idempotent-Replayed"] = "true"
+    return response
 
 
 @router.get("/acquisitions/{uid}", name="get_acquisition", response_model=AcquisitionOut)
