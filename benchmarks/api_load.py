@@ -263,13 +263,14 @@ def _readers(url: str, token: str, args: argparse.Namespace, paths: list[str],
 
 
 async def _stations(url: str, tokens: list[str], uploads: int,
-                    patients: list[str]) -> tuple[dict[str, str], list[float], int]:
+                    patients: list[str]) -> tuple[dict[str, str], list[float], int, int]:
     stored: dict[str, str] = {}  # uid -> sha256 of the frame sent
     latencies: list[float] = []
     errors = 0
+    replays = 0  # retries (same Idempotency-Key) answered 200 with the first attempt's uid
 
     async def station(k: int, token: str) -> None:
-        nonlocal errors
+        nonlocal errors, replays
         rng = np.random.default_rng(1000 + k)
         async with httpx.AsyncClient(base_url=url, timeout=300,
                                      headers={"Authorization": f"Bearer {token}"}) as client:
@@ -277,11 +278,12 @@ async def _stations(url: str, tokens: list[str], uploads: int,
                 image = rng.integers(0, 256, (604, 576), dtype=np.uint8)
                 buffer = io.BytesIO()
                 np.save(buffer, image, allow_pickle=False)
+                request = {"files": [("files", (f"s{k}-{i}.npy", buffer.getvalue()))],
+                           "data": {"patient": patients[(k * uploads + i) % len(patients)]},
+                           "headers": {"Idempotency-Key": f"station-{k}/{i}"}}
                 t = time.perf_counter()
                 try:
-                    response = await client.post(
-                        "/acquisitions", files=[("files", (f"s{k}-{i}.npy", buffer.getvalue()))],
-                        data={"patient": patients[(k * uploads + i) % len(patients)]})
+                    response = await client.post("/acquisitions", **request)
                 except httpx.HTTPError:
                     errors += 1
                     continue
@@ -293,9 +295,20 @@ async def _stations(url: str, tokens: list[str], uploads: int,
                 if uid in stored:
                     errors += 1
                 stored[uid] = frame_sha256(image)
+                if i % 5 == 4:
+                    # as a station does that lost the answer: the same upload, the same key
+                    try:
+                        retry = await client.post("/acquisitions", **request)
+                    except httpx.HTTPError:
+                        errors += 1
+                        continue
+                    if retry.status_code == 200 and retry.json()["uid"] == uid:
+                        replays += 1
+                    else:
+                        errors += 1
 
     await asyncio.gather(*(station(k, t) for k, t in enumerate(tokens)))
-    return stored, latencies, errors
+    return stored, latencies, errors, replays
 
 
 def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
@@ -333,7 +346,7 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
                     print("reader failures (sample, after the run):", *bad, sep="\n  ",
                           flush=True)
                 t = time.perf_counter()
-                stored, up_lat, up_errors = asyncio.run(
+                stored, up_lat, up_errors, replays = asyncio.run(
                     _stations(base, stations, args.uploads, patients))
                 up_wall = time.perf_counter() - t
             finally:
@@ -358,7 +371,8 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
     return {
         "backend": backend, "fill": fill, **readers, "composition": composition,
         "uploads_expected": expected,
-        "uploads_ok": len(stored), "upload_errors": up_errors,
+        "uploads_ok": len(stored), "upload_errors": up_errors, "replays": replays,
+        "retries": args.stations * (args.uploads // 5),
         "stored_once": len(rows) == len(stored) == len(found),
         "checksums_match": all(found.get(u) == sha for u, sha in stored.items()),
         # the bulk-inserted rows have no files by design ("missing"); anything about an
@@ -415,7 +429,8 @@ def main() -> None:
         f"{_ms(r['p90'])} | {_ms(r['p95'])} | {_ms(r['p99'])} | {_ms(r['p999'])} | "
         f"{_ms(r['max'])} | {errors(r)} |" for r in results)
     rows_up = "\n".join(
-        f"| {r['backend']} | {r['uploads_ok']} / {r['uploads_expected']} | {r['upload_errors']} "
+        f"| {r['backend']} | {r['uploads_ok']} / {r['uploads_expected']} | "
+        f"{r['replays']} / {r['retries']} | {r['upload_errors']} "
         f"| {r['upload_wall']:.1f} s ({r['uploads_ok'] / r['upload_wall']:.1f}/s) | "
         f"{r['upload_p50']:.0f} / {r['upload_p99']:.0f} | "
         f"{'yes' if r['stored_once'] and r['checksums_match'] else 'NO'} | "
@@ -449,13 +464,16 @@ def main() -> None:
         "| catalogue | requests | req/s | p50 | p90 | p95 | p99 | p99.9 | max | errors |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n" + rows_read + "\n\n"
         f"**Stations**: {args.stations} concurrent station accounts, {args.uploads} uploads "
-        "each of one 604x576 uint8 frame (NPY, multipart; asyncio + httpx clients). Checked "
+        "each of one 604x576 uint8 frame (NPY, multipart; asyncio + httpx clients), each with "
+        "an `Idempotency-Key`; every fifth upload is sent a second time with the same key, "
+        "as a station does that lost the answer (retried: answered 200 with the first "
+        "attempt's acquisition). Checked "
         "afterwards: every upload in the catalogue exactly once with the SHA-256 of the frame "
         "sent, and `Archive.verify()` re-hashing every stored frame (clean = no problem with "
         "an upload and no orphaned, temporary or stray file; the bulk-inserted rows have no "
         "files by design and are left out).\n\n"
-        "| catalogue | stored | errors | wall time | latency p50 / p99 (ms) | once, checksums "
-        "equal | verify |\n|---|---:|---:|---:|---:|---|---|\n" + rows_up + "\n\n"
+        "| catalogue | stored | retried | errors | wall time | latency p50 / p99 (ms) | once, "
+        "checksums equal | verify |\n|---|---:|---:|---:|---:|---:|---|---|\n" + rows_up + "\n\n"
         "Reading the numbers: each read costs a token look-up, one catalogue query (the page "
         "joined to its frames and patients), JSON for up to 100 acquisitions, and its share "
         "of a group-committed audit transaction (one event and up to 100 patient links, "
