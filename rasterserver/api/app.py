@@ -22,12 +22,14 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 import anyio
 from fastapi import FastAPI
+from sqlalchemy import select
 
 from rasterserver import __version__
 from rasterserver.api.audit import RequestMiddleware, audit_writer
@@ -35,7 +37,9 @@ from rasterserver.api.errors import LimitsMiddleware, install_handlers
 from rasterserver.api.jobs import JobRunner
 from rasterserver.api.metrics import Metrics
 from rasterserver.api.pseudonym import Pseudonymiser
+from rasterserver.api.roles import RESEARCHER
 from rasterserver.archive import Archive
+from rasterserver.catalog.auth_models import ApiAccount
 from rasterserver.config import Settings
 from rasterserver.pipeline import Pipeline
 
@@ -91,6 +95,20 @@ class Services:
         self.metrics = Metrics()
         self.audit = audit_writer(self.archive)
 
+    def has_researchers(self) -> bool:
+        """Whether any account has the researcher role (whose requests use pseudonyms)."""
+        with self.archive.engine.connect() as conn:
+            return conn.execute(select(ApiAccount.id).where(ApiAccount.role == RESEARCHER)
+                                .limit(1)).first() is not None
+
+    def warm_pseudonyms(self) -> None:
+        """Fill the pseudonym table; a failure only means the first look-up will do it."""
+        try:
+            self.pseudonyms.warm()
+        except Exception as exc:  # best effort, in a background thread
+            logging.getLogger(__name__).warning("pseudonym table not prepared: %s",
+                                                type(exc).__name__)
+
     def close(self) -> None:
         """Stop the job threads, commit queued audit rows, release the catalogue."""
         self.jobs.close()
@@ -141,6 +159,9 @@ def create_app(settings: Settings, api: ApiSettings | None = None) -> FastAPI:
         gc.collect()
         gc.freeze()
         anyio.to_thread.current_default_thread_limiter().total_tokens = api.threads
+        if services.has_researchers():
+            threading.Thread(target=services.warm_pseudonyms, name="pseudonyms",
+                             daemon=True).start()
         try:
             yield
         finally:

@@ -128,16 +128,25 @@ class Pseudonymiser:
         with self._lock:
             found = self._reverse.get(pseudonym)
             if found is None:
-                # Patients are only ever added, so a miss needs only those registered since
-                # the last look-up: one indexed query, however many patients there are, and
-                # a stream of unknown pseudonyms cannot make the server rebuild its table.
-                for patient_id, identifier in self._patients_after(self._seen):
-                    self._reverse[self.pseudonym(identifier)] = identifier
-                    self._seen = patient_id
+                self._catch_up()
                 found = self._reverse.get(pseudonym)
         if found is None:
             raise NotFoundError("unknown pseudonym")
         return found
+
+    def warm(self) -> None:
+        """Fill the reverse table now (the server does it in the background at start-up,
+        so that the first researcher's request does not wait for every patient's HMAC)."""
+        with self._lock:
+            self._catch_up()
+
+    def _catch_up(self) -> None:
+        # Patients are only ever added, so a miss needs only those registered since the
+        # last look-up: one indexed query, however many patients there are, and a stream
+        # of unknown pseudonyms cannot make the server rebuild its table.
+        for patient_id, identifier in self._patients_after(self._seen):
+            self._reverse[self.pseudonym(identifier)] = identifier
+            self._seen = patient_id
 
     def _patients_after(self, patient_id: int) -> list[tuple[int, str]]:
         query = (select(Patient.id, Patient.identifier).where(Patient.id > patient_id)

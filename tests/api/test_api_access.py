@@ -131,3 +131,15 @@ def test_pseudonyms_of_patients_registered_later_resolve(archive: Archive, monke
         with pytest.raises(NotFoundError):
             names.identifier("PS-" + "0" * 20)
     assert names.identifier(names.pseudonym("P-1")) == "P-1"
+
+
+def test_warming_fills_the_table_before_the_first_look_up(archive: Archive,
+                                                          monkeypatch) -> None:
+    monkeypatch.delenv("RASTERSERVER_PSEUDONYM_KEY", raising=False)
+    for i in range(20):
+        archive.add_patient(f"P-{i}")
+    names = Pseudonymiser(archive)
+    names.warm()
+    calls = []
+    monkeypatch.setattr(names, "_patients_after", lambda after: calls.append(after) or [])
+    assert names.identifier(names.pseudonym("P-7")) == "P-7" and calls == []
