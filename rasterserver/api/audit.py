@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
-import json
 import logging
 import secrets
 import time
@@ -30,6 +29,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from rasterserver.api.audit_writer import AuditWriter
 from rasterserver.api.auth import Principal
+from rasterserver.api.errors import send_error, traceback_without_values
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import AuditEvent, AuditEventPatient
 from rasterserver.catalog.models import Patient
@@ -203,18 +203,12 @@ class RequestMiddleware:
                         await asyncio.wrap_future(self.services.audit.submit(record))
                     except Exception as exc:
                         # fail closed: no data without its audit row
-                        from rasterserver.api.errors import traceback_without_values
-
                         log.error("audit row of request %s not written: %s\n%s",
                                   note.request_id, type(exc).__name__,
                                   traceback_without_values(exc))
                         replaced = True
-                        body = json.dumps({"detail": "audit trail unavailable",
-                                           "error": "AuditUnavailable"}).encode()
-                        await send({"type": "http.response.start", "status": 503,
-                                    "headers": [(b"content-type", b"application/json"),
-                                                (b"content-length", str(len(body)).encode())]})
-                        await send({"type": "http.response.body", "body": body})
+                        await send_error(send, 503, "audit trail unavailable",
+                                         "AuditUnavailable")
                         return
                 message.setdefault("headers", [])
                 message["headers"] = [*message["headers"],
@@ -234,16 +228,11 @@ class RequestMiddleware:
         except Exception as exc:
             # Answered and audited here, and not re-raised: the server would log the
             # exception's message, and a database error's message quotes patient data.
-            from rasterserver.api.errors import error_body, traceback_without_values
-
             log.error("unexpected %s while handling a request\n%s", type(exc).__name__,
                       traceback_without_values(exc))
             if not started_response:
-                body = json.dumps(error_body(500, "internal error", "InternalError")).encode()
-                await send_tracked({"type": "http.response.start", "status": 500,
-                                    "headers": [(b"content-type", b"application/json"),
-                                                (b"content-length", str(len(body)).encode())]})
-                await send_tracked({"type": "http.response.body", "body": body})
+                # through send_tracked, so that the 500 is audited like any answer
+                await send_error(send_tracked, 500, "internal error", "InternalError")
 
 
 def audit_events(

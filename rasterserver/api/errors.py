@@ -51,6 +51,19 @@ def error_body(status: int, detail: object, kind: str) -> dict[str, object]:
     return {"detail": detail, "error": kind, "status": status}
 
 
+async def send_error(send: Send, status: int, detail: str, kind: str, *,
+                     close: bool = False) -> None:
+    """Answer on a raw ASGI ``send`` with the JSON error body: for the middlewares, which
+    answer outside FastAPI's exception handlers. ``close`` ends the connection too."""
+    body = json.dumps(error_body(status, detail, kind)).encode()
+    headers = [(b"content-type", b"application/json"),
+               (b"content-length", str(len(body)).encode())]
+    if close:
+        headers.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})
+
+
 _ERROR_DOCS = {
     400: "The body could not be parsed (e.g. not UTF-8), or a bad Content-Length",
     401: "No or invalid token",
@@ -180,12 +193,7 @@ class LimitsMiddleware:
             await send(message)
 
         async def refuse(status: int, detail: str, kind: str) -> None:
-            body = json.dumps(error_body(status, detail, kind)).encode()
-            await send({"type": "http.response.start", "status": status,
-                        "headers": [(b"content-type", b"application/json"),
-                                    (b"content-length", str(len(body)).encode()),
-                                    (b"connection", b"close")]})
-            await send({"type": "http.response.body", "body": body})
+            await send_error(send, status, detail, kind, close=True)
 
         too_big = f"request body over {self.max_body_bytes} bytes"
         for name, value in scope.get("headers", []):
