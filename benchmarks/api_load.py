@@ -56,49 +56,10 @@ from rasterserver.store.hashing import frame_sha256
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def _fresh_pg(admin_url: str) -> str:
-    """Create an empty PostgreSQL database next to ``admin_url``'s and return its URL."""
-    import uuid
-
-    from sqlalchemy import text
-    from sqlalchemy.engine import make_url
-
-    from rasterserver.catalog.database import make_engine
-
-    name = f"rs_bench_{uuid.uuid4().hex[:8]}"
-    engine = make_engine(admin_url, isolation_level="AUTOCOMMIT")
-    with engine.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    engine.dispose()
-    return make_url(admin_url).set(database=name).render_as_string(hide_password=False)
-
-
-def _drop_pg(admin_url: str, url: str) -> None:
-    """Drop the database made by :func:`_fresh_pg`."""
-    from sqlalchemy import text
-    from sqlalchemy.engine import make_url
-
-    from rasterserver.catalog.database import make_engine
-
-    engine = make_engine(admin_url, isolation_level="AUTOCOMMIT")
-    with engine.connect() as conn:
-        conn.execute(text(f'DROP DATABASE IF EXISTS "{make_url(url).database}" WITH (FORCE)'))
-    engine.dispose()
-
-
-try:
-    import ingest_rate  # noqa: F401  (catalog_queries imports its PostgreSQL helpers)
-except ImportError:
-    # ingest_rate may not import (it needs helpers of its own); catalog_queries only wants
-    # the two PostgreSQL helpers from it, so hand it ours
-    import types
-
-    _stub = types.ModuleType("ingest_rate")
-    _stub._fresh_pg, _stub._drop_pg = _fresh_pg, _drop_pg  # type: ignore[attr-defined]
-    sys.modules["ingest_rate"] = _stub
-
-from _machine import machine, write_section  # noqa: E402
-from catalog_queries import T0, populate  # noqa: E402
+# the scratch PostgreSQL databases of the other benchmarks
+from _machine import machine, write_section
+from catalog_queries import T0, populate
+from ingest_rate import _drop_pg, _fresh_pg
 
 
 def _free_port() -> int:

@@ -6,13 +6,16 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Annotated
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response
 
 from rasterserver.api.audit import AuditNote, note_of
 from rasterserver.api.auth import Principal, authorize
 
 if TYPE_CHECKING:
     from rasterserver.api.app import Services
+
+#: An acquisition's uid as a path parameter.
+Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
 
 MAX_PAGE = 1000
 # SQLite integers are 64-bit; a bound well inside keeps absurd offsets a 422, not a crash

@@ -17,6 +17,7 @@ from rasterserver.api.deps import (
     NoteDep,
     PageDep,
     ServicesDep,
+    Uid,
     not_modified,
     protected_router,
     utc,
@@ -39,7 +40,6 @@ router = protected_router("acquisitions")
 # worker thread and back, and under 50 concurrent clients that hand-over cost more than the
 # query. Everything that reads pixels, writes or may take long stays in threads.
 
-Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
 FrameIndex = Annotated[int, Path(ge=0, le=MAX_OFFSET)]
 
 

@@ -13,6 +13,7 @@ from rasterserver.api.deps import (
     NoteDep,
     PageDep,
     ServicesDep,
+    Uid,
     not_modified,
     protected_router,
     utc,
@@ -24,7 +25,6 @@ from rasterserver.export import ExportFormat, ExportWhat, select_export
 
 router = protected_router("results")
 
-Uid = Annotated[str, Path(max_length=32, description="Acquisition uid.")]
 Plugin = Annotated[str | None, Query(max_length=100, description="Only this plugin's.")]
 
 
