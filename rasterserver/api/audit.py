@@ -27,6 +27,7 @@ from fastapi import Request
 from sqlalchemy import select, text
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from rasterserver.api.audit_index import patient_events
 from rasterserver.api.audit_writer import AuditWriter
 from rasterserver.api.auth import Principal
 from rasterserver.api.errors import send_error, traceback_without_values
@@ -252,10 +253,7 @@ def audit_events(
     """
     query = select(AuditEvent)
     if patient is not None:
-        query = query.where(AuditEvent.id.in_(
-            select(AuditEventPatient.event_id).join(
-                Patient, Patient.id == AuditEventPatient.patient_id)
-            .where(Patient.identifier == patient)))
+        query = query.where(AuditEvent.id.in_(patient_events(patient)))
     if actor is not None:
         query = query.where(AuditEvent.actor == actor)
     if since is not None:

@@ -75,7 +75,7 @@ class AuditEvent(Base):
 
     The patients whose data the request touched are :class:`AuditEventPatient` rows: a list
     of a hundred acquisitions is one event and a hundred two-integer links, not a hundred
-    copies of the event. "Who saw patient X" is one range scan of that table's key.
+    copies of the event. "Who saw patient X" is one range scan of :class:`AuditPatientIndex`.
     """
 
     __tablename__ = "audit_event"
@@ -105,6 +105,13 @@ class AuditEvent(Base):
 class AuditEventPatient(Base):
     """A patient whose data an :class:`AuditEvent` touched (append-only, like the event).
 
+    Keyed by event first, so the links of a request are appended after those of the
+    previous one: a commit of many requests' links touches a page or two. Keyed by patient
+    (as before migration 0007), a list of a hundred patients wrote into a hundred places of
+    the index, and every group commit rewrote hundreds of pages: a quarter of the server's
+    work under load. "Who saw patient X" is answered by :class:`AuditPatientIndex`, which
+    :mod:`rasterserver.api.audit_index` fills from these rows in large sorted batches.
+
     No foreign keys, on purpose. The links are written in the same transaction as their
     event, by one function, with patient ids just read from the catalogue; neither events
     nor patients are ever deleted. Checking the keys anyway cost PostgreSQL a shared lock on
@@ -114,15 +121,42 @@ class AuditEventPatient(Base):
     """
 
     __tablename__ = "audit_event_patient"
-    __table_args__ = (
-        # the key answers "who saw this patient, when" (event ids grow with time); the
-        # index answers "which patients did this event touch"
-        Index("ix_audit_event_patient_event_id", "event_id"),
-        {"sqlite_with_rowid": False},
-    )
+    __table_args__ = ({"sqlite_with_rowid": False},)
+
+    event_id: Mapped[int] = mapped_column(primary_key=True)
+    patient_id: Mapped[int] = mapped_column(primary_key=True)
+
+
+class AuditPatientIndex(Base):
+    """The audit links by patient: "who saw patient X, when" is one range scan of the key.
+
+    Derived from :class:`AuditEventPatient` (the record) by the audit indexer, which adds
+    the links of the events after :attr:`AuditIndexMark.indexed_through`, sorted by patient
+    and many at a time, so each page of this index is rewritten once per batch rather than
+    once per request. Queries by patient read this table and the links after the mark, so
+    they are complete whether or not the indexer has caught up. Append-only like the record.
+    """
+
+    __tablename__ = "audit_patient_index"
+    __table_args__ = ({"sqlite_with_rowid": False},)
 
     patient_id: Mapped[int] = mapped_column(primary_key=True)
     event_id: Mapped[int] = mapped_column(primary_key=True)
+
+
+class AuditIndexMark(Base):
+    """How far :class:`AuditPatientIndex` is complete (a single row, ``id`` 1).
+
+    Every link of the events up to ``indexed_through`` is in the index. ``lease_until`` lets
+    one indexer at a time work (each server process runs one); a lease that has run out,
+    of an indexer that died, is taken over.
+    """
+
+    __tablename__ = "audit_index_mark"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    indexed_through: Mapped[int] = mapped_column(Integer, default=0)
+    lease_until: Mapped[dt.datetime | None] = mapped_column()
 
 
 class PseudonymKey(Base):
@@ -174,5 +208,5 @@ class ApiJob(Base):
 def _audit_is_append_only(session: Session, _ctx: object, _instances: object) -> None:
     """Refuse to change or delete an audit event through the ORM."""
     for obj in (*session.dirty, *session.deleted):
-        if isinstance(obj, AuditEvent | AuditEventPatient):
+        if isinstance(obj, AuditEvent | AuditEventPatient | AuditPatientIndex):
             raise ValueError("audit events are append-only")

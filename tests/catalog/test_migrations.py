@@ -95,3 +95,45 @@ def test_0004_links_the_patients_of_recorded_events_and_guards_its_downgrade(
     finally:
         archive.close()
         engine.dispose()
+
+
+def test_0007_rekeys_the_links_and_indexes_those_recorded(database_url: str) -> None:
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    migrate.upgrade(engine, "0006")
+    with engine.begin() as conn:
+        for n in range(3):
+            conn.execute(text(
+                "INSERT INTO audit_event (request_id, recorded_at, actor, actor_kind, role, "
+                "action, method, route, status, client, detail) VALUES "
+                f"('r{n}', '2026-01-02 03:04:05', 'dr', 'user', 'clinician', 'R', 'GET', "
+                "'/acquisitions', 200, '', '')"))
+        events = conn.execute(text("SELECT id FROM audit_event ORDER BY id")).scalars().all()
+        links = [(7, events[0]), (3, events[0]), (7, events[2])]
+        for patient, event in links:
+            conn.execute(text("INSERT INTO audit_event_patient (patient_id, event_id) "
+                              "VALUES (:p, :e)"), {"p": patient, "e": event})
+    migrate.upgrade(engine)
+
+    def rows(table: str) -> list[tuple[int, int]]:
+        with engine.connect() as conn:
+            return sorted(conn.execute(text(f"SELECT patient_id, event_id FROM {table}")).all())
+
+    assert rows("audit_event_patient") == sorted(links)
+    assert rows("audit_patient_index") == sorted(links)
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT indexed_through FROM audit_index_mark")).all() == [
+            (events[-1],)]
+    key = inspect(engine).get_pk_constraint("audit_event_patient")["constrained_columns"]
+    assert key == ["event_id", "patient_id"]
+    with pytest.raises(Exception, match="append-only"), engine.begin() as conn:
+        conn.execute(text("DELETE FROM audit_event_patient"))
+
+    migrate.downgrade(engine, "0006")  # the index is derived: nothing is lost
+    assert rows("audit_event_patient") == sorted(links)
+    key = inspect(engine).get_pk_constraint("audit_event_patient")["constrained_columns"]
+    assert key == ["patient_id", "event_id"]
+    with pytest.raises(Exception, match="append-only"), engine.begin() as conn:
+        conn.execute(text("DELETE FROM audit_event_patient"))
+    engine.dispose()

@@ -1,0 +1,213 @@
+"""The audit trail's index by patient, filled in the background in large sorted batches.
+
+The audit writer appends each request's patient links keyed by event
+(:class:`~rasterserver.catalog.auth_models.AuditEventPatient`): cheap, because a commit of
+many requests' links lands on a page or two. "Who saw patient X" needs them keyed by patient
+(:class:`~rasterserver.catalog.auth_models.AuditPatientIndex`). Written at once, that key
+took a hundred-patient list into a hundred places of the index, and under load the audit
+commits rewrote hundreds of pages each: a quarter of the server's CPU. The indexer instead
+takes every link recorded since :class:`~rasterserver.catalog.auth_models.AuditIndexMark`,
+sorts it by patient and adds it a few thousand at a time, so each page is rewritten once per
+batch, not once per request.
+
+Nothing waits for it: a query by patient reads the index *and* the links after the mark
+(:func:`patient_events`), so it is complete however far behind the indexer is. Every step
+is idempotent (links already indexed are skipped, the mark only moves forward), so an
+indexer killed half-way leaves nothing to repair; the next run redoes the rest.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import threading
+
+from sqlalchemy import (
+    Connection,
+    Select,
+    func,
+    or_,
+    select,
+    text,
+    union,
+    update,
+)
+from sqlalchemy.dialects import sqlite
+
+from rasterserver.archive import Archive
+from rasterserver.catalog.auth_models import (
+    AuditEvent,
+    AuditEventPatient,
+    AuditIndexMark,
+    AuditPatientIndex,
+)
+from rasterserver.catalog.models import Patient
+
+log = logging.getLogger(__name__)
+
+#: Seconds between runs of a server's indexer.
+INDEX_EVERY_S = 10.0
+#: Most events indexed in one run (the rest wait for the next).
+MAX_EVENTS = 50_000
+#: Links per transaction. Each holds the catalogue's write lock, which the audit writer
+#: of every request waits for: a few milliseconds at a time, not a whole batch's worth.
+CHUNK = 2_000
+#: How long a run may hold the lease before another indexer may take over.
+LEASE_S = 120.0
+
+_MARK = AuditIndexMark.__table__
+_LINKS = AuditEventPatient.__table__
+_INDEX = AuditPatientIndex.__table__
+_PG_INDEX = text(
+    "INSERT INTO audit_patient_index (patient_id, event_id) "
+    "SELECT * FROM unnest(CAST(:patients AS integer[]), CAST(:events AS integer[])) "
+    "ON CONFLICT DO NOTHING")
+_SQLITE_INDEX = sqlite.insert(_INDEX).on_conflict_do_nothing()
+
+
+def indexed_through() -> Select[tuple[int]]:
+    """The mark as a scalar query: every link of the events up to it is in the index."""
+    return select(func.coalesce(func.max(_MARK.c.indexed_through), 0))
+
+
+def patient_events(patient: str) -> Select[tuple[int]]:
+    """The ids of the audit events that touched the patient with site identifier ``patient``:
+    those in the index, and those after its mark still only in the links."""
+    pid = select(Patient.id).where(Patient.identifier == patient).scalar_subquery()
+    return union(
+        select(_INDEX.c.event_id).where(_INDEX.c.patient_id == pid),
+        select(_LINKS.c.event_id).where(_LINKS.c.event_id > indexed_through().scalar_subquery(),
+                                        _LINKS.c.patient_id == pid),
+    )
+
+
+def committed_through(conn: Connection) -> int:
+    """The newest event id such that no event with a smaller one can still commit.
+
+    On SQLite writers take turns and ids grow with each, so the newest visible id is it.
+    On PostgreSQL ids come from a sequence and transactions commit in any order: a writer
+    holds ROW EXCLUSIVE on ``audit_event`` from the insert that drew its id to its commit,
+    so taking SHARE (which waits for those and admits no new ones while held) before
+    reading the newest id makes it exact. Must run inside a transaction.
+    """
+    if conn.dialect.name == "postgresql":
+        conn.execute(text("LOCK TABLE audit_event IN SHARE MODE"))
+    return conn.execute(select(func.max(AuditEvent.id))).scalar() or 0
+
+
+def _take_lease(archive: Archive, lease_s: float) -> int | None:
+    """Claim the indexer's lease; return the mark, or None when another indexer holds it."""
+    now = dt.datetime.now(dt.UTC)
+    with archive.write_lock(), archive.engine.begin() as conn:
+        row = conn.execute(
+            update(_MARK)
+            .where(_MARK.c.id == 1,
+                   or_(_MARK.c.lease_until.is_(None), _MARK.c.lease_until < now))
+            .values(lease_until=now + dt.timedelta(seconds=lease_s))
+            .returning(_MARK.c.indexed_through)
+        ).first()
+    return None if row is None else int(row[0])
+
+
+def _finish(conn: Connection, through: int) -> None:
+    conn.execute(update(_MARK).where(_MARK.c.id == 1, _MARK.c.indexed_through < through)
+                 .values(indexed_through=through))
+    conn.execute(update(_MARK).where(_MARK.c.id == 1).values(lease_until=None))
+
+
+def _add(conn: Connection, links: list[tuple[int, int]]) -> None:
+    if conn.dialect.name == "postgresql":
+        conn.execute(_PG_INDEX, {"patients": [p for p, _ in links],
+                                 "events": [e for _, e in links]})
+    else:
+        conn.execute(_SQLITE_INDEX, [{"patient_id": p, "event_id": e} for p, e in links])
+
+
+def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
+                        chunk: int = CHUNK, lease_s: float = LEASE_S) -> int:
+    """Add the patient links recorded since the mark to the index by patient.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive whose audit trail to index.
+    max_events : int
+        Most events to take in this run; the mark moves only as far.
+    chunk : int
+        Links per transaction.
+    lease_s : float
+        Seconds this run may take before another indexer may take over.
+
+    Returns
+    -------
+    int
+        Links added; 0 also when another indexer is at work.
+    """
+    mark = _take_lease(archive, lease_s)
+    if mark is None:
+        return 0
+    done = False
+    try:
+        with archive.engine.begin() as conn:
+            through = min(committed_through(conn), mark + max_events)
+        with archive.engine.connect() as conn:
+            links = [(int(p), int(e)) for p, e in conn.execute(
+                select(_LINKS.c.patient_id, _LINKS.c.event_id)
+                .where(_LINKS.c.event_id > mark, _LINKS.c.event_id <= through)
+                .order_by(_LINKS.c.patient_id, _LINKS.c.event_id))]
+        for start in range(0, max(len(links), 1), chunk):
+            part = links[start:start + chunk]
+            with archive.write_lock(), archive.engine.begin() as conn:
+                if part:
+                    _add(conn, part)
+                if start + chunk >= len(links):
+                    # the mark moves in the transaction of the last links, never before
+                    _finish(conn, through)
+        done = True
+        return len(links)
+    finally:
+        if not done:
+            _release(archive)
+
+
+def _release(archive: Archive) -> None:
+    """Give the lease back after a failed run, so the next starts at once, not after it."""
+    try:
+        with archive.write_lock(), archive.engine.begin() as conn:
+            conn.execute(update(_MARK).where(_MARK.c.id == 1).values(lease_until=None))
+    except Exception as exc:  # the lease runs out by itself; the run's own error matters
+        log.warning("audit index lease not released: %s", type(exc).__name__)
+
+
+class AuditIndexer:
+    """A thread that runs :func:`index_patient_links` every ``every_s`` seconds.
+
+    Each server process runs one; the lease lets one work at a time.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive whose audit trail to index.
+    every_s : float
+        Seconds between runs.
+    """
+
+    def __init__(self, archive: Archive, *, every_s: float = INDEX_EVERY_S) -> None:
+        self._archive = archive
+        self._every_s = every_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="audit-indexer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._every_s):
+            try:
+                index_patient_links(self._archive)
+            except Exception as exc:  # retried next time; queries read the links meanwhile
+                # the type only: a database error's message can quote patient data
+                log.warning("audit index not brought up to date: %s", type(exc).__name__)
+
+    def close(self) -> None:
+        """Stop the thread (a run under way is finished first)."""
+        self._stop.set()
+        self._thread.join()
