@@ -38,6 +38,7 @@ from rasterserver.api.jobs import JobRunner
 from rasterserver.api.metrics import Metrics
 from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.api.roles import RESEARCHER
+from rasterserver.api.token_cache import token_cache_for
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import ApiAccount
 from rasterserver.config import Settings
@@ -94,6 +95,7 @@ class Services:
         self.pseudonyms = Pseudonymiser(self.archive)
         self.metrics = Metrics()
         self.audit = audit_writer(self.archive)
+        self.token_cache = token_cache_for(self.archive.engine)  # None on SQLite
 
     def has_researchers(self) -> bool:
         """Whether any account has the researcher role (whose requests use pseudonyms)."""
@@ -113,6 +115,7 @@ class Services:
         """Stop the job threads, commit queued audit rows, release the catalogue."""
         self.jobs.close()
         self.audit.close()
+        self.token_cache and self.token_cache.close()
         self.archive.close()
 
 

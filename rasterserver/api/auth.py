@@ -4,6 +4,13 @@ A token is 32 random bytes (``secrets.token_urlsafe``) shown once when created; 
 catalogue keeps only its SHA-256. Tokens carry enough entropy that a plain hash cannot be
 brute-forced, so no per-token salt or slow hash is needed, and a lookup is one indexed
 query.
+
+On SQLite every request runs that query. On PostgreSQL, where it is a network round trip,
+the server keeps the owners of the tokens it has seen in a
+:class:`~rasterserver.api.token_cache.TokenCache`, which the database empties through
+LISTEN/NOTIFY whenever a token or account changes: a revoked token is refused as soon as
+that notification arrives (milliseconds), and while the notifications cannot be received
+the cache is not used.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import datetime as dt
 import hashlib
 import secrets
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -21,6 +29,9 @@ from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import ACCOUNT_KINDS, ROLES, ApiAccount, ApiToken
 from rasterserver.errors import ConflictError, InputError, NotFoundError
+
+if TYPE_CHECKING:
+    from rasterserver.api.token_cache import TokenCache
 
 TOKEN_PREFIX = "rs_"
 
@@ -165,17 +176,40 @@ _OWNER = (
 )
 
 
-def authenticate(archive: Archive, token: str) -> Principal | None:
+def authenticate(archive: Archive, token: str,
+                 cache: TokenCache | None = None) -> Principal | None:
     """Return the owner of a valid, unrevoked ``token``, or None.
 
-    Looked up on every request, not cached: a revoked token is refused from the next
-    request on.
+    Parameters
+    ----------
+    archive : Archive
+        The archive whose catalogue holds the tokens.
+    token : str
+        The bearer token as sent.
+    cache : TokenCache, optional
+        The server's cache (PostgreSQL only). Without one every call reads the database.
+        Only found tokens are cached; the cache is emptied on every change to tokens or
+        accounts, so a revoked token is refused as soon as the database's notification
+        has arrived.
     """
     if not token.startswith(TOKEN_PREFIX) or len(token) > 200:
         return None
+    digest = token_digest(token)
+    generation = 0
+    if cache is not None:
+        principal = cache.get(digest)
+        if principal is not None:
+            return principal
+        # before the read: a change announced while it runs makes its answer unusable
+        generation = cache.generation
     with archive.engine.connect() as conn:
-        row = conn.execute(_OWNER, {"digest": token_digest(token)}).first()
-    return None if row is None else Principal(*row)
+        row = conn.execute(_OWNER, {"digest": digest}).first()
+    if row is None:
+        return None
+    principal = Principal(*row)
+    if cache is not None:
+        cache.put(digest, principal, generation)
+    return principal
 
 
 _bearer = HTTPBearer(auto_error=False, description="An API token from `rasterserver token create`.")
@@ -192,7 +226,8 @@ async def authorize(
 
     The token look-up runs on the event loop, not in a worker thread: it is one indexed
     read of a small table (tens of microseconds), and handing it to a thread and back cost
-    several times that on every request.
+    several times that on every request. On PostgreSQL it is mostly answered from the
+    services' token cache (:mod:`rasterserver.api.token_cache`) without a round trip.
 
     Raises
     ------
@@ -206,7 +241,9 @@ async def authorize(
     if credentials is None or credentials.scheme.lower() != "bearer":
         raise HTTPException(401, "a bearer token is required",
                             headers={"WWW-Authenticate": "Bearer"})
-    principal = authenticate(request.app.state.services.archive, credentials.credentials)
+    services = request.app.state.services
+    principal = authenticate(services.archive, credentials.credentials,
+                             getattr(services, "token_cache", None))
     if principal is None:
         raise HTTPException(401, "invalid or revoked token",
                             headers={"WWW-Authenticate": "Bearer"})
