@@ -273,6 +273,8 @@ async def _stations(url: str, tokens: list[str], uploads: int,
 
 
 def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
+    if args.dir:
+        Path(args.dir).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         root = Path(tmp) / "archive"
         url = sqlite_url(root) if backend == "sqlite" else _fresh_pg(args.postgres)

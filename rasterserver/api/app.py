@@ -33,6 +33,7 @@ from sqlalchemy import select
 
 from rasterserver import __version__
 from rasterserver.api.audit import RequestMiddleware, audit_writer
+from rasterserver.api.audit_index import AuditIndexer
 from rasterserver.api.errors import LimitsMiddleware, install_handlers
 from rasterserver.api.jobs import JobRunner
 from rasterserver.api.metrics import Metrics
@@ -82,19 +83,20 @@ class ApiSettings:
 
 
 class Services:
-    """What the routers call: the archive, its pipeline, jobs, pseudonyms, metrics and the
-    audit trail's writer."""
+    """What the routers call: the archive, its pipeline, jobs, pseudonyms, metrics, the
+    audit trail's writer and indexer, and the token cache."""
 
     def __init__(self, settings: Settings, api: ApiSettings) -> None:
         self.settings = settings
         self.api = api
-        # a connection for each request thread, the audit writer and the job threads
-        self.archive = Archive(settings, connections=api.threads + api.job_workers + 1)
+        # a connection for each request thread, the job threads, the audit writer and indexer
+        self.archive = Archive(settings, connections=api.threads + api.job_workers + 2)
         self.pipeline = Pipeline(self.archive)
         self.jobs = JobRunner(self.archive, workers=api.job_workers)
         self.pseudonyms = Pseudonymiser(self.archive)
         self.metrics = Metrics()
         self.audit = audit_writer(self.archive)
+        self.audit_index = AuditIndexer(self.archive)
         self.token_cache = token_cache_for(self.archive.engine)  # None on SQLite
 
     def has_researchers(self) -> bool:
@@ -112,9 +114,11 @@ class Services:
                                                 type(exc).__name__)
 
     def close(self) -> None:
-        """Stop the job threads, commit queued audit rows, release the catalogue."""
+        """Stop the job threads, commit queued audit rows, stop the indexer and the token
+        cache, release the catalogue."""
         self.jobs.close()
         self.audit.close()
+        self.audit_index.close()
         self.token_cache and self.token_cache.close()
         self.archive.close()
 
