@@ -32,7 +32,6 @@ from sqlalchemy import (
     union,
     update,
 )
-from sqlalchemy.dialects import sqlite
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import (
@@ -49,8 +48,8 @@ log = logging.getLogger(__name__)
 INDEX_EVERY_S = 10.0
 #: Most events indexed in one run (the rest wait for the next).
 MAX_EVENTS = 50_000
-#: Links per transaction. Each holds the catalogue's write lock, which the audit writer
-#: of every request waits for: a few milliseconds at a time, not a whole batch's worth.
+#: Links per transaction on SQLite. Each holds the catalogue's write lock, which the audit
+#: writer of every request waits for: a few milliseconds at a time, not a whole batch's worth.
 CHUNK = 2_000
 #: How long a run may hold the lease before another indexer may take over.
 LEASE_S = 120.0
@@ -58,11 +57,6 @@ LEASE_S = 120.0
 _MARK = AuditIndexMark.__table__
 _LINKS = AuditEventPatient.__table__
 _INDEX = AuditPatientIndex.__table__
-_PG_INDEX = text(
-    "INSERT INTO audit_patient_index (patient_id, event_id) "
-    "SELECT * FROM unnest(CAST(:patients AS integer[]), CAST(:events AS integer[])) "
-    "ON CONFLICT DO NOTHING")
-_SQLITE_INDEX = sqlite.insert(_INDEX).on_conflict_do_nothing()
 
 
 def indexed_through() -> Select[tuple[int]]:
@@ -115,12 +109,65 @@ def _finish(conn: Connection, through: int) -> None:
     conn.execute(update(_MARK).where(_MARK.c.id == 1).values(lease_until=None))
 
 
-def _add(conn: Connection, links: list[tuple[int, int]]) -> None:
-    if conn.dialect.name == "postgresql":
-        conn.execute(_PG_INDEX, {"patients": [p for p, _ in links],
-                                 "events": [e for _, e in links]})
-    else:
-        conn.execute(_SQLITE_INDEX, [{"patient_id": p, "event_id": e} for p, e in links])
+# The batch sorted by patient, in a temporary table of the indexer's connection: rowids
+# follow the sort, so the chunks below are ranges of them. Filled and read inside SQLite:
+# taken through Python, a batch of some 100,000 links held the server's interpreter lock
+# for a good part of a second, and every request of that worker waited.
+_SQLITE_STAGE = (
+    "CREATE TEMP TABLE IF NOT EXISTS audit_index_batch "
+    "(patient_id INTEGER NOT NULL, event_id INTEGER NOT NULL)",
+    "DELETE FROM temp.audit_index_batch",
+)
+_SQLITE_FILL = text(
+    "INSERT INTO temp.audit_index_batch (patient_id, event_id) "
+    "SELECT patient_id, event_id FROM audit_event_patient "
+    "WHERE event_id > :mark AND event_id <= :through ORDER BY patient_id, event_id")
+_SQLITE_ADD = text(
+    "INSERT OR IGNORE INTO audit_patient_index (patient_id, event_id) "
+    "SELECT patient_id, event_id FROM temp.audit_index_batch WHERE rowid BETWEEN :lo AND :hi")
+# PostgreSQL's writers do not wait for this transaction, so one statement does it all.
+_PG_ADD = text(
+    "INSERT INTO audit_patient_index (patient_id, event_id) "
+    "SELECT patient_id, event_id FROM audit_event_patient "
+    "WHERE event_id > :mark AND event_id <= :through ORDER BY patient_id, event_id "
+    "ON CONFLICT DO NOTHING")
+
+
+def _index_sqlite(archive: Archive, conn: Connection, mark: int, through: int,
+                  chunk: int) -> int:
+    for statement in _SQLITE_STAGE:
+        conn.exec_driver_sql(statement)
+    # writes only the temporary table: no wait for, and no hold of, the catalogue's lock
+    conn.execute(_SQLITE_FILL, {"mark": mark, "through": through})
+    conn.commit()
+    first, last = conn.exec_driver_sql(
+        "SELECT min(rowid), max(rowid) FROM temp.audit_index_batch").one()
+    conn.commit()
+    first, last = (first or 1), (last or 0)
+    added = 0
+    lo = first
+    while True:
+        hi = min(lo + chunk - 1, last)
+        with archive.write_lock():
+            if lo <= hi:
+                added += conn.execute(_SQLITE_ADD, {"lo": lo, "hi": hi}).rowcount
+            if hi >= last:
+                # the mark moves in the transaction of the last links, never before
+                _finish(conn, through)
+            conn.commit()
+        if hi >= last:
+            break
+        lo = hi + 1
+    conn.exec_driver_sql("DELETE FROM temp.audit_index_batch")
+    conn.commit()
+    return added
+
+
+def _index_postgresql(conn: Connection, mark: int, through: int) -> int:
+    added = conn.execute(_PG_ADD, {"mark": mark, "through": through}).rowcount
+    _finish(conn, through)
+    conn.commit()
+    return added
 
 
 def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
@@ -134,7 +181,7 @@ def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
     max_events : int
         Most events to take in this run; the mark moves only as far.
     chunk : int
-        Links per transaction.
+        Links per transaction on SQLite, where each holds the catalogue's write lock.
     lease_s : float
         Seconds this run may take before another indexer may take over.
 
@@ -148,23 +195,15 @@ def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
         return 0
     done = False
     try:
-        with archive.engine.begin() as conn:
-            through = min(committed_through(conn), mark + max_events)
         with archive.engine.connect() as conn:
-            links = [(int(p), int(e)) for p, e in conn.execute(
-                select(_LINKS.c.patient_id, _LINKS.c.event_id)
-                .where(_LINKS.c.event_id > mark, _LINKS.c.event_id <= through)
-                .order_by(_LINKS.c.patient_id, _LINKS.c.event_id))]
-        for start in range(0, max(len(links), 1), chunk):
-            part = links[start:start + chunk]
-            with archive.write_lock(), archive.engine.begin() as conn:
-                if part:
-                    _add(conn, part)
-                if start + chunk >= len(links):
-                    # the mark moves in the transaction of the last links, never before
-                    _finish(conn, through)
+            through = min(committed_through(conn), mark + max_events)
+            conn.commit()
+            if conn.dialect.name == "postgresql":
+                added = _index_postgresql(conn, mark, through)
+            else:
+                added = _index_sqlite(archive, conn, mark, through, chunk)
         done = True
-        return len(links)
+        return added
     finally:
         if not done:
             _release(archive)

@@ -114,8 +114,10 @@ def test_a_run_that_fails_half_way_leaves_nothing_to_repair(
     monkeypatch.setattr(audit_index, "_finish", fail)
     with pytest.raises(OSError):
         index_patient_links(archive, chunk=5)
-    # the earlier chunks are in, the mark has not moved, the lease was given back
-    assert 0 < _indexed(archive) < sum(map(len, truth.values()))
+    # the mark has not moved, the lease was given back; on SQLite the earlier chunks are
+    # in (PostgreSQL indexes a run in one transaction)
+    sqlite = archive.engine.dialect.name == "sqlite"
+    assert sqlite <= _indexed(archive) < sum(map(len, truth.values()))
     assert _mark(archive) == (0, None)
     assert _found(archive) == truth
 
