@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from sqlalchemy import Engine, Integer, Select, bindparam, func, select
+from sqlalchemy import Connection, Engine, Integer, Select, bindparam, func, select
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session, selectinload
 
@@ -300,11 +300,26 @@ class Archive:
         self.engine: Engine = make_engine(settings.database_url, **pool)
         #: Taken by the catalogue's frequent writers (ingest, the audit trail): see WriteLock.
         self.write_lock = WriteLock(self.engine)
+        # PostgreSQL wraps even a lone SELECT in a transaction: BEGIN before it and a
+        # ROLLBACK when the connection goes back to the pool, two round trips more than the
+        # query, which doubled the time of a one-row read. A single statement sees one
+        # snapshot anyway. SQLite begins no transaction for a SELECT, so it keeps its engine.
+        self._reader: Engine = (
+            self.engine.execution_options(isolation_level="AUTOCOMMIT")
+            if self.engine.dialect.name == "postgresql" else self.engine)
         self._sessions = session_factory(self.engine)
         self._crash_hook = crash_hook
         self.raw = RawStore(settings.archive, crash_hook=crash_hook)
         if check_schema:
             migrate.require_current(self.engine)
+
+    def reading(self) -> Connection:
+        """A catalogue connection for *one* read-only statement, outside a transaction.
+
+        Use as ``with archive.reading() as conn: conn.execute(...)``. For several statements
+        that must agree with each other, use :meth:`session` or ``engine.begin()``.
+        """
+        return self._reader.connect()
 
     @classmethod
     def create(cls, settings: Settings, **kwargs: Any) -> Archive:
@@ -390,7 +405,7 @@ class Archive:
         NotFoundError
             No such patient.
         """
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             row = conn.execute(_PATIENT_INFO, {"identifier": identifier}).first()
         if row is None:
             raise NotFoundError(
@@ -976,7 +991,7 @@ class Archive:
                                   "kind": kind, "limit": limit, "offset": offset}
         query = _find_statement(*(params[k] is not None
                                   for k in ("identifier", "since", "until", "kind")))
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             found = _infos(conn.execute(query, params))
             # an empty page of an unknown patient is an error; one more query tells which
             if not found and patient is not None and conn.execute(
@@ -993,7 +1008,7 @@ class Archive:
         NotFoundError
             No such acquisition.
         """
-        with self.engine.connect() as conn:
+        with self.reading() as conn:
             found = _infos(conn.execute(_INFO_BY_UID, {"uid": uid}))
         if not found:
             raise NotFoundError(f"unknown acquisition {uid}")

@@ -202,7 +202,7 @@ def authenticate(archive: Archive, token: str,
             return principal
         # before the read: a change announced while it runs makes its answer unusable
         generation = cache.generation
-    with archive.engine.connect() as conn:
+    with archive.reading() as conn:
         row = conn.execute(_OWNER, {"digest": digest}).first()
     if row is None:
         return None
@@ -210,6 +210,13 @@ def authenticate(archive: Archive, token: str,
     if cache is not None:
         cache.put(digest, principal, generation)
     return principal
+
+
+def cached_owner(cache: TokenCache | None, token: str) -> Principal | None:
+    """The owner of ``token`` if ``cache`` knows it (None: ask :func:`authenticate`)."""
+    if cache is None or not token.startswith(TOKEN_PREFIX) or len(token) > 200:
+        return None
+    return cache.get(token_digest(token))
 
 
 _bearer = HTTPBearer(auto_error=False, description="An API token from `rasterserver token create`.")
@@ -224,10 +231,11 @@ async def authorize(
     The rule is looked up by the matched route's name in
     :data:`rasterserver.api.roles.RULES`, so it is written once, in that table.
 
-    The token look-up runs on the event loop, not in a worker thread: it is one indexed
-    read of a small table (tens of microseconds), and handing it to a thread and back cost
-    several times that on every request. On PostgreSQL it is mostly answered from the
-    services' token cache (:mod:`rasterserver.api.token_cache`) without a round trip.
+    On PostgreSQL the token is mostly found in the services' token cache
+    (:mod:`rasterserver.api.token_cache`), without a round trip; otherwise it is looked up
+    through ``services.read``: on the event loop on SQLite (one indexed read of a small
+    table, tens of microseconds, cheaper than a hand-over to a thread), in a thread on
+    PostgreSQL.
 
     Raises
     ------
@@ -242,8 +250,11 @@ async def authorize(
         raise HTTPException(401, "a bearer token is required",
                             headers={"WWW-Authenticate": "Bearer"})
     services = request.app.state.services
-    principal = authenticate(services.archive, credentials.credentials,
-                             getattr(services, "token_cache", None))
+    cache = getattr(services, "token_cache", None)
+    principal = cached_owner(cache, credentials.credentials)
+    if principal is None:
+        principal = await services.read(authenticate, services.archive,
+                                        credentials.credentials, cache)
     if principal is None:
         raise HTTPException(401, "invalid or revoked token",
                             headers={"WWW-Authenticate": "Bearer"})

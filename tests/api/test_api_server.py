@@ -4,16 +4,20 @@ ETags, pseudonyms, audit rows, limits and JSON errors."""
 from __future__ import annotations
 
 import datetime as dt
+import http.client
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
 from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, frame, npy_bytes
 from sqlalchemy import select, text
 
+from rasterserver.api.app import ApiSettings
 from rasterserver.api.audit import audit_events
 from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.catalog.auth_models import AuditEvent
+from rasterserver.config import Settings, sqlite_url
 
 
 def _upload(live: LiveServer, role: str = "clinician", **data: str):
@@ -166,6 +170,32 @@ def test_limits_and_json_errors(live: LiveServer) -> None:
         assert c.post("/patients", json={"identifier": PATIENT_ID}).status_code == 409
     with live.archive() as archive:
         assert archive.acquisitions() == []
+
+
+def test_a_keep_alive_connection_is_closed_after_its_quota(start_server,
+                                                           tmp_path: Path) -> None:
+    """So that long-lived clients spread over the worker processes (LimitsMiddleware)."""
+    root = tmp_path / "archive"
+    live = start_server(Settings(archive=root, database_url=sqlite_url(root)),
+                        ApiSettings(requests_per_connection=3))
+    host, port = live.url.removeprefix("http://").split(":")
+    auth = {"Authorization": f"Bearer {live.tokens['clinician']}"}
+    for _ in range(2):  # the quota starts again on a new connection
+        conn = http.client.HTTPConnection(host, int(port), timeout=10)
+        try:
+            sockets = set()
+            for n in range(1, 4):
+                conn.request("GET", f"/patients/{PATIENT_ID}", headers=auth)
+                sockets.add(id(conn.sock))
+                response = conn.getresponse()
+                assert response.status == 200
+                response.read()
+                closes = response.getheader("connection", "").lower() == "close"
+                assert closes == (n == 3), n
+            assert len(sockets) == 1  # the three went over one connection
+            assert conn.sock is None  # closed after the third, as announced
+        finally:
+            conn.close()
 
 
 def test_patient_data_never_reaches_the_log(live: LiveServer, caplog) -> None:

@@ -35,10 +35,11 @@ from rasterserver.errors import InputError, NotFoundError
 
 router = protected_router("acquisitions")
 
-# The metadata reads (list, one acquisition) are ``async def``: each is one indexed query of
-# well under a millisecond, run on the event loop. As plain ``def`` FastAPI hands them to a
-# worker thread and back, and under 50 concurrent clients that hand-over cost more than the
-# query. Everything that reads pixels, writes or may take long stays in threads.
+# The metadata reads (list, one acquisition) are ``async def`` and query through
+# ``svc.read``: on SQLite on the event loop (each is one indexed query of well under a
+# millisecond, and as plain ``def`` the hand-over to a thread and back cost more than the
+# query under 50 concurrent clients), on PostgreSQL in a thread. Everything that reads
+# pixels, writes or may take long is plain ``def``, in threads.
 
 FrameIndex = Annotated[int, Path(ge=0, le=MAX_OFFSET)]
 
@@ -65,7 +66,8 @@ async def list_acquisitions(
 ) -> Response:
     """Acquisitions, newest first, by patient, time range and kind."""
     refuse_date_filters_for(caller, since, until)
-    rows = svc.archive.find(
+    rows = await svc.read(
+        svc.archive.find,
         patient=resolve_patient(caller, patient, svc.pseudonyms) if patient else None,
         since=utc(since), until=utc(until), kind=kind, limit=page.limit, offset=page.offset)
     for a in rows:
@@ -141,7 +143,7 @@ def upload_acquisition(
 @router.get("/acquisitions/{uid}", name="get_acquisition", response_model=AcquisitionOut)
 async def get_acquisition(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep) -> Response:
     """One acquisition with its frames' metadata."""
-    info = svc.archive.info(uid)
+    info = await svc.read(svc.archive.info, uid)
     note.touch(info.patient_id, info.uid)
     return json_response(acquisition_body(info, caller, svc.pseudonyms))
 

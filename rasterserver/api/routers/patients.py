@@ -68,8 +68,9 @@ def add_patient(body: PatientIn, svc: ServicesDep, caller: CallerDep,
 async def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
                 note: NoteDep) -> PatientOut:
     """One patient."""
-    # async: one indexed read on the event loop, as the acquisitions' metadata reads
-    row = svc.archive.patient_info(resolve_patient(caller, patient, svc.pseudonyms))
+    # async, like the acquisitions' metadata reads (see there)
+    row = await svc.read(svc.archive.patient_info,
+                         resolve_patient(caller, patient, svc.pseudonyms))
     note.touch(row.id)
     return patient_out(row, caller, svc.pseudonyms)
 
