@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import itertools
 import logging
+import os
 import secrets
 import time
 from collections.abc import Sequence
@@ -60,12 +62,28 @@ class AuditNote:
 
 
 def new_request_id() -> str:
-    """A request id that sorts by time: 64 bits of nanoseconds, then 64 random bits.
+    """A request id that sorts by time: 64 bits of nanoseconds, 32 random bits of this
+    process, a 32-bit count of its requests.
 
     The audit table indexes it; random ids (uuid4) land all over that index, and once the
     table holds millions of rows every insert misses the cache. Time-ordered ids append.
+    The process's bits keep the servers sharing one catalogue apart, the count the
+    requests of one process; drawing 64 random bits per request instead was a system call
+    each time, a few percent of the server's work.
     """
-    return f"{time.time_ns():016x}{secrets.randbits(64):016x}"
+    return f"{time.time_ns():016x}{_PROCESS_BITS:08x}{next(_REQUESTS) & 0xFFFFFFFF:08x}"
+
+
+_PROCESS_BITS = secrets.randbits(32)
+_REQUESTS = itertools.count()
+
+
+def _new_process() -> None:
+    global _PROCESS_BITS  # a forked worker must not share its parent's bits
+    _PROCESS_BITS = secrets.randbits(32)
+
+
+os.register_at_fork(after_in_child=_new_process)
 
 
 def note_of(request: Request) -> AuditNote:

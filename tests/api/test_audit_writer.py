@@ -120,3 +120,24 @@ def test_a_list_writes_one_event_linked_to_each_patient(archive: Archive) -> Non
                                         AuditEventPatient.patient_id)).all())
     assert len(events) == 2
     assert links == sorted([(events[0], i) for i in ids] + [(events[1], ids[0])])
+
+
+def test_request_ids_are_unique_time_ordered_and_per_process() -> None:
+    import os
+
+    from rasterserver.api.audit import new_request_id
+
+    ids = [new_request_id() for _ in range(10_000)]
+    assert len(set(ids)) == len(ids)
+    assert all(len(i) == 32 and int(i, 16) >= 0 for i in ids)
+    assert ids == sorted(ids)  # time first, then the count
+    read, write = os.pipe()
+    child = os.fork()
+    if child == 0:  # a forked worker draws its own process bits
+        os.write(write, new_request_id().encode())
+        os._exit(0)
+    os.waitpid(child, 0)
+    theirs = os.read(read, 64).decode()
+    os.close(read)
+    os.close(write)
+    assert theirs[16:24] != ids[-1][16:24]
