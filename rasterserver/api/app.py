@@ -13,9 +13,9 @@ Settings (environment, or :class:`ApiSettings` arguments):
     Seconds a request may take (default 120); then 504.
 ``RASTERSERVER_API_THREADS``
     Threads serving requests per worker process (default 16).
-``RASTERSERVER_KEEPALIVE_REQUESTS``
-    Responses on one keep-alive connection before the server closes it (default 100; 0:
-    never), so that long-lived clients spread over the worker processes.
+``RASTERSERVER_KEEPALIVE_SECONDS``
+    Seconds a keep-alive connection is used before the server closes it (default 5; 0:
+    never), so that long-lived clients spread evenly over the worker processes.
 ``RASTERSERVER_PSEUDONYM_KEY``
     Hex key of the researchers' pseudonyms (default: made once, kept in the catalogue).
 """
@@ -69,8 +69,8 @@ class ApiSettings:
         Threads serving requests in this process. Python runs one at a time; more only
         queue for the interpreter and hold catalogue connections, so a few are enough to
         overlap waits on disk and database.
-    requests_per_connection : int
-        Responses on one keep-alive connection before it is closed (0: never); see
+    keepalive_s : float
+        Seconds a keep-alive connection is used before it is closed (0: never); see
         :class:`~rasterserver.api.errors.LimitsMiddleware`.
     """
 
@@ -78,7 +78,7 @@ class ApiSettings:
     request_timeout_s: float = 120.0
     job_workers: int = 1
     threads: int = 16
-    requests_per_connection: int = 100
+    keepalive_s: float = 5.0
 
     @classmethod
     def from_env(cls) -> ApiSettings:
@@ -90,8 +90,8 @@ class ApiSettings:
                                                    cls.request_timeout_s)),
             job_workers=int(os.environ.get("RASTERSERVER_JOB_WORKERS", cls.job_workers)),
             threads=int(os.environ.get("RASTERSERVER_API_THREADS", cls.threads)),
-            requests_per_connection=int(os.environ.get("RASTERSERVER_KEEPALIVE_REQUESTS",
-                                                       cls.requests_per_connection)),
+            keepalive_s=float(os.environ.get("RASTERSERVER_KEEPALIVE_SECONDS",
+                                             cls.keepalive_s)),
         )
 
 
@@ -221,7 +221,7 @@ def create_app(settings: Settings, api: ApiSettings | None = None) -> FastAPI:
     app.add_middleware(RequestMiddleware, services=services)
     app.add_middleware(LimitsMiddleware, max_body_bytes=api.max_upload_bytes,
                        timeout_s=api.request_timeout_s,
-                       requests_per_connection=api.requests_per_connection)
+                       keepalive_s=api.keepalive_s)
     return app
 
 

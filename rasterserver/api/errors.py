@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 import traceback
 from collections.abc import Callable
 from typing import Any
@@ -170,42 +171,47 @@ class _TooLarge(StarletteHTTPException):
 
 class LimitsMiddleware:
     """Refuse bodies over ``max_body_bytes`` (413) and requests over ``timeout_s`` (504);
-    close a keep-alive connection after ``requests_per_connection`` responses.
+    close a keep-alive connection after ``keepalive_s`` seconds of use.
 
     The size is checked on ``Content-Length`` before anything is read, and again while the
     body streams in, so a chunked upload cannot get around it.
 
-    The connection limit is nginx's ``keepalive_requests``, for the same reason: the worker
-    processes share one listening socket, and a client's connection stays with whichever
-    worker accepted it. Fifty clients connecting at once were split between two workers
-    as unevenly as 41 to 9, and the busier worker's clients waited twice as long. Closed
-    every so often (``Connection: close`` on a response; clients reconnect at once), a
-    connection is accepted again, more likely by the idler worker, the one waiting in
-    ``accept`` rather than busy with a request.
+    The connection limit is nginx's ``keepalive_time``, for the balance between worker
+    processes: they share one listening socket, and a client's connection stays with
+    whichever worker accepted it. Fifty clients connecting at once were split between two
+    workers as unevenly as 41 to 9, for as long as they stayed connected; the busier
+    worker's clients waited about twice as long while the other worker sat partly idle.
+    A connection older than the limit gets ``Connection: close`` on its next response and
+    the client reconnects, to either worker, so an uneven split lasts seconds, not the
+    client's lifetime. (It does not make the split even: which worker accepts is still
+    chance.)
     """
 
     def __init__(self, app: ASGIApp, *, max_body_bytes: int, timeout_s: float,
-                 requests_per_connection: int = 0) -> None:
+                 keepalive_s: float = 0.0) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.timeout_s = timeout_s
-        self.requests_per_connection = requests_per_connection
-        # responses so far per open connection, by the client's (address, port)
-        self._served: dict[tuple[str, int], int] = {}
+        self.keepalive_s = keepalive_s
+        # when each open connection was first seen, by the client's (address, port)
+        self._opened: dict[tuple[str, int], float] = {}
 
     def _closes(self, scope: Scope) -> bool:
-        """Count a response on the request's connection; whether it is the last one."""
+        """Whether the response to this request should close its connection."""
         client = scope.get("client")
-        if not self.requests_per_connection or client is None:
+        if not self.keepalive_s or client is None:
             return False
         key = (client[0], client[1])
-        served = self._served.get(key, 0) + 1
-        if served >= self.requests_per_connection:
-            self._served.pop(key, None)
+        now = time.monotonic()
+        opened = self._opened.get(key)
+        if opened is None:
+            if len(self._opened) > 100_000:  # connections that closed on their own
+                self._opened.clear()
+            self._opened[key] = now
+            return False
+        if now - opened >= self.keepalive_s:
+            del self._opened[key]
             return True
-        if len(self._served) > 100_000:  # connections that closed on their own
-            self._served.clear()
-        self._served[key] = served
         return False
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:

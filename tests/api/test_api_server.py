@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime as dt
 import http.client
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -172,19 +173,21 @@ def test_limits_and_json_errors(live: LiveServer) -> None:
         assert archive.acquisitions() == []
 
 
-def test_a_keep_alive_connection_is_closed_after_its_quota(start_server,
-                                                           tmp_path: Path) -> None:
+def test_a_keep_alive_connection_is_closed_once_it_is_old(start_server,
+                                                         tmp_path: Path) -> None:
     """So that long-lived clients spread over the worker processes (LimitsMiddleware)."""
     root = tmp_path / "archive"
     live = start_server(Settings(archive=root, database_url=sqlite_url(root)),
-                        ApiSettings(requests_per_connection=3))
+                        ApiSettings(keepalive_s=0.5))
     host, port = live.url.removeprefix("http://").split(":")
     auth = {"Authorization": f"Bearer {live.tokens['clinician']}"}
-    for _ in range(2):  # the quota starts again on a new connection
+    for _ in range(2):  # the clock starts again on a new connection
         conn = http.client.HTTPConnection(host, int(port), timeout=10)
         try:
             sockets = set()
-            for n in range(1, 4):
+            for n in range(4):
+                if n == 3:
+                    time.sleep(0.6)
                 conn.request("GET", f"/patients/{PATIENT_ID}", headers=auth)
                 sockets.add(id(conn.sock))
                 response = conn.getresponse()
@@ -192,8 +195,8 @@ def test_a_keep_alive_connection_is_closed_after_its_quota(start_server,
                 response.read()
                 closes = response.getheader("connection", "").lower() == "close"
                 assert closes == (n == 3), n
-            assert len(sockets) == 1  # the three went over one connection
-            assert conn.sock is None  # closed after the third, as announced
+            assert len(sockets) == 1  # the four went over one connection
+            assert conn.sock is None  # closed after the last, as announced
         finally:
             conn.close()
 
