@@ -93,6 +93,21 @@ def _start(settings: Settings, workers: int,
     raise RuntimeError("server did not start")
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (0 if it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _workers(pid: int) -> list[int]:
+    """The server's worker processes: its children (Linux /proc)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(c) for c in children.read_text().split()] if children.exists() else []
+
+
 def _percentile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
@@ -303,7 +318,13 @@ def run(backend: str, args: argparse.Namespace) -> dict[str, object]:
                 bad = _probe(base, reader, list(first.values()))
                 if bad:
                     print("reader paths refused:", *bad, sep="\n  ", flush=True)
+                workers = _workers(server.pid)
+                before = sum(_cpu_seconds(w) for w in workers)
                 readers = _readers(base, reader, args, paths, Path(tmp))
+                # the server's CPU per request: less sensitive than latency to how the
+                # load happened to be spread, more to how fast the machine was that minute
+                readers["server_ms_per_request"] = 1000 * (
+                    sum(_cpu_seconds(w) for w in workers) - before) / max(readers["requests"], 1)
                 if readers["status_errors"]:
                     bad = _probe(base, reader, paths[:200])
                     print("reader failures (sample, after the run):", *bad, sep="\n  ",
@@ -369,6 +390,8 @@ def main() -> None:
     parser.add_argument("--postgres", default=None,
                         help="also run on PostgreSQL (admin URL of a server)")
     parser.add_argument("--dir", default=None, help="folder for the temporary archive")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="runs of each catalogue, interleaved (the VM's speed drifts)")
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args()
     if shutil.which("wrk") is None:
@@ -377,10 +400,13 @@ def main() -> None:
         parser.error("--clients must be at least 2 (wrk runs 2 threads)")
     load = os.getloadavg()[0]
     results = []
-    for backend in ("sqlite", *(("postgresql",) if args.postgres else ())):
-        r = run(backend, args)
-        print(r, flush=True)
-        results.append(r)
+    for n in range(1, args.repeat + 1):
+        for backend in ("sqlite", *(("postgresql",) if args.postgres else ())):
+            r = run(backend, args)
+            if args.repeat > 1:
+                r["backend"] = f"{backend} ({n})"
+            print(r, flush=True)
+            results.append(r)
 
     def errors(r: dict[str, object]) -> str:
         parts = [f"{r['status_errors']} HTTP"] if r["status_errors"] else []
@@ -390,7 +416,8 @@ def main() -> None:
     rows_read = "\n".join(
         f"| {r['backend']} | {r['requests']:,} | {r['rps']:.0f} | {_ms(r['p50'])} | "
         f"{_ms(r['p90'])} | {_ms(r['p95'])} | {_ms(r['p99'])} | {_ms(r['p999'])} | "
-        f"{_ms(r['max'])} | {errors(r)} |" for r in results)
+        f"{_ms(r['max'])} | {r['server_ms_per_request']:.2f} | {errors(r)} |"
+        for r in results)
     rows_up = "\n".join(
         f"| {r['backend']} | {r['uploads_ok']} / {r['uploads_expected']} | "
         f"{r['replays']} / {r['retries']} | {r['upload_errors']} "
@@ -411,21 +438,29 @@ def main() -> None:
         f"Machine: {machine()}. Load average before the run: {load:.1f} (the machine was "
         "shared with other jobs; server and load generator ran on the same cores).\n\n"
         f"Server: `rasterserver serve --workers {args.workers}` on loopback; every request "
-        "authenticated (token digest look-up) and audited (one append-only event per request, "
-        "linked to every patient it touched, committed before the response starts; concurrent "
-        "requests share the commit).\n\n"
+        "authenticated (token digest look-up; on PostgreSQL from the token cache that "
+        "LISTEN/NOTIFY empties) and audited (one append-only event per request, linked to "
+        "every patient it touched, committed before the response starts; concurrent "
+        "requests share the commit; the by-patient audit index is filled every 10 s by the "
+        "background indexer, whose work is part of the load).\n\n"
         f"**Readers**: {args.acquisitions:,} acquisitions of {args.patients:,} patients "
         "catalogued. The load comes from `wrk` (a C program, in its own process on the same "
         "2 cores as the server; on average it used "
         + ", ".join(f"{r['wrk_cpu']:.2f} of a core on {r['backend']}" for r in results)
-        + f"): 2 threads, {args.clients} keep-alive connections, closed "
+        + f"): 2 threads, {args.clients} keep-alive connections (the server closes each "
+        "after 5 s of use and wrk reconnects), closed "
         f"loop (each connection sends its next request when the last is answered) for "
         f"{args.seconds:.0f} s, each request drawn at random from {PATHS:,} paths "
         f"pre-generated with a fixed seed ({mix}). Latency in ms, as wrk measures it; "
         "errors are HTTP error statuses plus socket errors (connect, read, write, timeout "
-        "after 30 s).\n\n"
-        "| catalogue | requests | req/s | p50 | p90 | p95 | p99 | p99.9 | max | errors |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n" + rows_read + "\n\n"
+        "after 30 s). Server CPU: user + system time of the worker processes over the run, "
+        "per request answered (includes the audit writer and indexer)."
+        + (f" {args.repeat} runs of each catalogue, interleaved, a fresh archive each: the "
+           "VM's speed drifts by ±20–30 % over minutes, which the CPU column shows."
+           if args.repeat > 1 else "") + "\n\n"
+        "| catalogue | requests | req/s | p50 | p90 | p95 | p99 | p99.9 | max | server CPU "
+        "ms/request | errors |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n" + rows_read + "\n\n"
         f"**Stations**: {args.stations} concurrent station accounts, {args.uploads} uploads "
         "each of one 604x576 uint8 frame (NPY, multipart; asyncio + httpx clients), each with "
         "an `Idempotency-Key`; every fifth upload is sent a second time with the same key, "
