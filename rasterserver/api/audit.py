@@ -16,17 +16,18 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import functools
 import itertools
 import logging
 import os
 import secrets
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import Request
-from sqlalchemy import select, text
+from sqlalchemy import Dialect, select, text
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from rasterserver.api.audit_index import patient_events
@@ -134,7 +135,6 @@ def audit_record(note: AuditNote, *, method: str, route: str, route_name: str, s
 
 
 _EVENTS = AuditEvent.__table__
-_LINKS = AuditEventPatient.__table__
 _COLUMNS = {"request_id": "varchar", "recorded_at": "timestamptz", "actor": "varchar",
             "actor_kind": "varchar", "role": "varchar", "action": "varchar",
             "method": "varchar", "route": "varchar", "status": "integer",
@@ -169,12 +169,41 @@ def insert_records(archive: Archive, records: Sequence[AuditRecord]) -> None:
             conn.execute(_PG_RECORDS, params)
         return
     with archive.write_lock(), archive.engine.begin() as conn:
-        ids = conn.execute(_EVENTS.insert().returning(_EVENTS.c.id, sort_by_parameter_order=True),
-                           [r.event for r in records]).scalars().all()
-        links = [{"patient_id": pid, "event_id": event_id}
-                 for event_id, r in zip(ids, records, strict=True) for pid in r.patient_ids]
-        if links:
-            conn.execute(_LINKS.insert(), links)
+        # Straight to the driver: the writer thread runs this while holding the
+        # interpreter, so the event loop of the same process waits for it; through the ORM's
+        # executemany with RETURNING it cost three times as much.
+        to_db = _sqlite_binds(conn.dialect)
+        cursor = conn.connection.cursor()
+        try:
+            cursor.executemany(_SQLITE_EVENTS, [
+                tuple(to_db[name](r.event[name]) if name in to_db else r.event[name]
+                      for name in _COLUMNS) for r in records])
+            # This transaction holds SQLite's only write lock from its first insert on, so
+            # the new ids are consecutive and end at the last one.
+            last = cursor.execute("SELECT last_insert_rowid()").fetchone()[0]
+            first = last - len(records) + 1
+            links = [(event_id, pid) for event_id, r in enumerate(records, start=first)
+                     for pid in r.patient_ids]
+            if links:
+                cursor.executemany(_SQLITE_LINKS, links)
+        finally:
+            cursor.close()
+
+
+_SQLITE_EVENTS = "INSERT INTO audit_event ({}) VALUES ({})".format(
+    ", ".join(_COLUMNS), ", ".join("?" * len(_COLUMNS)))
+_SQLITE_LINKS = "INSERT INTO audit_event_patient (event_id, patient_id) VALUES (?, ?)"
+
+
+@functools.cache
+def _sqlite_binds(dialect: Dialect) -> dict[str, Callable[[Any], Any]]:
+    """The dialect's conversions of the event columns that need one (the timestamps)."""
+    binds = {}
+    for name in _COLUMNS:
+        process = _EVENTS.c[name].type.bind_processor(dialect)
+        if process is not None:
+            binds[name] = process
+    return binds
 
 
 def write_events(archive: Archive, note: AuditNote, *, method: str, route: str, route_name: str,

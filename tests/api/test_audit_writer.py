@@ -122,6 +122,24 @@ def test_a_list_writes_one_event_linked_to_each_patient(archive: Archive) -> Non
     assert links == sorted([(events[0], i) for i in ids] + [(events[1], ids[0])])
 
 
+def test_one_batch_links_each_event_to_its_own_patients(archive: Archive) -> None:
+    """Several requests in one transaction, after events written by an earlier one: each
+    event's links name exactly the patients of its own request."""
+    ids = [archive.add_patient(f"P-{i}").id for i in range(6)]
+    insert_records(archive, [_rows(ids[:2])])
+    wanted = [ids[1:4], [], ids[5:], ids, ids[2:3]]
+    records = [_rows(patients) for patients in wanted]
+    insert_records(archive, records)
+    with archive.session() as s:
+        by_request = dict(s.execute(select(AuditEvent.request_id, AuditEvent.id)).all())
+        links = s.execute(select(AuditEventPatient.event_id, AuditEventPatient.patient_id)).all()
+    touched: dict[int, set[int]] = {}
+    for event_id, patient_id in links:
+        touched.setdefault(event_id, set()).add(patient_id)
+    for record, patients in zip(records, wanted, strict=True):
+        assert touched.get(by_request[record.event["request_id"]], set()) == set(patients)
+
+
 def test_request_ids_are_unique_time_ordered_and_per_process() -> None:
     import os
 
