@@ -146,18 +146,30 @@ def _index_sqlite(archive: Archive, conn: Connection, mark: int, through: int,
     first, last = (first or 1), (last or 0)
     added = 0
     lo = first
-    while True:
-        hi = min(lo + chunk - 1, last)
-        with archive.write_lock():
-            if lo <= hi:
-                added += conn.execute(_SQLITE_ADD, {"lo": lo, "hi": hi}).rowcount
+    # The index is derived data: its chunks commit without an fsync of their own (each
+    # would hold the write lock the audit writers wait for through a disk flush). Every
+    # audit commit (synchronous=FULL) flushes the log up to itself, these chunks included;
+    # a power cut can take back only chunks written after the last audit commit, and a
+    # run that lost its chunks, or its mark, is simply redone. NORMAL, not OFF: the log is
+    # still flushed before it is copied into the database, so nothing can be corrupted.
+    conn.exec_driver_sql("PRAGMA synchronous=NORMAL")
+    try:
+        while True:
+            hi = min(lo + chunk - 1, last)
+            with archive.write_lock():
+                if lo <= hi:
+                    added += conn.execute(_SQLITE_ADD, {"lo": lo, "hi": hi}).rowcount
+                if hi >= last:
+                    # the mark moves in the transaction of the last links, never before
+                    _finish(conn, through)
+                conn.commit()
             if hi >= last:
-                # the mark moves in the transaction of the last links, never before
-                _finish(conn, through)
-            conn.commit()
-        if hi >= last:
-            break
-        lo = hi + 1
+                break
+            lo = hi + 1
+    finally:
+        conn.rollback()
+        # the connection goes back to the pool, where every other user expects FULL
+        conn.exec_driver_sql("PRAGMA synchronous=FULL")
     conn.exec_driver_sql("DELETE FROM temp.audit_index_batch")
     conn.commit()
     return added

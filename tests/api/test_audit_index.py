@@ -206,3 +206,22 @@ def test_postgresql_mark_never_passes_an_event_still_being_committed(
         with archive.engine.connect() as conn:
             indexed = conn.execute(select(AuditPatientIndex.event_id)).scalars().all()
         assert slow_id in indexed
+
+
+def test_sqlite_connections_go_back_to_the_pool_with_full_sync(tmp_path: Path) -> None:
+    """The indexer commits its chunks without fsync (NORMAL); the connection it used must
+    not carry that to the next user, who expects every commit flushed (FULL = 2)."""
+    from rasterserver.config import sqlite_url
+
+    root = tmp_path / "archive"
+    settings = Settings(archive=root, database_url=sqlite_url(root))
+    Archive.create(settings).close()
+    with Archive(settings, connections=1) as archive:  # one pooled connection: reused
+        archive.add_patient("P-0")
+        insert_records(archive, [_record({1})])
+        with archive.engine.connect() as conn:
+            first = conn.connection.driver_connection
+        assert index_patient_links(archive) == 1
+        with archive.engine.connect() as conn:
+            assert conn.connection.driver_connection is first
+            assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2
