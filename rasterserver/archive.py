@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from sqlalchemy import Connection, Engine, Integer, Select, bindparam, func, select
@@ -52,6 +52,9 @@ from rasterserver.config import Settings
 from rasterserver.errors import ConflictError, InputError, NotFoundError
 from rasterserver.imageio import decode_frame_bytes, read_frame
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
+
+if TYPE_CHECKING:
+    from rasterserver.repair import RepairReport
 
 log = logging.getLogger(__name__)
 
@@ -1106,6 +1109,50 @@ class Archive:
                 progress(done, total)
         report.acquisitions_checked = len(expected)
         return report
+
+    def repair(
+        self,
+        report: VerifyReport,
+        *,
+        dry_run: bool = False,
+        min_age: dt.timedelta | None = None,
+        progress: Progress | None = None,
+    ) -> RepairReport:
+        """Clean up the harmless leftovers ``report`` lists, never losing data.
+
+        Temporary files (never published) are deleted; orphaned files (complete, without a
+        catalogue row) are moved into ``<archive>/quarantine/<date>/`` with a manifest; stray
+        files are left alone; missing, corrupt and unreadable files are not touched and are
+        reported as needing a person. Each file is checked again right before anything is
+        done to it. See :mod:`rasterserver.repair` for the rules and why they are safe.
+
+        Parameters
+        ----------
+        report : VerifyReport
+            What :meth:`verify` (and the pipeline's ``verify``) found.
+        dry_run : bool, default False
+            Change nothing; the result says what would be done.
+        min_age : datetime.timedelta, optional
+            Leave files younger than this (default one hour) for a later run: a writer may
+            still be at work on them.
+        progress : Progress, optional
+            Called with (done, total) after each problem.
+
+        Returns
+        -------
+        RepairReport
+
+        Raises
+        ------
+        ConflictError
+            Another repair of this archive is running.
+        """
+        # Imported here: the repair module needs this one's types, and most uses of the
+        # archive (the HTTP server) never repair.
+        from rasterserver.repair import DEFAULT_MIN_AGE, repair
+
+        return repair(self, report.problems, dry_run=dry_run, progress=progress,
+                      min_age=DEFAULT_MIN_AGE if min_age is None else min_age)
 
     @contextmanager
     def _maybe_session(self, session: Session | None) -> Iterator[Session]:
