@@ -25,6 +25,17 @@ peak detector recomputes everything; old results stay beside the new ones.
 Work is split so that a Dask worker can do the computing: :meth:`Pipeline.plan` (catalogue and
 files, in the driver), :func:`compute` (pure, anywhere) and :meth:`Pipeline.commit` (files and
 rows, in the driver).
+
+Interrupted runs
+----------------
+A run is committed ``running`` before anything is computed, naming its runner (the driver
+process, :mod:`rasterserver.runner`). If that process is killed, nothing finishes the row, so
+whenever runs are listed (:meth:`Pipeline.runs`), an acquisition is planned or the
+unprocessed ones are selected, a ``running`` run of this host whose process is gone is stored
+as ``failed`` with an error beginning :data:`INTERRUPTED`. Runs of other hosts cannot be
+checked from here and are left; :meth:`Pipeline.reap` marks them when told their host has
+stopped. Nothing else needs repairing: results are committed only with their files, and a
+file written before the kill is adopted by the next run of the same computation.
 """
 
 from __future__ import annotations
@@ -39,8 +50,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from sqlalchemy import exists, select
+from sqlalchemy import exists, select, update
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+from sqlalchemy.orm import Session
 
 from rasterserver import __version__
 from rasterserver.archive import Archive, Problem, VerifyReport, canonical_json_sha256
@@ -57,6 +69,13 @@ from rasterserver.optics import Station
 from rasterserver.raster import Raster
 from rasterserver.records import Image, Record
 from rasterserver.registry import Registry, get_registry
+from rasterserver.runner import (
+    current_runner,
+    describe_runner,
+    local_host,
+    runner_gone,
+    runner_host,
+)
 from rasterserver.stage import (
     BUILTIN_STAGE_KINDS,
     StageContext,
@@ -67,11 +86,13 @@ from rasterserver.stage import (
 from rasterserver.store.derived import DerivedStore
 
 __all__ = [
+    "INTERRUPTED",
     "ChainStep",
     "Computation",
     "Pipeline",
     "Plan",
     "ProcessResult",
+    "ReapReport",
     "StepOutcome",
     "check_frame_fits",
     "compute",
@@ -84,6 +105,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_TARGET = "mesh"
 _KEY_TAG = "rasterserver.chain/1"
+
+#: How the error of a run whose process was killed begins (its status is ``failed``).
+INTERRUPTED = "interrupted: "
 
 
 # --- chains ------------------------------------------------------------------------------------
@@ -525,6 +549,41 @@ def _now() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
 
 
+@dataclass
+class ReapReport:
+    """What :meth:`Pipeline.reap` found among the ``running`` runs.
+
+    Attributes
+    ----------
+    marked : int
+        Runs marked interrupted (with ``dry_run``: that would have been).
+    alive : int
+        Runs of live processes on this host, left running.
+    unchecked : dict of str to int
+        Per host, runs left running that cannot be checked from here: those of other hosts
+        not named in ``hosts``, and those recorded before runs named their process.
+    """
+
+    marked: int = 0
+    alive: int = 0
+    unchecked: dict[str, int] = field(default_factory=dict)
+
+
+def _interruption(host: str, runner: str, declared: frozenset[str]) -> str | None:
+    """The error to store for a ``running`` run, or None to leave it running."""
+    if runner_gone(runner):
+        return f"{INTERRUPTED}the process running it ({describe_runner(runner)}) is gone"
+    where = runner_host(runner) or host
+    if where not in declared:
+        return None
+    if where == local_host() and runner_host(runner):
+        return None  # its process is here and alive: naming the host does not stop it
+    return (
+        f"{INTERRUPTED}host {where} was reported to run it no longer "
+        f"(`rasterserver runs reap --host {where}`); it ran as {describe_runner(runner)}"
+    )
+
+
 class Pipeline:
     """Processing of archived acquisitions with stored results, provenance and reuse.
 
@@ -555,8 +614,10 @@ class Pipeline:
     ) -> Plan:
         """Resolve the chain, the frame and the calibration; find stored results; open a run.
 
-        A :class:`PipelineRun` row is committed with status ``running``; if anything after
-        that fails, the run is marked ``failed`` with the message and the error re-raised.
+        A :class:`PipelineRun` row is committed with status ``running``, naming this process
+        as its runner; if anything after that fails, the run is marked ``failed`` with the
+        message and the error re-raised. Earlier runs of the acquisition left ``running`` by a
+        killed process of this host are marked interrupted in the same transaction.
 
         Parameters
         ----------
@@ -587,12 +648,16 @@ class Pipeline:
         steps = resolve_chain(chain, params=params, until=until, registry=self.registry)
         acquisition = self.archive.acquisition(uid)
         with self.archive.session() as s:
+            # a run its killed process left "running" must not look like work in progress
+            # beside the new one
+            self._reap(s, ReapReport(), acquisition_id=acquisition.id, local_only=True)
             run = PipelineRun(
                 acquisition_id=acquisition.id,
                 chain=[step.describe() for step in steps],
                 status="running",
                 started_at=_now(),
                 host=socket.gethostname(),
+                runner=current_runner(),
                 package_version=__version__,
             )
             s.add(run)
@@ -851,25 +916,108 @@ class Pipeline:
             )
 
     def runs(self, uid: str) -> list[PipelineRun]:
-        """Every pipeline run of ``uid``, oldest first."""
+        """Every pipeline run of ``uid``, oldest first.
+
+        A ``running`` run of this host whose process is gone is marked interrupted first
+        (``failed``, error beginning :data:`INTERRUPTED`), so it is never listed as running.
+        """
         acquisition = self.archive.acquisition(uid)
+        query = (
+            select(PipelineRun)
+            .where(PipelineRun.acquisition_id == acquisition.id)
+            .order_by(PipelineRun.id)
+        )
         with self.archive.session() as s:
-            return list(
-                s.scalars(
-                    select(PipelineRun)
-                    .where(PipelineRun.acquisition_id == acquisition.id)
-                    .order_by(PipelineRun.id)
-                )
+            rows = list(s.scalars(query))
+            # one query when nothing is running, the usual case
+            if any(row.status == "running" for row in rows):
+                report = self._reap(s, ReapReport(), acquisition_id=acquisition.id,
+                                    local_only=True)
+                if report.marked:
+                    rows = list(s.scalars(query.execution_options(populate_existing=True)))
+            return rows
+
+    def reap(self, *, hosts: Sequence[str] = (), dry_run: bool = False) -> ReapReport:
+        """Mark every run left ``running`` by a process that is gone as interrupted.
+
+        Runs of this host are checked (see :func:`rasterserver.runner.runner_gone`); those of
+        a live process are left alone. Runs of another host cannot be checked from here:
+        they are marked only if that host is named in ``hosts``, by someone who knows that
+        nothing processes there any more. Marked runs get status ``failed`` and an error
+        beginning :data:`INTERRUPTED` that says which process ran them.
+
+        Parameters
+        ----------
+        hosts : sequence of str, optional
+            Hosts whose ``running`` runs are to be taken as stopped. Naming this host marks
+            its runs recorded without a runner (before revision 0008), never a live one.
+        dry_run : bool, optional
+            Count, change nothing.
+
+        Returns
+        -------
+        ReapReport
+        """
+        report = ReapReport()
+        with self.archive.session() as s:
+            self._reap(s, report, declared=frozenset(hosts), dry_run=dry_run)
+        return report
+
+    def _reap(
+        self,
+        s: Session,
+        report: ReapReport,
+        *,
+        acquisition_id: int | None = None,
+        local_only: bool = False,
+        declared: frozenset[str] = frozenset(),
+        dry_run: bool = False,
+    ) -> ReapReport:
+        query = select(PipelineRun.id, PipelineRun.host, PipelineRun.runner).where(
+            PipelineRun.status == "running"
+        )
+        if acquisition_id is not None:
+            query = query.where(PipelineRun.acquisition_id == acquisition_id)
+        here = local_host()
+        if local_only:  # the automatic path: other hosts' runs cannot be checked anyway
+            query = query.where(PipelineRun.host == here)
+        for run_id, host, runner in s.execute(query).all():
+            error = _interruption(host, runner, declared)
+            if error is None:
+                where = runner_host(runner) or host
+                if where == here and runner:
+                    report.alive += 1
+                else:
+                    report.unchecked[where] = report.unchecked.get(where, 0) + 1
+                continue
+            if dry_run:
+                report.marked += 1
+                continue
+            # only if still running: its process may have finished it since it was read
+            done = s.execute(
+                update(PipelineRun)
+                .where(PipelineRun.id == run_id, PipelineRun.status == "running")
+                .values(status="failed", finished_at=_now(), error=error)
+                .execution_options(synchronize_session=False)
             )
+            if done.rowcount:
+                report.marked += 1
+                log.warning("pipeline run %d marked failed: %s", run_id, error)
+        return report
 
     def unprocessed(self, *, patient: str | None = None, limit: int = 100_000) -> list[str]:
-        """Uids of acquisitions with a raster frame and no successful run, oldest first."""
+        """Uids of acquisitions with a raster frame and no successful run, oldest first.
+
+        Runs that killed processes of this host left ``running`` are marked interrupted
+        first, so that a reprocessing job does not find them still "in progress".
+        """
         done = exists().where(
             PipelineRun.acquisition_id == Acquisition.id, PipelineRun.status == "done"
         )
         has_raster = exists().where(Frame.acquisition_id == Acquisition.id, Frame.role == "raster")
         query = select(Acquisition.uid).where(~done, has_raster)
         with self.archive.session() as s:
+            self._reap(s, ReapReport(), local_only=True)
             if patient is not None:
                 query = query.where(Acquisition.patient_id == self.archive.patient(patient, s).id)
             query = query.order_by(Acquisition.acquired_at, Acquisition.id).limit(limit)

@@ -11,8 +11,6 @@ resubmitted and will reuse them.
 from __future__ import annotations
 
 import datetime as dt
-import os
-import socket
 import uuid
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -25,26 +23,7 @@ from rasterserver.catalog.auth_models import ApiJob
 from rasterserver.errors import NotFoundError
 from rasterserver.jobs import process_many
 from rasterserver.pipeline import DEFAULT_TARGET
-
-_HOST = socket.gethostname()
-
-
-def _runner() -> str:
-    return f"{_HOST}:{os.getpid()}"
-
-
-def _gone(runner: str) -> bool:
-    """Whether the process ``host:pid`` is known to be gone (only on this host)."""
-    host, _, pid = runner.rpartition(":")
-    if host != _HOST or not pid.isdigit():
-        return False
-    try:
-        os.kill(int(pid), 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:
-        return False
-    return False
+from rasterserver.runner import current_runner, runner_gone
 
 
 class JobRunner:
@@ -75,7 +54,7 @@ class JobRunner:
     ) -> ApiJob:
         """Queue a job over ``uids`` and return its row (status ``queued``)."""
         job = ApiJob(id=uuid.uuid4().hex, owner=owner, uids=list(uids), status="queued",
-                     done=0, total=len(uids), runner=_runner(), error="", outcomes=[])
+                     done=0, total=len(uids), runner=current_runner(), error="", outcomes=[])
         with self.archive.session() as s:
             s.add(job)
         job_id = job.id
@@ -122,7 +101,7 @@ class JobRunner:
 
     @staticmethod
     def _checked(job: ApiJob) -> ApiJob:
-        if job.status in ("queued", "running") and _gone(job.runner):
+        if job.status in ("queued", "running") and runner_gone(job.runner):
             job.status = "failed"
             job.error = "the server process running this job stopped; submit it again"
         return job

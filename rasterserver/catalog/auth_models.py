@@ -181,8 +181,8 @@ class ApiJob(Base):
     """A processing job started over HTTP, kept in the catalogue so that any server worker
     can report it and it survives a restart.
 
-    ``runner`` is ``host:pid`` of the process running it: a job whose runner is gone is
-    reported as failed instead of running forever.
+    ``runner`` names the process running it (``host:pid``, see :mod:`rasterserver.runner`): a
+    job whose runner is gone is reported as failed instead of running forever.
     """
 
     __tablename__ = "api_job"

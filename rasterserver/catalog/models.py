@@ -246,6 +246,10 @@ class PipelineRun(Base):
     ``chain`` lists, per stage in order, the kind, plugin, algorithm version and parameters
     hash used. A run that reuses every stored result still gets a row (``computed = 0``), so
     the log of who asked for what is complete.
+
+    ``runner`` names the process doing the run. A ``running`` run whose runner is gone (the
+    process was killed) is marked ``failed`` with an error beginning ``interrupted:``, and
+    ``finished_at`` when that was noticed (see migration 0008 for why not a status of its own).
     """
 
     __tablename__ = "pipeline_run"
@@ -267,6 +271,8 @@ class PipelineRun(Base):
     finished_at: Mapped[dt.datetime | None] = mapped_column()
     error: Mapped[str] = mapped_column(Text, default="")
     host: Mapped[str] = mapped_column(String(255), default="")
+    # the process doing it (rasterserver.runner); empty for runs recorded before revision 0008
+    runner: Mapped[str] = mapped_column(String(300), default="", server_default="")
     package_version: Mapped[str] = mapped_column(String(64), default="")
     computed: Mapped[int] = mapped_column(Integer, default=0)
     reused: Mapped[int] = mapped_column(Integer, default=0)

@@ -74,6 +74,9 @@ def process(
     Stored results of the same computation (same frame, plugins, versions, parameters and
     calibration) are reused, not recomputed; other plugins, parameters or calibrations add
     results beside the old ones. Exits 1 if any acquisition failed (each is listed).
+
+    Runs that a killed process left "running" are marked interrupted when their acquisition
+    is processed again (and see `rasterserver runs reap`).
     """
     chain = parse_stage_options(stage or [])
     wanted = parse_calibration(calibration)

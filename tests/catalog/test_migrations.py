@@ -137,3 +137,42 @@ def test_0007_rekeys_the_links_and_indexes_those_recorded(database_url: str) -> 
     with pytest.raises(Exception, match="append-only"), engine.begin() as conn:
         conn.execute(text("DELETE FROM audit_event_patient"))
     engine.dispose()
+
+
+def test_0008_names_the_runner_of_pipeline_runs_and_goes_back(database_url: str) -> None:
+    from sqlalchemy import text
+
+    engine = make_engine(database_url)
+    migrate.upgrade(engine, "0007")
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO acquisition (uid, kind, acquired_at, operator, notes, "
+                          "created_at) VALUES ('a1', 'test', '2026-01-01', '', '', "
+                          "'2026-01-01')"))
+        acq = conn.execute(text("SELECT id FROM acquisition")).scalar_one()
+        run = ("INSERT INTO pipeline_run (acquisition_id, chain, status, started_at, error, "
+               "host, package_version, computed, reused{}) VALUES (:a, '[]', 'running', "
+               "'2026-01-01', '', 'h', '', 0, 0{})")
+        conn.execute(text(run.format("", "")), {"a": acq})
+        old = conn.execute(text("SELECT id FROM pipeline_run")).scalar_one()
+        # a result refers to the run: neither direction may need to rebuild pipeline_run
+        conn.execute(text(
+            "INSERT INTO stage_result (acquisition_id, run_id, frame_index, stage, plugin, "
+            "plugin_version, plugin_package, params, params_hash, chain_key, input_checksum, "
+            "output_checksum, record_kind, store_path, reason, package_version, host, "
+            "duration_s, created_at) VALUES (:a, :r, 0, 'peaks', 'p', '1', '', '{}', 'x', "
+            "'k', 'i', 'o', 'peaks', 'derived/x.h5', '', '', 'h', 0, '2026-01-01')"),
+            {"a": acq, "r": old})
+    migrate.upgrade(engine)
+    with engine.begin() as conn:
+        # runs recorded before name no process
+        assert conn.execute(text("SELECT runner FROM pipeline_run")).scalar_one() == ""
+        conn.execute(text(run.format(", runner", ", 'h:12@b/3'")), {"a": acq})
+    assert "runner" in {c["name"] for c in inspect(engine).get_columns("pipeline_run")}
+    migrate.downgrade(engine, "0007")
+    assert "runner" not in {c["name"] for c in inspect(engine).get_columns("pipeline_run")}
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT COUNT(*) FROM pipeline_run")).scalar_one() == 2
+        assert conn.execute(text("SELECT run_id FROM stage_result")).scalar_one() == old
+    migrate.upgrade(engine)
+    assert migrate.current_revision(engine) == migrate.head_revision(engine)
+    engine.dispose()
