@@ -115,19 +115,8 @@ def test_repair_exits_5_when_something_needs_a_person(
 
 
 def test_damaged_stored_results_are_reported_not_touched(
-    cli, settings: Settings, capsys: pytest.CaptureFixture[str]
+    cli, settings: Settings, processed: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from rasterserver.demo import simulate_visits
-    from rasterserver.optics import default_station
-    from rasterserver.pipeline import Pipeline
-    from rasterserver.simulated_visits import archive_visits
-
-    with Archive(settings) as archive:
-        (acq,) = archive_visits(
-            archive, simulate_visits(1, supersample=1), station=default_station(),
-            patient="P9",
-        )
-        Pipeline(archive).process(acq.uid)
     derived = sorted((settings.archive / "derived").rglob("*.h5"))
     derived[0].unlink()
     before = _files(settings.archive)
