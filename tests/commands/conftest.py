@@ -2,10 +2,25 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 
 from rasterserver.archive import Archive
+from rasterserver.cli import main
 from rasterserver.config import Settings
+
+
+@pytest.fixture
+def cli(settings: Settings) -> Callable[..., int]:
+    """Run the CLI on the test archive (catalogue migrated); returns the exit code."""
+    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
+
+    def run(*args: str) -> int:
+        return main([*base, *args])
+
+    assert run("db", "upgrade") == 0
+    return run
 
 
 @pytest.fixture

@@ -14,17 +14,6 @@ from rasterserver.cli import main
 from rasterserver.config import Settings
 
 
-@pytest.fixture
-def cli(settings: Settings):
-    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
-
-    def run(*args: str) -> int:
-        return main([*base, *args])
-
-    assert run("db", "upgrade") == 0
-    return run
-
-
 def test_ingest_list_verify(cli, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     frame = np.random.default_rng(1).integers(0, 256, (604, 576), dtype=np.uint8)
     cv2.imwrite(str(tmp_path / "f.png"), frame)

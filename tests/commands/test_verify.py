@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,15 +21,10 @@ class _Crash(BaseException):
 
 
 @pytest.fixture
-def cli(settings: Settings):
-    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
-
-    def run(*args: str) -> int:
-        return main([*base, *args])
-
-    assert run("db", "upgrade") == 0
-    assert run("patient", "add", "P7") == 0
-    return run
+def cli(cli: Callable[..., int]) -> Callable[..., int]:
+    """The commands' ``cli``, with patient P7 registered."""
+    assert cli("patient", "add", "P7") == 0
+    return cli
 
 
 def _files(root: Path) -> dict[str, str]:
