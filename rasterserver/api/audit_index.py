@@ -32,6 +32,7 @@ from sqlalchemy import (
     union,
     update,
 )
+from sqlalchemy.exc import OperationalError
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import (
@@ -53,6 +54,9 @@ MAX_EVENTS = 50_000
 CHUNK = 2_000
 #: How long a run may hold the lease before another indexer may take over.
 LEASE_S = 120.0
+#: PostgreSQL: how long the indexer waits for its lock on ``audit_event`` (see
+#: :func:`committed_through`), during which the audit writers wait behind it.
+LOCK_WAIT_MS = 200
 
 _MARK = AuditIndexMark.__table__
 _LINKS = AuditEventPatient.__table__
@@ -83,10 +87,30 @@ def committed_through(conn: Connection) -> int:
     holds ROW EXCLUSIVE on ``audit_event`` from the insert that drew its id to its commit,
     so taking SHARE (which waits for those and admits no new ones while held) before
     reading the newest id makes it exact. Must run inside a transaction.
+
+    While the lock request waits, new audit writers queue behind it, so it waits at most
+    :data:`LOCK_WAIT_MS`: normally it only waits for commits in flight (milliseconds), but an
+    anti-wraparound vacuum of the table, which does not yield, could hold it for minutes.
+
+    Raises
+    ------
+    IndexerBusyError
+        PostgreSQL: the lock was not granted in time; the next run tries again.
     """
     if conn.dialect.name == "postgresql":
-        conn.execute(text("LOCK TABLE audit_event IN SHARE MODE"))
+        conn.execute(text(f"SET LOCAL lock_timeout = '{LOCK_WAIT_MS}ms'"))
+        try:
+            conn.execute(text("LOCK TABLE audit_event IN SHARE MODE"))
+        except OperationalError as exc:
+            if getattr(exc.orig, "sqlstate", None) == "55P03":  # lock_not_available
+                raise IndexerBusyError("audit_event is locked; the index waits for the next run") \
+                    from None
+            raise
     return conn.execute(select(func.max(AuditEvent.id))).scalar() or 0
+
+
+class IndexerBusyError(Exception):
+    """The indexer could not start its run now; nothing was changed."""
 
 
 def _take_lease(archive: Archive, lease_s: float) -> int | None:
@@ -208,7 +232,10 @@ def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
     done = False
     try:
         with archive.engine.connect() as conn:
-            through = min(committed_through(conn), mark + max_events)
+            try:
+                through = min(committed_through(conn), mark + max_events)
+            except IndexerBusyError:
+                return 0  # the lease is given back below
             conn.commit()
             if conn.dialect.name == "postgresql":
                 added = _index_postgresql(conn, mark, through)

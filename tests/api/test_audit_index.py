@@ -174,11 +174,14 @@ def test_the_indexer_thread_runs_and_stops(archive: Archive) -> None:
 
 
 def test_postgresql_mark_never_passes_an_event_still_being_committed(
-        postgres_url: str, tmp_path: Path) -> None:
+        postgres_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Sequence ids commit in any order on PostgreSQL: an event that drew its id before a
     newer one committed must not fall behind the mark unindexed. (SQLite's writers take
     turns, so its ids commit in order.)"""
     settings = Settings(archive=tmp_path / "archive", database_url=postgres_url)
+    # long enough to see the indexer wait for the open transaction (by default it gives
+    # way after LOCK_WAIT_MS: the next test)
+    monkeypatch.setattr(audit_index, "LOCK_WAIT_MS", 20_000)
     with Archive.create(settings) as archive:
         patient = archive.add_patient("P-slow").id
         slow = archive.engine.connect()
@@ -225,3 +228,26 @@ def test_sqlite_connections_go_back_to_the_pool_with_full_sync(tmp_path: Path) -
         with archive.engine.connect() as conn:
             assert conn.connection.driver_connection is first
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2
+
+
+def test_postgresql_indexer_gives_way_to_a_lock_it_cannot_get_soon(
+        postgres_url: str, tmp_path: Path) -> None:
+    """Audit writers queue behind the indexer's waiting lock request, so it waits only
+    briefly (an anti-wraparound vacuum, say, would not yield) and tries again next run."""
+    settings = Settings(archive=tmp_path / "archive", database_url=postgres_url)
+    with Archive.create(settings) as archive:
+        patient = archive.add_patient("P-0").id
+        insert_records(archive, [_record({patient})])
+        holder = archive.engine.connect()
+        tx = holder.begin()
+        holder.execute(text("LOCK TABLE audit_event IN SHARE UPDATE EXCLUSIVE MODE"))
+        try:
+            started = time.monotonic()
+            assert index_patient_links(archive) == 0
+            assert time.monotonic() - started < 5
+            assert _mark(archive) == (0, None)  # nothing moved, the lease given back
+        finally:
+            tx.rollback()
+            holder.close()
+        assert index_patient_links(archive) == 1
+        assert _mark(archive)[0] == 1
