@@ -101,6 +101,15 @@ def until(condition: Callable[[], bool], timeout: float = DELIVERY_S) -> bool:
     return True
 
 
+def settled_token(archive: Archive, cache: TokenCache) -> str:
+    """A new token of dr-who, once the cache has seen the notification its creation sent
+    (else that notification could refuse the read a test makes next)."""
+    generation = cache.generation
+    token = auth.create_token(archive, "dr-who")
+    until(lambda: cache.generation != generation, 0.5)
+    return token
+
+
 def token_id(archive: Archive, account: str = "dr-who") -> int:
     return auth.tokens(archive, account=account)[-1].id
 
@@ -108,10 +117,7 @@ def token_id(archive: Archive, account: str = "dr-who") -> int:
 def test_a_cached_token_is_served_without_a_query_and_misses_are_not_cached(
     pg_archive: Archive, cache: TokenCache, token_reads: list[str],
 ) -> None:
-    token = auth.create_token(pg_archive, "dr-who")
-    # creating the token notified; wait for it so the read below is not refused by it
-    generation = cache.generation
-    until(lambda: cache.generation != generation, 0.5)
+    token = settled_token(pg_archive, cache)
     first = auth.authenticate(pg_archive, token, cache)
     assert first == auth.Principal(first.account_id, "dr-who", "clinician", "user")
     assert len(token_reads) == 1 and len(cache) == 1
@@ -158,9 +164,7 @@ def test_a_hand_typed_sql_revocation_or_role_change_invalidates(
 def test_a_change_announced_during_the_read_is_not_cached(
     pg_archive: Archive, cache: TokenCache, token_reads: list[str],
 ) -> None:
-    token = auth.create_token(pg_archive, "dr-who")
-    generation = cache.generation
-    until(lambda: cache.generation != generation, 0.5)
+    token = settled_token(pg_archive, cache)
     notify = psycopg.connect(cache._conninfo, autocommit=True)
     race = {"on": True}
 
