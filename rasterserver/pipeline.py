@@ -598,7 +598,7 @@ class Pipeline:
     def __init__(self, archive: Archive, *, registry: Registry | None = None) -> None:
         self.archive = archive
         self.registry = registry or get_registry()
-        self.derived = DerivedStore(archive.settings.archive)
+        self.derived = DerivedStore(archive.settings.archive, resolve=self.registry.record_type)
 
     # --- the three phases ------------------------------------------------------------------
 
@@ -736,9 +736,7 @@ class Pipeline:
         if plan.input_record is None:
             return Computation({}, {}, socket.gethostname())
         try:
-            return compute(
-                plan.input_record, plan.to_compute, plan.context, registry=self.registry
-            )
+            return compute(plan.input_record, plan.to_compute, plan.context, registry=self.registry)
         except BaseException as exc:
             self.fail(plan.run_id, exc)
             raise
@@ -760,8 +758,16 @@ class Pipeline:
         for step, cached in zip(plan.steps[: plan.first], plan.cached[: plan.first], strict=True):
             assert cached is not None
             outcomes.append(
-                StepOutcome(step.kind, step.plugin, cached.result_id, True, 0.0, cached.reason,
-                            cached.store_path, cached.output_checksum)
+                StepOutcome(
+                    step.kind,
+                    step.plugin,
+                    cached.result_id,
+                    True,
+                    0.0,
+                    cached.reason,
+                    cached.store_path,
+                    cached.output_checksum,
+                )
             )
         stored = []
         input_checksum = plan.input_checksum
@@ -827,8 +833,16 @@ class Pipeline:
                     row, reused = existing, True
                 parent_id = row.id
                 outcomes.append(
-                    StepOutcome(step.kind, step.plugin, row.id, reused, row.duration_s,
-                                row.reason, row.store_path, row.output_checksum)
+                    StepOutcome(
+                        step.kind,
+                        step.plugin,
+                        row.id,
+                        reused,
+                        row.duration_s,
+                        row.reason,
+                        row.store_path,
+                        row.output_checksum,
+                    )
                 )
             run = s.get(PipelineRun, plan.run_id)
             assert run is not None
@@ -869,7 +883,11 @@ class Pipeline:
         ProcessResult
         """
         plan = self.plan(
-            uid, chain=chain, params=params, calibration=calibration, until=until,
+            uid,
+            chain=chain,
+            params=params,
+            calibration=calibration,
+            until=until,
             frame_index=frame_index,
         )
         return self.commit(plan, self.compute(plan))
@@ -931,8 +949,7 @@ class Pipeline:
             rows = list(s.scalars(query))
             # one query when nothing is running, the usual case
             if any(row.status == "running" for row in rows):
-                report = self._reap(s, ReapReport(), acquisition_id=acquisition.id,
-                                    local_only=True)
+                report = self._reap(s, ReapReport(), acquisition_id=acquisition.id, local_only=True)
                 if report.marked:
                     rows = list(s.scalars(query.execution_options(populate_existing=True)))
             return rows
@@ -1065,15 +1082,21 @@ class Pipeline:
             if entry.kind == "final" and relative not in known:
                 report.problems.append(
                     Problem(
-                        "orphaned", entry.uid, entry.path,
+                        "orphaned",
+                        entry.uid,
+                        entry.path,
                         "result file without a catalogue row: processing stopped between "
                         "writing it and recording it; the same computation will adopt it",
                     )
                 )
             elif entry.kind == "temp":
                 report.problems.append(
-                    Problem("temporary", entry.uid, entry.path,
-                            "partial write of an interrupted run; safe to delete")
+                    Problem(
+                        "temporary",
+                        entry.uid,
+                        entry.path,
+                        "partial write of an interrupted run; safe to delete",
+                    )
                 )
             elif entry.kind == "stray":
                 report.problems.append(

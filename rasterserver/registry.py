@@ -18,6 +18,7 @@ from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Literal
 
 from rasterserver.errors import InputError, NotFoundError
+from rasterserver.records import Record, record_types
 from rasterserver.stage import BUILTIN_STAGE_KINDS, Stage, stage_problems
 
 __all__ = [
@@ -403,6 +404,45 @@ class Registry:
         ]
         chosen = min(builtin or candidates, key=lambda info: info.name)
         return self.get(chosen.name)
+
+    def record_type(self, kind: str) -> type[Record]:
+        """Return the record class of ``kind``, as the installed plugins declare it.
+
+        A record class is known once its module is imported, which a fresh process may not
+        have done when it reads a stored result (``verify`` reads files no stage has run for).
+        The plugins decide, not import order: on a miss every plugin is loaded, which imports
+        the record classes its stages take and give.
+
+        Parameters
+        ----------
+        kind : str
+            Record kind, e.g. ``"peaks"``.
+
+        Returns
+        -------
+        type of Record
+
+        Raises
+        ------
+        NotFoundError
+            When no installed plugin takes or gives records of that kind.
+        """
+        known = record_types()
+        if kind in known:
+            return known[kind]
+        for info in self.infos():
+            if info.ok:
+                stage = self.get(info.name)
+                for cls in (stage.input_type, stage.output_type):
+                    if cls.kind == kind:
+                        return cls
+        known = record_types()
+        if kind in known:
+            return known[kind]
+        raise NotFoundError(
+            f"no installed stage plugin takes or gives {kind!r} records "
+            f"(known: {', '.join(sorted(known)) or 'none'})"
+        )
 
 
 _shared: Registry | None = None

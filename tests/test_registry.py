@@ -328,3 +328,34 @@ def test_broken_plugins_are_logged_unless_reported_by_the_caller(
     with caplog.at_level("WARNING", logger="rasterserver.registry"):
         Registry(warn_broken=False).discover().infos()
     assert caplog.text == ""
+
+
+def test_record_kinds_are_known_in_a_fresh_process_without_imports() -> None:
+    # A fresh `rasterserver verify` reads stored results of every kind before any stage has
+    # run in it; the installed plugins must decide which record kinds exist, not import order.
+    import subprocess
+
+    code = textwrap.dedent(
+        """
+        import sys
+        from rasterserver.registry import Registry
+        assert "rasterserver.records_lines" not in sys.modules
+        registry = Registry()
+        for kind in ("image", "peaks", "lines", "ordered-lines", "numbered-lines", "points",
+                     "surface", "mesh", "backshape"):
+            print(kind, registry.record_type(kind).__name__)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    kinds = dict(line.split() for line in done.stdout.splitlines())
+    assert kinds["peaks"] == "Peaks"
+    assert kinds["numbered-lines"] == "NumberedLines"
+    assert kinds["backshape"] == "BackShape"
+
+
+def test_unknown_record_kind_is_not_found(thirdparty: Path) -> None:
+    with pytest.raises(NotFoundError, match="no installed stage plugin"):
+        Registry().record_type("no-such-kind")

@@ -21,7 +21,9 @@ the stored record, :meth:`rasterserver.records.Record.content_hash`), ``record_k
 
 Group ``/record``: one dataset per field of the record as :meth:`Record.to_arrays` gives them
 (scalars as scalar datasets, strings as fixed-length UTF-8 byte strings). Any HDF5 reader can
-open the files; :func:`rasterserver.records.record_type` rebuilds the record in Python.
+open the files; the store rebuilds the record in Python with the class its ``resolve`` callable
+names for the kind (the pipeline passes its plugin registry's, so a fresh process knows every
+installed plugin's record kinds whatever it has imported).
 
 Durability: written under a temporary name in the final folder, fsynced and published with a
 link that refuses to replace (:mod:`.durable`), like the raw store; files are opened without
@@ -32,7 +34,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -129,11 +131,16 @@ class DerivedStore:
     ----------
     root : Path
         Archive root (the folder that also holds ``raw/``).
+    resolve : callable, optional
+        Record kind → record class; raises NotFoundError for an unknown kind. By default the
+        classes already imported (:func:`rasterserver.records.record_type`); the pipeline
+        passes :meth:`rasterserver.registry.Registry.record_type`.
     """
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, *, resolve: Callable[[str], type[Record]] = record_type) -> None:
         self.root = Path(root)
         self.area = self.root / AREA
+        self.resolve = resolve
 
     # --- names -----------------------------------------------------------------------------
 
@@ -309,7 +316,7 @@ class DerivedStore:
             except (OSError, ValueError) as exc:
                 raise IntegrityError(f"{relative}: unreadable record ({exc})") from None
         try:
-            cls = record_type(kind)
+            cls = self.resolve(kind)
         except NotFoundError:
             raise IntegrityError(
                 f"{relative}: record kind {kind!r} is unknown here (is its plugin installed?)"
