@@ -52,6 +52,7 @@ from rasterserver.config import Settings
 from rasterserver.errors import ConflictError, InputError, NotFoundError
 from rasterserver.imageio import decode_frame_bytes, read_frame
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
+from rasterserver.times import require_zone
 
 if TYPE_CHECKING:
     from rasterserver.repair import RepairReport
@@ -170,8 +171,15 @@ def _check_spec(spec: AcquisitionSpec) -> None:
             )
     if spec.kind == "patient" and not spec.patient:
         raise InputError("a patient acquisition needs --patient")
-    if spec.acquired_at is not None and spec.acquired_at.tzinfo is None:
-        raise InputError("acquisition time must carry a time zone (UTC)")
+    if spec.acquired_at is not None:
+        require_zone(spec.acquired_at, "acquisition time")
+
+
+def _check_range(since: dt.datetime | None, until: dt.datetime | None) -> None:
+    """Refuse listing bounds without a time zone (their meaning would depend on the backend)."""
+    for value, what in ((since, "since"), (until, "until")):
+        if value is not None:
+            require_zone(value, what)
 
 
 def canonical_json_sha256(document: Any) -> str:
@@ -236,12 +244,10 @@ def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:
         if row[10] is not None:  # an acquisition without frames has one row of NULLs
             # _make: a named tuple straight from a sequence, without the generated __new__
             grouped[-1][1].append(FrameInfo._make(row[10:]))
-    utc = dt.UTC
     return [
-        # uid, kind, patient id, identifier, station, calibration, time, operator, notes
-        AcquisitionInfo._make((r[1], r[2], r[3], r[4], r[5], r[6],
-                               r[7] if r[7].tzinfo else r[7].replace(tzinfo=utc), r[8], r[9],
-                               tuple(frames)))
+        # uid, kind, patient id, identifier, station, calibration, time (UTC: UtcDateTime),
+        # operator, notes
+        AcquisitionInfo._make((*r[1:10], tuple(frames)))
         for r, frames in grouped
     ]
 
@@ -414,8 +420,7 @@ class Archive:
             raise NotFoundError(
                 "unknown patient: register it first with `rasterserver patient add`"
             )
-        created = row[5] if row[5].tzinfo else row[5].replace(tzinfo=dt.UTC)
-        return PatientInfo(row[0], row[1], row[2], row[3], row[4], created)
+        return PatientInfo._make(row)
 
     def patients(self, *, limit: int = 100, offset: int = 0) -> list[Patient]:
         """List patients by identifier."""
@@ -517,6 +522,8 @@ class Archive:
         """
         if not isinstance(parameters, dict) or not parameters:
             raise InputError("calibration parameters must be a non-empty JSON object")
+        if valid_from is not None:
+            require_zone(valid_from, "valid from")
         with self.session() as s:
             st = self.station(station, s)
             raster_row = None
@@ -588,7 +595,8 @@ class Archive:
             )
         if found is None:
             raise NotFoundError(
-                f"station {station!r} has no calibration valid at {when:%Y-%m-%d %H:%M} UTC; "
+                f"station {station!r} has no calibration valid at "
+                f"{when.astimezone(dt.UTC):%Y-%m-%d %H:%M} UTC; "
                 "give a calibration version explicitly"
             )
         return found
@@ -642,7 +650,8 @@ class Archive:
         calibration_version : int, optional
             Calibration version of ``station``; by default the newest one, if any.
         acquired_at : datetime, optional
-            When the frames were taken (UTC); now by default.
+            When the frames were taken, with its time zone (stored in UTC); now by default.
+            The visit is the day at that time's own offset (the clinic's day).
         operator, notes : str
             Free text.
         shape, dtype : optional
@@ -766,7 +775,8 @@ class Archive:
         """
         if not specs:
             return []
-        now = dt.datetime.now(dt.UTC)
+        # in the server's zone, so that the default visit is the local day (stored in UTC)
+        now = dt.datetime.now().astimezone()
         for spec in specs:
             _check_spec(spec)
         # References first: an unknown patient or calibration stores nothing.
@@ -963,6 +973,7 @@ class Archive:
         kind: str | None,
     ) -> Select[Any]:
         """Apply the listing filters (``since`` inclusive, ``until`` exclusive) and order."""
+        _check_range(since, until)
         if patient is not None:
             query = query.where(Acquisition.patient_id == self.patient(patient, s).id)
         if since is not None:
@@ -990,6 +1001,7 @@ class Archive:
         where building full :class:`Acquisition` objects would cost more than the query.
         Filters as for :meth:`acquisitions`.
         """
+        _check_range(since, until)
         params: dict[str, Any] = {"identifier": patient, "since": since, "until": until,
                                   "kind": kind, "limit": limit, "offset": offset}
         query = _find_statement(*(params[k] is not None

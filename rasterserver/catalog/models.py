@@ -1,7 +1,9 @@
 """SQLAlchemy 2.0 typed models of the catalogue.
 
-Times are stored in UTC. Pixel data never lives here: a :class:`Frame` row names the HDF5 file
-and dataset holding it, with the SHA-256 of its bytes so ``verify`` can prove the two agree.
+Times are stored in UTC and read back as aware UTC datetimes on both backends
+(:class:`~rasterserver.catalog.utc_datetime.UtcDateTime`). Pixel data never lives here: a
+:class:`Frame` row names the HDF5 file and dataset holding it, with the SHA-256 of its bytes
+so ``verify`` can prove the two agree.
 """
 
 from __future__ import annotations
@@ -13,7 +15,6 @@ from sqlalchemy import (
     JSON,
     CheckConstraint,
     Date,
-    DateTime,
     ForeignKey,
     Index,
     Integer,
@@ -24,6 +25,8 @@ from sqlalchemy import (
     event,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
+
+from rasterserver.catalog.utc_datetime import UtcDateTime
 
 # Explicit constraint names keep migrations identical on SQLite and PostgreSQL and let
 # Alembic's batch mode (SQLite) find constraints it has to rebuild.
@@ -51,7 +54,7 @@ class Base(DeclarativeBase):
     metadata = MetaData(naming_convention=NAMING_CONVENTION)
     type_annotation_map: ClassVar[dict[Any, Any]] = {
         dict[str, Any]: JSON,
-        dt.datetime: DateTime(timezone=True),
+        dt.datetime: UtcDateTime(),
     }
 
 

@@ -14,6 +14,7 @@ import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError, NotFoundError, RasterServerError
+from rasterserver.times import TIME_RULE
 
 if TYPE_CHECKING:
     from rasterserver.optics import Station
@@ -100,7 +101,7 @@ def calibrate(
     ] = "k1",
     valid_from: Annotated[
         str | None,
-        typer.Option(help="From when the calibration applies (ISO date/time); default now.",
+        typer.Option(help=f"From when the calibration applies: {TIME_RULE}. Default: now.",
                      show_default=False),
     ] = None,
     notes: Annotated[str, typer.Option(help="Free text stored with the calibration.")] = "",

@@ -19,7 +19,7 @@ from rich.progress import (
 
 from rasterserver.archive import Archive
 from rasterserver.config import Settings
-from rasterserver.errors import InputError
+from rasterserver.times import parse_day, parse_instant
 
 
 def settings(ctx: typer.Context) -> Settings:
@@ -37,23 +37,15 @@ def open_archive(ctx: typer.Context) -> Archive:
 
 def parse_date(text: str | None, what: str) -> dt.date | None:
     """Parse an ISO date (``YYYY-MM-DD``) from an option, with a clear error."""
-    if text is None:
-        return None
-    try:
-        return dt.date.fromisoformat(text)
-    except ValueError:
-        raise InputError(f"{what}: {text!r} is not a date (YYYY-MM-DD)") from None
+    return None if text is None else parse_day(text, what)
 
 
 def parse_datetime(text: str | None, what: str) -> dt.datetime | None:
-    """Parse an ISO date or date-time; a time without zone is taken as UTC."""
-    if text is None:
-        return None
-    try:
-        value = dt.datetime.fromisoformat(text)
-    except ValueError:
-        raise InputError(f"{what}: {text!r} is not a date or time (ISO 8601)") from None
-    return value if value.tzinfo else value.replace(tzinfo=dt.UTC)
+    """Parse a time with its zone, or a date alone (00:00 UTC): :mod:`rasterserver.times`.
+
+    A time without zone is refused (exit 2), never guessed.
+    """
+    return None if text is None else parse_instant(text, what)
 
 
 @contextmanager

@@ -10,6 +10,7 @@ import typer
 from rasterserver.archive import FrameSource
 from rasterserver.commands.common import open_archive, parse_date, parse_datetime
 from rasterserver.errors import InputError
+from rasterserver.times import TIME_RULE
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -51,7 +52,8 @@ def ingest(
         str | None, typer.Option(help="Visit date YYYY-MM-DD (default: acquisition date).")
     ] = None,
     acquired_at: Annotated[
-        str | None, typer.Option(help="When the frames were taken, ISO 8601 (default: now).")
+        str | None, typer.Option(help=f"When the frames were taken: {TIME_RULE}. A time "
+                                 "without zone is refused. Default: now.")
     ] = None,
     operator: Annotated[str, typer.Option(help="Who took the frames.")] = "",
     notes: Annotated[str, typer.Option(help="Free text.")] = "",

@@ -8,15 +8,17 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.times import TIME_RULE
 
 
 def list_acquisitions(
     ctx: typer.Context,
     patient: Annotated[str | None, typer.Option(help="Only this patient's.")] = None,
     since: Annotated[
-        str | None, typer.Option(help="Taken at or after this date/time (ISO 8601).")
+        str | None, typer.Option(help=f"Taken at or after this time: {TIME_RULE}.")
     ] = None,
-    until: Annotated[str | None, typer.Option(help="Taken before this date/time.")] = None,
+    until: Annotated[str | None, typer.Option(help="Taken before this time (as --since).")]
+    = None,
     kind: Annotated[str | None, typer.Option(help="patient, calibration or test.")] = None,
     limit: Annotated[int, typer.Option(min=1, help="Rows per page.")] = 100,
     offset: Annotated[int, typer.Option(min=0, help="Rows to skip.")] = 0,

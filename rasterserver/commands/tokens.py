@@ -11,6 +11,7 @@ import typer
 from rasterserver.api import auth
 from rasterserver.api.audit import audit_events, fhir_bundle
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.times import TIME_RULE
 
 users = typer.Typer(help="API accounts: people and service accounts (stations).",
                     no_args_is_help=True)
@@ -93,8 +94,8 @@ def audit_export(
     out: Annotated[Path | None, typer.Option("--out", "-o",
                                              help="File to write (default: stdout).")] = None,
     patient: Annotated[str | None, typer.Option(help="Only this patient's events.")] = None,
-    since: Annotated[str | None, typer.Option(help="From this time (ISO 8601).")] = None,
-    until: Annotated[str | None, typer.Option(help="Before this time (ISO 8601).")] = None,
+    since: Annotated[str | None, typer.Option(help=f"From this time: {TIME_RULE}.")] = None,
+    until: Annotated[str | None, typer.Option(help="Before this time (as --since).")] = None,
 ) -> None:
     """Export the audit trail as a FHIR R4 Bundle of AuditEvent resources (JSON)."""
     with open_archive(ctx) as archive:
