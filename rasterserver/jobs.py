@@ -60,6 +60,8 @@ class JobOutcome:
         The last stage's reason (why the result is empty, or a note).
     error : str
         Why it failed; empty when done.
+    results : tuple of (int, bool)
+        Stage result id and whether it was reused, per stage (not in :meth:`to_dict`).
     """
 
     uid: str
@@ -68,11 +70,49 @@ class JobOutcome:
     reused: int = 0
     reason: str = ""
     error: str = ""
+    results: tuple[tuple[int, bool], ...] = ()
 
     @classmethod
     def done(cls, result: ProcessResult) -> JobOutcome:
         """The outcome of a processed acquisition."""
-        return cls(result.uid, "done", result.computed, result.reused, result.reason)
+        return cls(
+            result.uid,
+            "done",
+            result.computed,
+            result.reused,
+            result.reason,
+            results=tuple((s.result_id, s.reused) for s in result.steps),
+        )
+
+    def then(self, other: JobOutcome) -> JobOutcome:
+        """This outcome followed by ``other`` of the same acquisition (another target).
+
+        A stage both chains share counts once: computed if the first computed it.
+        """
+        results = dict(self.results)
+        for result_id, reused in other.results:
+            results[result_id] = results.get(result_id, True) and reused
+        reasons = [r for r in (self.reason, other.reason) if r]
+        return JobOutcome(
+            self.uid,
+            "failed" if "failed" in (self.status, other.status) else "done",
+            sum(not reused for reused in results.values()),
+            sum(reused for reused in results.values()),
+            "; ".join(dict.fromkeys(reasons)),
+            self.error or other.error,
+            tuple(results.items()),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: uid, status, computed, reused, reason, error."""
+        return {
+            "uid": self.uid,
+            "status": self.status,
+            "computed": self.computed,
+            "reused": self.reused,
+            "reason": self.reason,
+            "error": self.error,
+        }
 
     @classmethod
     def failed(cls, uid: str, exc: BaseException) -> JobOutcome:
@@ -85,9 +125,7 @@ class JobOutcome:
 
 
 @contextmanager
-def dask_client(
-    *, scheduler: str | None = None, n_workers: int | None = None
-) -> Iterator[Client]:
+def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -> Iterator[Client]:
     """A Dask client for the scheduler at ``scheduler``, or for a new ``LocalCluster``.
 
     Parameters
@@ -128,7 +166,7 @@ def process_many(
     chain: Mapping[str, str] | None = None,
     params: Mapping[str, Mapping[str, Any]] | None = None,
     calibration: tuple[str, int | None] | None = None,
-    until: str = DEFAULT_TARGET,
+    until: str | Sequence[str] = DEFAULT_TARGET,
     dask: bool = False,
     client: Client | None = None,
     scheduler: str | None = None,
@@ -145,8 +183,11 @@ def process_many(
         The archive.
     uids : sequence of str
         Acquisitions, processed (and reported) in this order.
-    chain, params, calibration, until
+    chain, params, calibration
         As for :meth:`rasterserver.pipeline.Pipeline.process`.
+    until : str or sequence of str, optional
+        Last stage kind, or several (``("mesh", "analysis")``): one chain each, in order; the
+        later ones reuse what the earlier ones stored (the surface both start from).
     dask : bool, optional
         Compute on a Dask cluster (see the module docstring for which one).
     client : distributed.Client, optional
@@ -168,24 +209,46 @@ def process_many(
         One per uid, in the order given.
     """
     pipeline = Pipeline(archive, registry=registry)
-    options = {"chain": chain, "params": params, "calibration": calibration, "until": until}
+    targets = [until] if isinstance(until, str) else list(dict.fromkeys(until))
+    options = {"chain": chain, "params": params, "calibration": calibration}
     total = len(uids)
     report = progress or (lambda _done, _total: None)
     report(0, total)
     if not (dask or client is not None):
         outcomes = []
         for uid in uids:
-            try:
-                outcomes.append(JobOutcome.done(pipeline.process(uid, **options)))
-            except Exception as exc:
-                outcomes.append(JobOutcome.failed(uid, exc))
+            outcome: JobOutcome | None = None
+            for target in targets:
+                try:
+                    step = JobOutcome.done(pipeline.process(uid, until=target, **options))
+                except Exception as exc:
+                    step = JobOutcome.failed(uid, exc)
+                outcome = step if outcome is None else outcome.then(step)
+                if step.status == "failed":
+                    break  # the next target would fail the same way (no frame, no calibration)
+            assert outcome is not None
+            outcomes.append(outcome)
             report(len(outcomes), total)
         return outcomes
-    if client is not None:
-        return _on_dask(pipeline, client, uids, options, max_in_flight, report)
-    address = scheduler or archive.settings.dask_scheduler
-    with dask_client(scheduler=address, n_workers=n_workers) as own:
-        return _on_dask(pipeline, own, uids, options, max_in_flight, report)
+    passes: list[list[JobOutcome]] = []
+    for k, target in enumerate(targets):
+        step_options = {**options, "until": target}
+
+        def step_report(done: int, _total: int, k: int = k) -> None:
+            report(min(total, (k * total + done) // len(targets)), total)
+
+        if client is not None:
+            passes.append(
+                _on_dask(pipeline, client, uids, step_options, max_in_flight, step_report)
+            )
+            continue
+        address = scheduler or archive.settings.dask_scheduler
+        with dask_client(scheduler=address, n_workers=n_workers) as own:
+            passes.append(_on_dask(pipeline, own, uids, step_options, max_in_flight, step_report))
+    merged = passes[0]
+    for later in passes[1:]:
+        merged = [a.then(b) for a, b in zip(merged, later, strict=True)]
+    return merged
 
 
 def _on_dask(

@@ -78,6 +78,7 @@ from rasterserver.runner import (
 )
 from rasterserver.stage import (
     BUILTIN_STAGE_KINDS,
+    Stage,
     StageContext,
     coerce_params,
     params_hash,
@@ -86,6 +87,7 @@ from rasterserver.stage import (
 from rasterserver.store.derived import DerivedStore
 
 __all__ = [
+    "DEFAULT_TARGETS",
     "INTERRUPTED",
     "ChainStep",
     "Computation",
@@ -104,6 +106,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 DEFAULT_TARGET = "mesh"
+#: What ``rasterserver process`` computes when told nothing: the mesh and the back-shape
+#: analysis, both from the one surface.
+DEFAULT_TARGETS: tuple[str, ...] = ("mesh", "analysis")
 _KEY_TAG = "rasterserver.chain/1"
 
 #: How the error of a run whose process was killed begins (its status is ``failed``).
@@ -184,6 +189,41 @@ def parse_stage_options(options: Sequence[str]) -> dict[str, str]:
     return chain
 
 
+def _producer(
+    wanted: type[Record],
+    chain: Mapping[str, str],
+    registry: Registry,
+    seen: set[str],
+) -> Stage[Any, Any] | None:
+    """The stage that makes ``wanted`` records: the plugin named for a kind in ``chain``, else
+    the default of the only kind whose default makes them; None when no kind does."""
+    named = [
+        registry.get(plugin)
+        for kind, plugin in chain.items()
+        if kind not in seen and registry.get(plugin).output_type is wanted
+    ]
+    if len(named) == 1:
+        return named[0]
+    candidates = {
+        kind: stage
+        for kind in registry.stage_kinds()
+        if kind not in seen and (stage := registry.default_for(kind)).output_type is wanted
+    }
+    if len(candidates) == 1:
+        return next(iter(candidates.values()))
+    if not candidates:
+        return None
+    # Two kinds make the same records (a third-party alternative to a built-in stage kind):
+    # the built-in one is the clinical default, another one is chosen only by name.
+    builtin = [k for k in candidates if k in BUILTIN_STAGE_KINDS]
+    if len(builtin) == 1:
+        return candidates[builtin[0]]
+    raise InputError(
+        f"stage kinds {', '.join(sorted(candidates))} all make {wanted.kind!r} records: name "
+        "the one to use with --stage KIND=PLUGIN"
+    )
+
+
 def resolve_chain(
     chain: Mapping[str, str] | None = None,
     *,
@@ -192,7 +232,13 @@ def resolve_chain(
     until: str = DEFAULT_TARGET,
     registry: Registry | None = None,
 ) -> list[ChainStep]:
-    """Pick the plugin of every stage from the one taking ``start`` records up to ``until``.
+    """Pick the stages that turn ``start`` records into the records of stage kind ``until``.
+
+    Stage kinds are not a fixed list: the chain is resolved by record types, backwards from
+    the plugin of ``until``: each step's input type must be made by exactly one stage kind
+    (the plugin named for it in ``chain``, else that kind's default), until a stage takes
+    ``start``. A plugin package that adds a kind (an analysis taking a ``Surface``) is found,
+    run, stored and reused like the built-in ones, with no change here.
 
     Parameters
     ----------
@@ -203,7 +249,7 @@ def resolve_chain(
     start : type of Record, optional
         Class of the chain's input; the chain begins at the stage that takes it.
     until : str, optional
-        Last stage kind, ``"mesh"`` by default.
+        Last stage kind, ``"mesh"`` by default; any installed kind.
     registry : Registry, optional
         Where plugins are found; the process's shared registry by default.
 
@@ -216,76 +262,111 @@ def resolve_chain(
     ------
     InputError
         Unknown stage kinds, a plugin of another kind, parameters for stages not in the
-        chain, invalid parameters, or stages whose records do not fit together.
+        chain, invalid parameters, or no way from ``start`` records to ``until``.
     NotFoundError
         A named plugin does not exist or no plugin implements a needed stage.
     """
     registry = registry or get_registry()
     chain = dict(chain or {})
     params = dict(params or {})
-    if until not in BUILTIN_STAGE_KINDS:
-        raise InputError(f"unknown stage {until!r}; stages: {', '.join(BUILTIN_STAGE_KINDS)}")
-    kinds = list(BUILTIN_STAGE_KINDS[: BUILTIN_STAGE_KINDS.index(until) + 1])
-    for what, mapping in (("--stage", chain), ("parameters", params)):
-        unknown = sorted(set(mapping) - set(BUILTIN_STAGE_KINDS))
+    kinds = registry.stage_kinds()
+    for what, mapping in (("--stage", chain), ("parameters", params), ("until", {until: 0})):
+        unknown = sorted(set(mapping) - set(kinds))
         if unknown:
             raise InputError(
-                f"{what}: unknown stage kind(s) {', '.join(unknown)}; "
-                f"stages: {', '.join(BUILTIN_STAGE_KINDS)}"
+                f"{what}: unknown stage kind(s) {', '.join(unknown)}; stages: {', '.join(kinds)}"
             )
-    # resolve from the end: stages before the one taking `start` are never needed, and may
-    # not even be installed when the chain starts from an intermediate record
-    steps: list[ChainStep] = []
-    found_start = False
-    for kind in reversed(kinds):
-        stage = registry.get(chain[kind]) if kind in chain else registry.default_for(kind)
+    for kind, name in chain.items():
+        stage = registry.get(name)
         if stage.stage != kind:
             raise InputError(
                 f"plugin {stage.name!r} implements stage {stage.stage!r}, not {kind!r}"
             )
-        if steps:
-            nxt = registry.get(steps[0].plugin)
-            if stage.output_type is not nxt.input_type:
-                raise InputError(
-                    f"{stage.name} gives {stage.output_type.kind} records but {nxt.name} "
-                    f"takes {nxt.input_type.kind}"
-                )
-        validated = coerce_params(stage, params.get(kind))
+    for kind, given in params.items():
+        # parameters of stages outside the chain are still checked: a misspelt one is a mistake
+        coerce_params(
+            registry.get(chain[kind]) if kind in chain else registry.default_for(kind), given
+        )
+    stage: Stage[Any, Any] | None = (
+        registry.get(chain[until]) if until in chain else registry.default_for(until)
+    )
+    stages: list[Stage[Any, Any]] = []
+    seen: set[str] = set()
+    while True:
+        assert stage is not None
+        stages.insert(0, stage)
+        seen.add(stage.stage)
+        if stage.input_type is start:
+            break
+        stage = _producer(stage.input_type, chain, registry, seen)
+        if stage is None:
+            raise InputError(
+                f"no stage up to {until!r} takes {start.kind!r} records "
+                f"(nothing makes the {stages[0].input_type.kind!r} records "
+                f"{stages[0].name} takes)"
+            )
+    ignored = (set(chain) | set(params)) - seen - _downstream(seen, registry)
+    before = sorted(ignored & _upstream(start, chain, registry))
+    if before:
+        raise InputError(
+            f"stage(s) {', '.join(before)} come before {stages[0].stage!r}, where this chain "
+            f"starts ({start.kind} input)"
+        )
+    if ignored:
+        raise InputError(
+            f"stage(s) {', '.join(sorted(ignored))} are not on the way from {start.kind!r} "
+            f"records to {until!r}"
+        )
+    steps = []
+    for stage in stages:
+        validated = coerce_params(stage, params.get(stage.stage))
         info = registry.info(stage.name)
-        steps.insert(
-            0,
+        steps.append(
             ChainStep(
-                kind=kind,
+                kind=stage.stage,
                 plugin=stage.name,
                 version=stage.version,
                 params=validated.model_dump(mode="json"),
                 params_hash=params_hash(validated),
                 requires=tuple(stage.requires),
                 package=f"{info.package or '?'} {info.package_version or '?'}",
-            ),
-        )
-        if stage.input_type is start:
-            found_start = True
-            break
-    if not found_start:
-        raise InputError(f"no stage up to {until!r} takes {start.kind!r} records")
-    # stages beyond `until` are not run, but a misspelt choice for them is still a mistake
-    for kind in BUILTIN_STAGE_KINDS[BUILTIN_STAGE_KINDS.index(until) + 1 :]:
-        if kind in chain or kind in params:
-            stage = registry.get(chain[kind]) if kind in chain else registry.default_for(kind)
-            if stage.stage != kind:
-                raise InputError(
-                    f"plugin {stage.name!r} implements stage {stage.stage!r}, not {kind!r}"
-                )
-            coerce_params(stage, params.get(kind))
-    first = BUILTIN_STAGE_KINDS.index(steps[0].kind)
-    ignored = sorted(k for k in set(chain) | set(params) if BUILTIN_STAGE_KINDS.index(k) < first)
-    if ignored:
-        raise InputError(
-            f"stage(s) {', '.join(ignored)} come before {steps[0].kind!r}, where this chain "
-            f"starts ({start.kind} input)"
+            )
         )
     return steps
+
+
+def _upstream(start: type[Record], chain: Mapping[str, str], registry: Registry) -> set[str]:
+    """Stage kinds that make ``start`` records, directly or not (empty if undecidable)."""
+    found: set[str] = set()
+    wanted = start
+    while wanted is not Image:
+        try:
+            stage = _producer(wanted, chain, registry, found)
+        except InputError:
+            break
+        if stage is None:
+            break
+        found.add(stage.stage)
+        wanted = stage.input_type
+    return found
+
+
+def _downstream(kinds: set[str], registry: Registry) -> set[str]:
+    """Stage kinds fed, directly or not, by the records of ``kinds``: choices for them are
+    not run by this chain, but they are not misplaced either (``process --stage mesh=...
+    --until surface``)."""
+    made = {registry.default_for(k).output_type for k in kinds}
+    found: set[str] = set()
+    grew = True
+    while grew:
+        grew = False
+        for kind in registry.stage_kinds():
+            stage = registry.default_for(kind)
+            if kind not in found and kind not in kinds and stage.input_type in made:
+                found.add(kind)
+                made.add(stage.output_type)
+                grew = True
+    return found
 
 
 def check_frame_fits(image_shape: tuple[int, ...], station: object) -> None:

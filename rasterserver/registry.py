@@ -24,6 +24,7 @@ from rasterserver.stage import BUILTIN_STAGE_KINDS, Stage, stage_problems
 __all__ = [
     "BUILTIN_DISTRIBUTION",
     "STAGE_GROUP",
+    "GraphEdge",
     "PluginInfo",
     "Registry",
     "get_registry",
@@ -84,6 +85,30 @@ class PluginInfo:
     def to_dict(self) -> dict[str, Any]:
         """Return the fields as a JSON-ready dict."""
         return asdict(self)
+
+
+@dataclass(frozen=True)
+class GraphEdge:
+    """One working plugin as an edge of the stage graph.
+
+    Attributes
+    ----------
+    input_kind, output_kind : str
+        Record kinds taken and given.
+    stage : str
+        Stage kind.
+    plugin, version : str
+        Plugin name and algorithm version.
+    default : bool
+        Whether it is the plugin used for its kind when none is named.
+    """
+
+    input_kind: str
+    stage: str
+    output_kind: str
+    plugin: str
+    version: str
+    default: bool
 
 
 @dataclass(frozen=True)
@@ -404,6 +429,28 @@ class Registry:
         ]
         chosen = min(builtin or candidates, key=lambda info: info.name)
         return self.get(chosen.name)
+
+    def graph(self) -> list[GraphEdge]:
+        """The stage graph: one edge per working plugin, from the record kind it takes to the
+        one it gives, in chain order (built-in kinds first).
+
+        Returns
+        -------
+        list of GraphEdge
+        """
+        edges = [
+            GraphEdge(
+                info.input_kind or "?",
+                info.stage or "?",
+                info.output_kind or "?",
+                info.name,
+                info.version or "?",
+                info.name == self.default_for(info.stage or "").name,
+            )
+            for info in self.infos()
+            if info.ok
+        ]
+        return edges
 
     def record_type(self, kind: str) -> type[Record]:
         """Return the record class of ``kind``, as the installed plugins declare it.

@@ -89,3 +89,28 @@ def test_on_a_local_cluster_of_processes(settings: Settings) -> None:
         with archive.session() as s:
             hosts = set(s.scalars(select(StageResult.host)))
         assert len(hosts) == 1 and hosts != {""}
+
+
+@pytest.mark.parametrize("on_dask", [False, True], ids=["in-process", "dask"])
+def test_several_targets_share_their_stages(three, on_dask: bool) -> None:
+    # `process` computes the mesh and the analysis: one surface, counted once
+    archive, uids = three
+    targets = ("mesh", "analysis")
+    wanted = [uids["back"], uids["small"]]
+    if not on_dask:
+        outcomes = process_many(archive, wanted, until=targets)
+    else:
+        distributed = pytest.importorskip("distributed")
+        with (
+            distributed.LocalCluster(
+                n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+            ) as cluster,
+            distributed.Client(cluster) as client,
+        ):
+            outcomes = process_many(archive, wanted, until=targets, client=client)
+    back, small = outcomes
+    assert back.status == "done" and (back.computed, back.reused) == (8, 0)
+    assert small.status == "failed" and "302x288" in small.error
+    assert _rows(archive, StageResult) == 8
+    again = process_many(archive, [uids["back"]], until=targets)
+    assert (again[0].computed, again[0].reused) == (0, 8)

@@ -107,7 +107,7 @@ def test_chain_resolution_and_options() -> None:
     with pytest.raises(InputError, match="unknown parameter"):
         resolve_chain(params={"surface": {"spacng": 2.0}})
     with pytest.raises(InputError, match="unknown stage"):
-        resolve_chain(until="analysis")
+        resolve_chain(until="no-such-kind")
 
 
 def test_run_chain_needs_the_calibration() -> None:

@@ -73,7 +73,7 @@ class JobRunner:
                 )
                 failed = any(o.status == "failed" for o in outcomes)
                 set_state(status="failed" if failed else "done",
-                          outcomes=[dict(o.__dict__) for o in outcomes],
+                          outcomes=[o.to_dict() for o in outcomes],
                           finished_at=dt.datetime.now(dt.UTC))
             except Exception as exc:  # a bad chain or parameters: the whole job failed
                 set_state(status="failed", error=str(exc)[:2000] or type(exc).__name__,

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import Annotated
 
 import typer
 
-from rasterserver.registry import STAGE_GROUP, PluginInfo, Registry
+from rasterserver.registry import STAGE_GROUP, GraphEdge, PluginInfo, Registry
 
 _HELP = (
     "List every installed stage plugin: name, stage kind, algorithm version, input and output "
@@ -15,7 +16,10 @@ _HELP = (
     f"Stage plugins are found through the '{STAGE_GROUP}' entry-point group, built-in ones "
     "included. A plugin that fails to import or is not a valid stage is shown as 'broken' "
     "with the reason; it cannot be used but does not affect the others, and the command still "
-    "exits with 0."
+    "exits with 0.\n\n"
+    "With --graph, the stage graph instead: which record kinds each stage kind takes and "
+    "gives, as the pipeline resolves chains by record types (* marks the default plugin of a "
+    "kind). A package that adds a stage kind appears in the graph where its records fit."
 )
 
 _COLUMNS = ("NAME", "STAGE", "VERSION", "INPUT", "OUTPUT", "PACKAGE", "STATUS")
@@ -47,6 +51,33 @@ def _table(infos: list[PluginInfo]) -> str:
     return "\n".join(lines)
 
 
+def _graph(edges: list[GraphEdge]) -> str:
+    """Draw the graph as a tree from the record kinds nothing makes (the camera image)."""
+    by_input: dict[str, list[GraphEdge]] = {}
+    for edge in edges:
+        by_input.setdefault(edge.input_kind, []).append(edge)
+    made = {edge.output_kind for edge in edges}
+    roots = [kind for kind in by_input if kind not in made] or sorted(by_input)[:1]
+    lines: list[str] = []
+
+    def walk(kind: str, indent: str, seen: frozenset[str]) -> None:
+        children = by_input.get(kind, [])
+        for i, edge in enumerate(children):
+            last = i == len(children) - 1
+            mark = "*" if edge.default else " "
+            lines.append(
+                f"{indent}{'└─' if last else '├─'} {edge.stage}: {edge.plugin} "
+                f"{edge.version}{mark} → {edge.output_kind}"
+            )
+            if edge.output_kind not in seen:
+                walk(edge.output_kind, indent + ("   " if last else "│  "), seen | {kind})
+
+    for root in roots:
+        lines.append(root)
+        walk(root, "", frozenset({root}))
+    return "\n".join(lines)
+
+
 def plugins(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print a JSON list of objects instead of a table.")
@@ -61,8 +92,18 @@ def plugins(
             show_default=False,
         ),
     ] = None,
+    graph: Annotated[
+        bool, typer.Option("--graph", help="Show the stage graph by record kinds.")
+    ] = False,
 ) -> None:
     registry = Registry(warn_broken=False).discover()  # listed below instead
+    if graph:
+        edges = registry.graph()
+        if as_json:
+            typer.echo(json.dumps([dataclasses.asdict(e) for e in edges], indent=2))
+        else:
+            typer.echo(_graph(edges) if edges else "no working stage plugins installed")
+        return
     infos = registry.infos(stage)
     if as_json:
         typer.echo(json.dumps([info.to_dict() for info in infos], indent=2))

@@ -10,7 +10,7 @@ import typer
 from rasterserver.commands.common import open_archive, progress_bar
 from rasterserver.errors import InputError, RasterServerError
 from rasterserver.jobs import process_many
-from rasterserver.pipeline import DEFAULT_TARGET, Pipeline, parse_stage_options
+from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, parse_stage_options
 
 
 def parse_calibration(text: str | None) -> tuple[str, int | None] | None:
@@ -36,9 +36,7 @@ def process(
         list[str] | None,
         typer.Argument(help="Acquisition uids (see `rasterserver list`).", show_default=False),
     ] = None,
-    patient: Annotated[
-        str | None, typer.Option(help="All acquisitions of this patient.")
-    ] = None,
+    patient: Annotated[str | None, typer.Option(help="All acquisitions of this patient.")] = None,
     all_unprocessed: Annotated[
         bool,
         typer.Option(
@@ -58,8 +56,14 @@ def process(
         ),
     ] = None,
     until: Annotated[
-        str, typer.Option(help="Last stage to run (peaks ... mesh).")
-    ] = DEFAULT_TARGET,
+        list[str] | None,
+        typer.Option(
+            metavar="KIND",
+            help="Last stage kind to run; repeatable (default: mesh and analysis). Any kind of "
+            "the stage graph: see `rasterserver plugins --graph`.",
+            show_default=False,
+        ),
+    ] = None,
     dask: Annotated[
         bool,
         typer.Option(
@@ -87,8 +91,7 @@ def process(
             selected += pipeline.unprocessed(patient=patient)
         elif patient is not None:
             selected += [
-                a.uid
-                for a in reversed(archive.acquisitions(patient=patient, limit=1_000_000))
+                a.uid for a in reversed(archive.acquisitions(patient=patient, limit=1_000_000))
             ]
         if not selected:
             if uids or patient or all_unprocessed:
@@ -98,12 +101,17 @@ def process(
         selected = list(dict.fromkeys(selected))  # each once, in the order given
         with progress_bar("processing") as progress:
             outcomes = process_many(
-                archive, selected, chain=chain, calibration=wanted, until=until,
-                dask=dask, progress=progress,
+                archive,
+                selected,
+                chain=chain,
+                calibration=wanted,
+                until=until or DEFAULT_TARGETS,
+                dask=dask,
+                progress=progress,
             )
     for outcome in outcomes:
         if as_json:
-            typer.echo(json.dumps(outcome.__dict__))
+            typer.echo(json.dumps(outcome.to_dict()))
         elif outcome.status == "done":
             note = f"; {outcome.reason}" if outcome.reason else ""
             typer.echo(

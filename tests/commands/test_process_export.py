@@ -32,11 +32,12 @@ def test_process_then_reuse_then_export(setup, tmp_path: Path, capsys) -> None:
     back = uids["back"]
     assert cli("process", back) == 0
     out = capsys.readouterr().out
-    assert f"{back}\tdone\t7 computed, 0 reused" in out
+    # the default targets: the mesh and the back-shape analysis, sharing the surface
+    assert f"{back}\tdone\t8 computed, 0 reused" in out
     assert cli("process", back, "--json") == 0
     (line,) = capsys.readouterr().out.splitlines()
     assert json.loads(line) | {"uid": back} == {
-        "uid": back, "status": "done", "computed": 0, "reused": 7,
+        "uid": back, "status": "done", "computed": 0, "reused": 8,
         "reason": json.loads(line)["reason"], "error": "",
     }
     for fmt in ("ply", "obj", "stl"):
