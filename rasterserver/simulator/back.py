@@ -28,7 +28,18 @@ line towards +X (a right convex curve); a positive axial rotation turns the +X s
 on the right, as in the commonest idiopathic scoliosis.
 
 Heights along the trunk are given as fractions ``t`` of the trunk length: ``t = 0`` at the
-vertebra prominens (C7), ``t = 1`` at the sacrum point midway between the lumbar dimples (DM).
+vertebra prominens (C7), ``t = 1`` at DM, the point of the spinal line midway between the
+lumbar dimples (the landmark ``"dimple_midpoint"``; ``"sacrum"`` is its older name). The
+sacrum point SP, the top of the gluteal cleft, lies below DM.
+
+The scene also carries the **truth** the back-shape analysis is measured against (see
+:mod:`rasterserver.simulator.back_truth` and ``docs/simulator_truth.md``): the sacrum point, the
+inflection points and apices of the sagittal profile of the spinal line, the vertebral-body
+centres and the surface normals the parameters need. The patient's **posture** is a rigid
+motion of the whole body: the offsets place it, then the sagittal ``inclination``, the frontal
+``lateral_lean`` and the ``turn`` about the vertical rotate it (in this order) about axes
+through the point ``(0, y_DM, 0)`` of the nominal back plane at the height of DM;
+:func:`posture_sway` re-poses a back for repeatability studies.
 """
 
 from __future__ import annotations
@@ -43,8 +54,10 @@ import numpy as np
 import open3d as o3d
 from scipy.interpolate import CubicSpline, PchipInterpolator
 from scipy.ndimage import gaussian_filter1d
+from scipy.optimize import brentq
 
 from rasterserver.errors import InputError
+from rasterserver.simulator.back_truth import body_depth, inclination, sagittal_points
 from rasterserver.simulator.scene import Scene, SceneObject
 
 __all__ = [
@@ -53,6 +66,7 @@ __all__ = [
     "ScoliosisCurve",
     "SkinAlbedo",
     "make_back",
+    "posture_sway",
     "preset",
     "random_back",
 ]
@@ -63,6 +77,12 @@ _REFERENCE_SHOULDER_WIDTH = 380.0
 _C7_FRACTION = 0.52
 #: Lateral distance of each lumbar dimple from the midline, as a fraction of shoulder width.
 _DIMPLE_FRACTION = 0.135
+#: The gluteal cleft deepens from this height (t) over the next ``_CLEFT_RAMP``.
+_CLEFT_TOP = 1.1
+_CLEFT_RAMP = 0.15
+#: The sacrum point SP (top of the rima ani) is where the cleft reaches this fraction of its
+#: full depth.
+_SP_DEPTH_FRACTION = 0.1
 
 
 def _check(condition: bool, message: str) -> None:
@@ -138,6 +158,13 @@ class BackParameters:
     inclination : float
         Sagittal trunk inclination, degrees, in [-25, 25]; positive leans the upper body
         forwards (away from the camera, +Z), about a horizontal axis through DM.
+    lateral_lean : float
+        Frontal lean of the whole body, degrees, in [-15, 15]; positive leans the upper body
+        towards +X (the patient's right), about the axis along Z through ``(0, y_DM, 0)``.
+    turn : float
+        Rotation of the whole body about the vertical through ``(0, y_DM, 0)``, degrees, in
+        [-30, 30]; positive turns the +X side backwards (towards the camera, −Z), the sense of
+        a positive axial rotation.
     kyphosis : float
         Depth of the thoracic kyphosis (posterior convexity), mm, in [0, 80].
     lordosis : float
@@ -172,6 +199,8 @@ class BackParameters:
     trunk_length: float = 440.0
     shoulder_width: float = 380.0
     inclination: float = 2.0
+    lateral_lean: float = 0.0
+    turn: float = 0.0
     kyphosis: float = 25.0
     lordosis: float = 15.0
     curves: tuple[ScoliosisCurve, ...] = field(default_factory=tuple)
@@ -201,6 +230,8 @@ class BackParameters:
             "trunk_length": (300.0, 650.0),
             "shoulder_width": (250.0, 520.0),
             "inclination": (-25.0, 25.0),
+            "lateral_lean": (-15.0, 15.0),
+            "turn": (-30.0, 30.0),
             "kyphosis": (0.0, 80.0),
             "lordosis": (0.0, 60.0),
             "scapula_prominence": (0.0, 30.0),
@@ -361,6 +392,47 @@ def random_back(seed: int) -> BackParameters:
     )
 
 
+def posture_sway(
+    params: BackParameters, seed: int, *, translation: float = 5.0, rotation: float = 1.0
+) -> BackParameters:
+    """Return the same back standing a little differently: the sway between two acquisitions.
+
+    Each offset moves by a uniform draw in ``[-translation, translation]`` mm, and the
+    inclination, lateral lean and turn by uniform draws in ``[-rotation, rotation]`` degrees
+    (clipped to their ranges); shape, scoliosis and skin stay. Render the result with another
+    noise seed for an independent acquisition of the same patient.
+
+    Parameters
+    ----------
+    params : BackParameters
+        The back.
+    seed : int
+        Seed of the draw; the same seed gives the same posture.
+    translation : float, optional
+        Largest shift along each axis, mm (>= 0).
+    rotation : float, optional
+        Largest change of each posture angle, degrees (>= 0).
+
+    Returns
+    -------
+    BackParameters
+    """
+    translation = _finite("translation", translation)
+    rotation = _finite("rotation", rotation)
+    _check(translation >= 0.0 and rotation >= 0.0, "sway amplitudes must be >= 0")
+    rng = np.random.default_rng([int(seed), 0x5A7])
+    shift = rng.uniform(-translation, translation, 3)
+    turn = rng.uniform(-rotation, rotation, 3)
+    limits = {"inclination": 25.0, "lateral_lean": 15.0, "turn": 30.0}
+    changes = {
+        name: float(np.clip(getattr(params, name) + d, -limits[name], limits[name]))
+        for name, d in zip(limits, turn, strict=True)
+    }
+    for name, d in zip(("offset_x", "offset_y", "offset_z"), shift, strict=True):
+        changes[name] = float(np.clip(getattr(params, name) + d, -150.0, 150.0))
+    return dataclasses.replace(params, **changes)
+
+
 # --------------------------------------------------------------------------------------------
 # Smooth building blocks
 
@@ -485,7 +557,7 @@ class _Anatomy:
                 u = (x - side * 75.0 * s) / (70.0 * s)
                 v = (t - 1.33) / 0.2
                 elev += p.buttock_prominence * np.exp(-0.5 * (u * u + v * v))
-            cleft = _smootherstep((t - 1.1) / 0.15) * p.buttock_prominence * 0.5
+            cleft = _smootherstep((t - _CLEFT_TOP) / _CLEFT_RAMP) * p.buttock_prominence * 0.5
             elev -= cleft * np.exp(-0.5 * (x / (7.0 * s)) ** 2)
         return elev
 
@@ -599,19 +671,98 @@ def _theta_for_x(anatomy: _Anatomy, x: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.sign(x) * np.arcsin(ratio ** (p / 2.0))
 
 
-def _inclination_matrix(params: BackParameters) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation about the X axis through DM (forward lean positive) and its pivot."""
+def _posture_matrix(params: BackParameters) -> tuple[np.ndarray, np.ndarray]:
+    """The posture's rotation (inclination, then lateral lean, then turn) and its pivot."""
     a = math.radians(params.inclination)
     c, s = math.cos(a), math.sin(a)
     # Rows act on (x, y, z): a point above the pivot (y < y_dm) moves to +Z for a > 0.
     rot = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+    if params.lateral_lean:
+        # About Z: a point above the pivot moves to +X for a positive lean.
+        b = math.radians(params.lateral_lean)
+        cb, sb = math.cos(b), math.sin(b)
+        rot = np.array([[cb, -sb, 0.0], [sb, cb, 0.0], [0.0, 0.0, 1.0]]) @ rot
+    if params.turn:
+        # About Y: +X moves to -Z (posterior) for a positive turn.
+        g = math.radians(params.turn)
+        cg, sg = math.cos(g), math.sin(g)
+        rot = np.array([[cg, 0.0, sg], [0.0, 1.0, 0.0], [-sg, 0.0, cg]]) @ rot
+    # Upright, unturned backs keep the exact matrix they always had (renders reproduce).
     y_dm = params.offset_y + (1.0 - _C7_FRACTION) * params.trunk_length
     return rot, np.array([0.0, y_dm, 0.0])
 
 
 def _to_world(params: BackParameters, points: np.ndarray) -> np.ndarray:
-    rot, pivot = _inclination_matrix(params)
+    rot, pivot = _posture_matrix(params)
     return (points - pivot) @ rot.T + pivot
+
+
+def _section_points(anatomy: _Anatomy, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Body-frame skin points at body-local lateral position ``x`` (mm) and height ``t``."""
+    return _trunk_points(anatomy, _theta_for_x(anatomy, x, t), t)
+
+
+def _outward_normals(anatomy: _Anatomy, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World unit normals of the skin facing the camera (-Z side) at local ``x``, height ``t``."""
+    x, t = np.broadcast_arrays(np.asarray(x, float), np.asarray(t, float))
+    h, ht = 0.05, 0.05 / anatomy.length  # 0.05 mm either way
+    across = _section_points(anatomy, x + h, t) - _section_points(anatomy, x - h, t)
+    down = _section_points(anatomy, x, t + ht) - _section_points(anatomy, x, t - ht)
+    rot, _ = _posture_matrix(anatomy.params)
+    n = np.cross(down, across) @ rot.T
+    n *= np.where(n[..., 2:] > 0.0, -1.0, 1.0)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _sacrum_point_t() -> float:
+    """Height (t) of the sacrum point: the cleft at ``_SP_DEPTH_FRACTION`` of its depth."""
+    u = brentq(lambda v: float(_smootherstep(np.asarray(v))) - _SP_DEPTH_FRACTION, 0.0, 1.0)
+    return _CLEFT_TOP + _CLEFT_RAMP * u
+
+
+def _truth(anatomy: _Anatomy, t_mid: np.ndarray) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Landmarks and metadata of the analysis's truth (see :mod:`.back_truth`)."""
+    params = anatomy.params
+    zero = np.zeros_like(t_mid)
+    # Vertebral-body centres: in front of the spinal line's skin point, along the section's
+    # sagittal direction turned by the axial rotation about that point (as the trunk is).
+    skin = _trunk_points(anatomy, zero, t_mid)
+    depth = body_depth(t_mid, params.trunk_length)
+    phi = np.radians(anatomy.rotation(t_mid))
+    bodies = skin + np.stack([depth * np.sin(phi), zero, depth * np.cos(phi)], -1)
+    # The sagittal profile, sampled beyond VP and DM every 0.5 mm so that the tangents at
+    # VP and DM are central differences too.
+    t_ext = np.linspace(-0.1, 1.1, round(1.2 * params.trunk_length / 0.5) + 1)
+    profile = _to_world(params, _trunk_points(anatomy, np.zeros_like(t_ext), t_ext))
+    alpha = inclination(profile[:, 1], profile[:, 2])
+    idx = sagittal_points(t_ext, profile[:, 1], profile[:, 2])
+    t_sp = _sacrum_point_t()
+    sp = _to_world(params, _trunk_points(anatomy, np.zeros(1), np.full(1, t_sp)))[0]
+    normals = _outward_normals(anatomy, zero, t_mid)
+    dx = _DIMPLE_FRACTION * params.shoulder_width
+    dimple_normals = _outward_normals(anatomy, np.array([-dx, dx]), np.ones(2))
+    landmarks: dict[str, Any] = {
+        "sacrum_point": sp,
+        "vertebral_bodies": _to_world(params, bodies),
+        **{f"sagittal_{name}": profile[i].copy() for name, i in idx.items()},
+    }
+    spine = {
+        "body_depth_mm": depth.tolist(),
+        "surface_rotation_deg": np.degrees(np.arctan2(-normals[:, 0], -normals[:, 2])).tolist(),
+        "sagittal_inclination_deg": np.interp(t_mid, t_ext, alpha).tolist(),
+    }
+    truth = {
+        "sacrum_point_t": t_sp,
+        "sagittal": {
+            name: {"t": float(t_ext[i]), "inclination_deg": float(alpha[i])}
+            for name, i in idx.items()
+        },
+        "dimple_normals": {
+            "left": dimple_normals[0].tolist(),
+            "right": dimple_normals[1].tolist(),
+        },
+    }
+    return landmarks, {"spine": spine, "truth": truth}
 
 
 def _grid_triangles(rows: int, cols: int) -> np.ndarray:
@@ -867,14 +1018,33 @@ def make_back(
     -------
     Scene
         Objects ``"trunk"``, ``"left-arm"`` (at −X) and ``"right-arm"`` (at +X), all with the
-        same :class:`SkinAlbedo`. Landmarks (world mm): ``"vertebra_prominens"`` (C7, on the
-        skin at the top of the spinal line), ``"dimple_left"`` and ``"dimple_right"`` (centres
-        of the lumbar dimples, on the skin), ``"sacrum"`` (DM, midway between the dimples on
-        the spinal line) and ``"spinal_midline"`` (M, 3): the spinal line on the skin, i.e.
-        the line of the spinous processes at the bottom of the midline furrow, about which
-        the trunk rotates, from C7 to DM at 2 mm steps. Metadata: the parameters, and under
-        ``"spine"`` the height fraction ``t``, world ``y``, applied ``lateral_deviation_mm``
-        and ``axial_rotation_deg`` of every midline point, plus the measured arm gaps.
+        same :class:`SkinAlbedo`. Landmarks (world mm):
+
+        * ``"vertebra_prominens"`` (VP, C7, on the skin at the top of the spinal line);
+        * ``"dimple_left"`` and ``"dimple_right"`` (DL, DR: centres of the lumbar dimples, on
+          the skin, at height ``t = 1``);
+        * ``"dimple_midpoint"`` (DM: the spinal line's skin point at ``t = 1``, midway between
+          the dimples); ``"sacrum"`` is the same point under its older name;
+        * ``"sacrum_point"`` (SP: the top of the rima ani, on the skin at the bottom of the
+          gluteal cleft, where the cleft reaches a tenth of its full depth, ~0.135 trunk
+          lengths below DM);
+        * ``"spinal_midline"`` (M, 3): the spinal line on the skin, i.e. the line of the
+          spinous processes at the bottom of the midline furrow, about which the trunk
+          rotates, from VP to DM at 2 mm steps;
+        * ``"vertebral_bodies"`` (M, 3): the vertebral-body centres at the same heights,
+          ``body_depth_mm`` in front of the skin along the section's sagittal direction
+          turned by the axial rotation (skin + R(rotation)·(0, 0, depth) before the posture);
+        * ``"sagittal_ICT"``, ``"sagittal_KA"``, ``"sagittal_ITL"``, ``"sagittal_LA"``,
+          ``"sagittal_ILS"``: the inflection points and apices of the sagittal profile of the
+          spinal line, on the skin (definitions in :mod:`.back_truth`).
+
+        Metadata: the parameters; under ``"spine"`` per midline point the height fraction
+        ``t``, world ``y``, the applied ``lateral_deviation_mm`` and ``axial_rotation_deg``,
+        ``body_depth_mm``, the ``surface_rotation_deg`` of the skin normal and the
+        ``sagittal_inclination_deg`` of the profile; under ``"truth"`` the heights and
+        tangent inclinations of the sagittal points, the sacrum point's ``t`` and the skin
+        normals at the dimples; the measured arm gaps. :func:`.back_truth.truth` turns them
+        into the analysis's landmarks and parameters.
 
     Raises
     ------
@@ -897,7 +1067,7 @@ def make_back(
     right_arm, gap_right = _arm(anatomy, 1.0, rows_y, right_x, right_z)
     left_arm, gap_left = _arm(anatomy, -1.0, rows_y, left_x, left_z)
 
-    rot, pivot = _inclination_matrix(params)
+    rot, pivot = _posture_matrix(params)
     for mesh in (trunk, right_arm, left_arm):
         mesh.rotate(rot, center=pivot)
         mesh.compute_vertex_normals()
@@ -909,12 +1079,15 @@ def make_back(
     xs = np.array([-dx, dx])
     ts = np.ones(2)
     dimples = _to_world(params, _trunk_points(anatomy, _theta_for_x(anatomy, xs, ts), ts))
+    truth_landmarks, truth_metadata = _truth(anatomy, t_mid)
     landmarks = {
         "vertebra_prominens": midline[0].copy(),
+        "dimple_midpoint": midline[-1].copy(),
         "sacrum": midline[-1].copy(),
         "dimple_left": dimples[0],
         "dimple_right": dimples[1],
         "spinal_midline": midline,
+        **truth_landmarks,
     }
     albedo = SkinAlbedo(params.albedo, params.albedo_variation, params.albedo_seed, params.naevi)
     metadata: dict[str, Any] = {
@@ -926,12 +1099,16 @@ def make_back(
             "y": midline[:, 1].tolist(),
             "lateral_deviation_mm": anatomy.deviation(t_mid).tolist(),
             "axial_rotation_deg": anatomy.rotation(t_mid).tolist(),
+            **truth_metadata["spine"],
         },
+        "truth": truth_metadata["truth"],
         "arm_gap_mm": {"left": gap_left, "right": gap_right},
         "conventions": (
             "world mm, X right (patient's right), Y down, Z away from the camera (anterior); "
             "deviation + towards +X; rotation + turns the +X side posterior (-Z); "
-            "spinal_midline = spinous-process line on the skin (furrow bottom), C7 to DM"
+            "spinal_midline = spinous-process line on the skin (furrow bottom), C7 to DM; "
+            "vertebral_bodies = body centres at body_depth_mm in front of it, turned by the "
+            "axial rotation; see rasterserver.simulator.back_truth"
         ),
     }
     return Scene(
