@@ -7,12 +7,16 @@ turns :class:`~rasterserver.errors.RasterServerError` into a message and an exit
 
 from __future__ import annotations
 
+import inspect
 import logging
+import re
 import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
+import typer.main
+from typer.models import CommandInfo
 
 from rasterserver import __version__
 from rasterserver.commands import COMMAND_MODULES
@@ -65,8 +69,61 @@ def _root(
     ctx.obj = Settings.from_env(archive=archive, database_url=database_url)
 
 
+#: A line that starts a list item or is indented: its line break is meant, not a source wrap.
+_MEANT_BREAK = re.compile(r"\s|[-*\u2022] |\d+[.)] ")
+
+
+def flowing(text: str) -> str:
+    """Un-wrap the paragraphs of a help text: each becomes one line, for the terminal to wrap.
+
+    Docstrings are hard-wrapped to the source's line length; Typer keeps those breaks, so a
+    terminal of another width shows ragged lines. Paragraphs stay apart (blank lines), and a
+    paragraph holding a list item or an indented line (or starting with Click's ``\\b``
+    marker) is kept as written.
+
+    Parameters
+    ----------
+    text : str
+        A help text or docstring (indentation is removed first).
+
+    Returns
+    -------
+    str
+    """
+    paragraphs = re.split(r"\n[ \t]*\n", inspect.cleandoc(text).strip())
+    flowed = []
+    for paragraph in paragraphs:
+        lines = paragraph.splitlines()
+        if paragraph.startswith("\b") or any(_MEANT_BREAK.match(line) for line in lines[1:]):
+            flowed.append(paragraph)
+        else:
+            flowed.append(" ".join(line.strip() for line in lines))
+    return "\n\n".join(flowed)
+
+
+def _flow_help(group: typer.Typer) -> None:
+    """Give every command of ``group`` (and of its sub-groups) flowing help text."""
+    if isinstance(group.info.help, str):
+        group.info.help = flowing(group.info.help)
+    for command in group.registered_commands:
+        _flow_command(command)
+    for sub in group.registered_groups:
+        sub.help = flowing(typer.main.solve_typer_info_help(sub))
+        if sub.typer_instance is not None:
+            _flow_help(sub.typer_instance)
+
+
+def _flow_command(command: CommandInfo) -> None:
+    # Typer falls back on the docstring when no help is given; do the same, then un-wrap
+    text = command.help if command.help is not None else inspect.getdoc(command.callback)
+    if text:
+        command.help = flowing(text)
+
+
 for _module in COMMAND_MODULES:
     _module.register(app)
+# one place for every command's help, whichever module registered it
+_flow_help(app)
 
 
 def main(argv: list[str] | None = None) -> int:
