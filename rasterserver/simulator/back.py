@@ -730,9 +730,10 @@ def _truth(anatomy: _Anatomy, t_mid: np.ndarray) -> tuple[dict[str, Any], dict[s
     depth = body_depth(t_mid, params.trunk_length)
     phi = np.radians(anatomy.rotation(t_mid))
     bodies = skin + np.stack([depth * np.sin(phi), zero, depth * np.cos(phi)], -1)
-    # The sagittal profile, sampled beyond VP and DM every 0.5 mm so that the tangents at
-    # VP and DM are central differences too.
-    t_ext = np.linspace(-0.1, 1.1, round(1.2 * params.trunk_length / 0.5) + 1)
+    # The sagittal profile, sampled beyond VP and DM every 0.5 mm or less so that the
+    # tangents at VP and DM are central differences too; t = 0 and 1 are samples.
+    k = math.ceil(0.1 * params.trunk_length / 0.5)
+    t_ext = np.arange(-k, 11 * k + 1) / (10.0 * k)
     profile = _to_world(params, _trunk_points(anatomy, np.zeros_like(t_ext), t_ext))
     alpha = inclination(profile[:, 1], profile[:, 2])
     idx = sagittal_points(t_ext, profile[:, 1], profile[:, 2])
