@@ -293,17 +293,11 @@ class PinholeDevice:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PinholeDevice:
-        """Inverse of :meth:`to_dict`; ``centre`` is derived and ignored if present."""
-        if data.get("model", "opencv-pinhole") != "opencv-pinhole":
-            raise ValueError(f"unknown device model {data.get('model')!r}")
-        return cls(
-            K=np.asarray(data["K"], dtype=np.float64),
-            dist=np.asarray(data.get("distortion", [0.0] * 5), dtype=np.float64),
-            R=np.asarray(data.get("R", np.eye(3)), dtype=np.float64),
-            t=np.asarray(data["t"], dtype=np.float64),
-            width=data["width"],
-            height=data["height"],
-        )
+        """Inverse of :meth:`to_dict`, checked by :mod:`rasterserver.documents`; ``centre`` is
+        derived (a stored one must agree)."""
+        from rasterserver.documents import device_from_document
+
+        return device_from_document(cls, data, source=cls.kind)
 
     def key(self) -> str:
         """Stable text identifying the model's parameters (for caches)."""
@@ -476,12 +470,24 @@ class Station:
         (:func:`rasterserver.raster.get_raster`).
     name : str
         Station / calibration label.
+    gravity : numpy.ndarray or None
+        ``(3,)`` unit vector: the direction of gravity (down) in the world frame, or None
+        when unknown. ``[0, 1, 0]`` when the world's Y axis is plumb, as for the default
+        station and a calibration from the control-point body.
     """
 
     camera: Camera
     projector: Projector
     raster: Raster | str = "default"
     name: str = "default"
+    gravity: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.gravity is not None:
+            g = np.array(self.gravity, dtype=np.float64).reshape(3)
+            if not (np.all(np.isfinite(g)) and abs(np.linalg.norm(g) - 1.0) <= 1e-6):
+                raise ValueError(f"gravity must be a finite unit vector, got {g.tolist()}")
+            object.__setattr__(self, "gravity", g)
 
     @property
     def raster_definition(self) -> Raster:
@@ -539,6 +545,7 @@ class Station:
             "camera": self.camera.to_dict(),
             "projector": self.projector.to_dict(),
             "raster": raster,
+            **({} if self.gravity is None else {"gravity": self.gravity.tolist()}),
         }
 
     def to_json(self, *, indent: int | None = 2) -> str:
@@ -547,27 +554,24 @@ class Station:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Station:
-        """Inverse of :meth:`to_dict`."""
-        from rasterserver.raster import Raster
+        """Inverse of :meth:`to_dict`, checked by
+        :func:`rasterserver.documents.calibration_from_document`.
 
-        fmt = data.get("format")
-        if fmt != CALIBRATION_FORMAT:
-            raise ValueError(f"not a {CALIBRATION_FORMAT} document (format={fmt!r})")
-        raster_data = data.get("raster", "default")
-        raster: Raster | str = (
-            Raster.from_dict(raster_data) if isinstance(raster_data, dict) else str(raster_data)
-        )
-        return cls(
-            camera=Camera.from_dict(data["camera"]),  # type: ignore[arg-type]
-            projector=Projector.from_dict(data["projector"]),  # type: ignore[arg-type]
-            raster=raster,
-            name=str(data.get("name", "default")),
-        )
+        Raises
+        ------
+        InputError
+            The document is refused (the message names the field).
+        """
+        from rasterserver.documents import calibration_from_document
+
+        return calibration_from_document(data)
 
     @classmethod
     def from_json(cls, text: str) -> Station:
-        """Parse a calibration JSON text."""
-        return cls.from_dict(json.loads(text))
+        """Parse and check a calibration JSON text (see :meth:`from_dict`)."""
+        from rasterserver.documents import load_calibration_document
+
+        return load_calibration_document(text)
 
     def save(self, path: str | Path) -> Path:
         """Write the calibration JSON to ``path``."""
@@ -577,8 +581,10 @@ class Station:
 
     @classmethod
     def load(cls, path: str | Path) -> Station:
-        """Read a calibration JSON file."""
-        return cls.from_json(Path(path).read_text(encoding="utf-8"))
+        """Read and check a calibration JSON file (see :meth:`from_dict`)."""
+        from rasterserver.documents import load_calibration_document
+
+        return load_calibration_document(Path(path))
 
 
 def default_station(
@@ -654,4 +660,11 @@ def default_station(
         width=dw,
         height=dh,
     )
-    return Station(camera=camera, projector=projector, raster=raster, name=name)
+    # the world's Y axis points down (towards the floor) by the conventions above
+    return Station(
+        camera=camera,
+        projector=projector,
+        raster=raster,
+        name=name,
+        gravity=np.array([0.0, 1.0, 0.0]),
+    )

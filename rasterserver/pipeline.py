@@ -64,7 +64,9 @@ from rasterserver.catalog.models import (
     StageResult,
 )
 from rasterserver.catalog.models import Station as StationRow
+from rasterserver.documents import calibration_from_document, raster_from_document
 from rasterserver.errors import InputError, IntegrityError, NotFoundError, RasterServerError
+from rasterserver.frame_fit import check_frame_fits
 from rasterserver.optics import Station
 from rasterserver.raster import Raster
 from rasterserver.records import Image, Record
@@ -367,24 +369,6 @@ def _downstream(kinds: set[str], registry: Registry) -> set[str]:
                 made.add(stage.output_type)
                 grew = True
     return found
-
-
-def check_frame_fits(image_shape: tuple[int, ...], station: object) -> None:
-    """Refuse a frame whose size differs from the calibrated camera's.
-
-    Raises
-    ------
-    InputError
-        With both sizes in the message.
-    """
-    if isinstance(station, Station):
-        rows, cols = (int(s) for s in image_shape[:2])
-        if (rows, cols) != station.camera.shape:
-            raise InputError(
-                f"the frame is {rows}x{cols} (rows x columns) but the calibration's camera "
-                f"{station.name!r} is {station.camera.height}x{station.camera.width}: "
-                "wrong calibration for this frame"
-            )
 
 
 def _as_record(data: np.ndarray | Record) -> Record:
@@ -1230,23 +1214,15 @@ class Pipeline:
                 )
             raster_definition = row.raster.definition if row.raster is not None else None
             station_name = row.station.name
-        try:
-            station = Station.from_dict(row.parameters)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(
-                f"calibration {station_name}:{row.version} is not a usable calibration "
-                f"document: {exc}"
-            ) from None
-        try:
-            raster = (
-                Raster.from_dict(raster_definition)
-                if raster_definition is not None
-                else station.raster_definition
-            )
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(
-                f"the raster of calibration {station_name}:{row.version} is unusable: {exc}"
-            ) from None
+        label = f"calibration {station_name}:{row.version}"
+        station = calibration_from_document(row.parameters, source=label)
+        if raster_definition is not None:
+            raster = raster_from_document(raster_definition, source=f"the raster of {label}")
+        else:
+            try:
+                raster = station.raster_definition
+            except KeyError as exc:
+                raise InputError(f"the raster of {label} is unusable: {exc}") from None
         return row, station, raster
 
     def _load(self, cached: CachedResult) -> Record:

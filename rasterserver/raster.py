@@ -140,27 +140,24 @@ class Raster:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Raster:
-        """Inverse of :meth:`to_dict`."""
-        fmt = data.get("format")
-        if fmt != RASTER_FORMAT:
-            raise ValueError(f"not a {RASTER_FORMAT} document (format={fmt!r})")
-        lines = data["lines"]
-        code = data.get("code", {})
-        return cls(
-            name=str(data["name"]),
-            numbers=np.array([ln["number"] for ln in lines], dtype=np.int64),
-            positions=np.array([ln["v"] for ln in lines], dtype=np.float64),
-            kinds=tuple(ln["kind"] for ln in lines),
-            widths=np.array([ln["width"] for ln in lines], dtype=np.float64),
-            window=int(code.get("window", 0)),
-            min_distance=int(code.get("min_distance", 1)),
-            description=str(data.get("description", "")),
-        )
+        """Inverse of :meth:`to_dict`, checked by
+        :func:`rasterserver.documents.raster_from_document`.
+
+        Raises
+        ------
+        InputError
+            The document is refused (the message names the field).
+        """
+        from rasterserver.documents import raster_from_document
+
+        return raster_from_document(data)
 
     @classmethod
     def from_json(cls, text: str) -> Raster:
-        """Parse JSON text."""
-        return cls.from_dict(json.loads(text))
+        """Parse and check JSON text (see :meth:`from_dict`)."""
+        from rasterserver.documents import load_raster_document
+
+        return load_raster_document(text)
 
     def save(self, path: str | Path) -> Path:
         """Write the JSON definition to ``path``."""
@@ -170,8 +167,10 @@ class Raster:
 
     @classmethod
     def load(cls, path: str | Path) -> Raster:
-        """Read a JSON definition."""
-        return cls.from_json(Path(path).read_text(encoding="utf-8"))
+        """Read and check a JSON definition file (see :meth:`from_dict`)."""
+        from rasterserver.documents import load_raster_document
+
+        return load_raster_document(Path(path))
 
 
 def _kinds_to_bits(kinds: list[str] | np.ndarray) -> np.ndarray:
@@ -216,12 +215,52 @@ def window_code_position(
 
 def code_min_distance(code: np.ndarray, window: int) -> int:
     """Minimum Hamming distance between any two length-``window`` windows of ``code``."""
-    windows = np.lib.stride_tricks.sliding_window_view(np.asarray(code, dtype=np.uint8), window)
-    if windows.shape[0] < 2:
-        return window
-    d = np.count_nonzero(windows[:, None, :] != windows[None, :, :], axis=2)
-    np.fill_diagonal(d, window + 1)
-    return int(d.min())
+    return closest_windows(code, window)[0]
+
+
+def closest_windows(code: np.ndarray, window: int) -> tuple[int, int, int]:
+    """The two length-``window`` windows of ``code`` that differ in the fewest places.
+
+    Windows of up to 63 bits are packed into integers and compared by XOR and bit count, a
+    block of rows at a time, so a raster of thousands of lines needs a few megabytes (the
+    full boolean comparison needs lines² x window bytes).
+
+    Parameters
+    ----------
+    code : numpy.ndarray
+        ``(L,)`` bits (1 = heavy).
+    window : int
+        Window length, ``1 <= window <= L``.
+
+    Returns
+    -------
+    (int, int, int)
+        The distance and the indices ``i < j`` of the first lines of the two windows;
+        ``(window, 0, 0)`` when there are fewer than two windows.
+    """
+    bits = np.asarray(code, dtype=np.uint8).ravel()
+    windows = np.lib.stride_tricks.sliding_window_view(bits, window)
+    n = windows.shape[0]
+    if n < 2:
+        return window, 0, 0
+    packed = None
+    if window <= 63:
+        weights = np.left_shift(np.uint64(1), np.arange(window, dtype=np.uint64))
+        packed = (windows.astype(np.uint64) * weights).sum(axis=1, dtype=np.uint64)
+    best = (window + 1, 0, 0)
+    block = max(1, 2_000_000 // (n * (1 if packed is not None else window)))
+    for start in range(0, n - 1, block):
+        rows = np.arange(start, min(start + block, n - 1))
+        if packed is not None:
+            d = np.bitwise_count(packed[rows, None] ^ packed[None, :]).astype(np.int64)
+        else:
+            d = np.count_nonzero(windows[rows, None, :] != windows[None, :, :], axis=2)
+        d[np.arange(n)[None, :] <= rows[:, None]] = window + 1  # each pair once, i < j
+        flat = int(np.argmin(d))
+        i, j = divmod(flat, n)
+        if d[i, j] < best[0]:
+            best = (int(d[i, j]), int(rows[i]), int(j))
+    return best
 
 
 @lru_cache(maxsize=32)

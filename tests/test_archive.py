@@ -15,6 +15,7 @@ from rasterserver.archive import Archive, FrameSource
 from rasterserver.catalog.models import Acquisition, Calibration, Frame
 from rasterserver.config import Settings
 from rasterserver.errors import ConflictError, InputError, NotFoundError
+from rasterserver.optics import default_station
 
 RNG_SEED = 20261122
 
@@ -172,13 +173,18 @@ def test_patient_identifier_unique(archive: Archive) -> None:
         archive.add_patient("   ")
 
 
+def _calibration(name: str) -> dict[str, object]:
+    """A calibration of a 20x20 camera (the test frames' size)."""
+    return default_station(width=20, height=20, name=name).to_dict()
+
+
 def test_calibrations_are_versioned_and_immutable(archive: Archive, tmp_path: Path) -> None:
     archive.add_station("S1")
-    first = archive.add_calibration("S1", {"format": "rasterserver.calibration/1", "f": 1})
-    second = archive.add_calibration("S1", {"format": "rasterserver.calibration/1", "f": 2})
+    first = archive.add_calibration("S1", _calibration("first"))
+    second = archive.add_calibration("S1", _calibration("second"))
     assert (first.version, second.version) == (1, 2)
     assert archive.calibration("S1").version == 2
-    assert archive.calibration("S1", 1).parameters["f"] == 1
+    assert archive.calibration("S1", 1).parameters["name"] == "first"
     np.save(tmp_path / "f.npy", _frame(9, shape=(20, 20)))
     acq = archive.ingest([FrameSource(tmp_path / "f.npy")], patient="P001", station="S1")
     assert acq.calibration_id == second.id
@@ -295,8 +301,8 @@ def test_concurrent_ingests_share_the_visit(archive: Archive) -> None:
 def test_ingest_attaches_the_calibration_valid_when_taken(archive: Archive) -> None:
     archive.add_station("S2")
     jan = dt.datetime(2025, 1, 1, tzinfo=dt.UTC)
-    old = archive.add_calibration("S2", {"v": 1}, valid_from=jan)
-    new = archive.add_calibration("S2", {"v": 2}, valid_from=jan + dt.timedelta(days=90))
+    old = archive.add_calibration("S2", _calibration("old"), valid_from=jan)
+    new = archive.add_calibration("S2", _calibration("new"), valid_from=jan + dt.timedelta(days=90))
     frame = _frame(14, shape=(20, 20))
 
     def taken(days: int) -> Acquisition:

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from rasterserver.errors import InputError
 from rasterserver.optics import (
     CALIBRATION_FORMAT,
     Camera,
@@ -151,7 +152,7 @@ def test_calibration_json_round_trip(tmp_path) -> None:  # type: ignore[no-untyp
 def test_bad_inputs() -> None:
     with pytest.raises(ValueError, match="rotation"):
         Camera(K=np.eye(3), R=np.diag([1.0, 1.0, -1.0]), width=10, height=10)
-    with pytest.raises(ValueError, match="format"):
+    with pytest.raises(InputError, match="format"):
         Station.from_dict({"format": "something/9"})
     with pytest.raises(ValueError, match="shape"):
         default_station().camera.project(np.zeros((4, 2)))

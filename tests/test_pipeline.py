@@ -253,11 +253,13 @@ def test_missing_calibration_is_a_clear_error(settings: Settings) -> None:
 
 def test_frame_of_another_size_than_the_camera_is_refused(settings: Settings) -> None:
     small = np.zeros((302, 288), np.uint8)
-    archive, uids = gt.archive_with_frames(settings, {"small": small})
+    # ingest refuses it once a calibration applies, so it is stored before there is one
+    archive, uids = gt.archive_with_frames(settings, {"small": small}, calibrate=False)
     with archive:
+        archive.add_calibration(gt.STATION_NAME, gt.station().to_dict())
         pipeline = Pipeline(archive)
         with pytest.raises(InputError, match=r"302x288.*604x576"):
-            pipeline.process(uids["small"])
+            pipeline.process(uids["small"], calibration=(gt.STATION_NAME, 1))
         assert pipeline.runs(uids["small"])[0].status == "failed"
 
 

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from rasterserver.errors import InputError
 from rasterserver.raster import (
     DEFAULT_CODE,
     RASTER_FORMAT,
@@ -81,7 +82,7 @@ def test_custom_raster_and_validation() -> None:
         Raster("x", [1, 2], [5.0, 4.0], ("light", "heavy"), [1.0, 1.0], window=1)
     with pytest.raises(ValueError, match="kinds"):
         Raster("x", [1], [5.0], ("bold",), [1.0], window=1)
-    with pytest.raises(ValueError, match="format"):
+    with pytest.raises(InputError, match="format"):
         Raster.from_dict({"format": "nope"})
     with pytest.raises(KeyError):
         get_raster("nope")

@@ -112,8 +112,9 @@ def calibrate(
     """Calibrate camera and projector from the six control-point frames."""
     from rasterserver.calibration import calibrate_station, load_control_points, load_frames
     from rasterserver.calibration.report import Bounds, judge, plot_residuals, text_report
+    from rasterserver.documents import load_raster_document
     from rasterserver.optics import default_station
-    from rasterserver.raster import Raster, default_raster
+    from rasterserver.raster import default_raster
 
     if station is None and not dry_run:
         raise InputError("--station is needed to store the calibration (or use --dry-run)")
@@ -127,10 +128,7 @@ def calibrate(
     control = load_control_points(control_points or frames_dir / "control_points.json")
     raster_path = raster or frames_dir / "raster.json"
     if raster is not None or raster_path.exists():
-        try:
-            raster_def = Raster.load(raster_path)
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(f"{raster_path}: not a usable raster definition ({exc})") from None
+        raster_def = load_raster_document(raster_path)
     else:
         raster_def = default_raster()
     height, width = next(iter(frames.off.values() or frames.on.values())).shape
@@ -184,15 +182,10 @@ def _reference(
 ) -> Station | None:
     """The reference station: a file, else the station's newest calibration (not in a dry
     run, which touches no archive), else None for the nominal design."""
-    from rasterserver.optics import Station
+    from rasterserver.documents import calibration_from_document, load_calibration_document
 
     if path is not None:
-        try:
-            return Station.load(path)
-        except FileNotFoundError:
-            raise InputError(f"{path}: no such calibration file") from None
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"{path}: not a calibration document ({exc})") from None
+        return load_calibration_document(path)
     if dry_run:
         return None
     with open_archive(ctx) as archive:
@@ -200,7 +193,8 @@ def _reference(
             row = archive.calibration(station)
         except NotFoundError:
             return None
-        return Station.from_dict(row.parameters)
+        return calibration_from_document(row.parameters,
+                                         source=f"calibration {station}:{row.version}")
 
 
 def export_calibration(

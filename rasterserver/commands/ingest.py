@@ -10,6 +10,7 @@ import typer
 from rasterserver.archive import FrameSource
 from rasterserver.commands.common import open_archive, parse_date, parse_datetime
 from rasterserver.errors import InputError
+from rasterserver.frame_fit import calibration_notice
 from rasterserver.times import TIME_RULE
 
 
@@ -73,6 +74,9 @@ def ingest(
 
     Every frame is checked before anything is written: a colour, empty, truncated, oversized
     or non-image file, an unknown patient or an unknown calibration stores nothing.
+
+    A frame whose size differs from the camera of the calibration that applies is refused
+    (exit 2); when no calibration applies yet it is stored with a warning saying why.
     """
     roles = role or ["raster"]
     if len(roles) == 1:
@@ -102,8 +106,11 @@ def ingest(
         else:
             acq, replayed = archive.ingest_once(sources, source="cli", key=idempotency_key,
                                                 **options)
+        notice = calibration_notice(archive, acq)
     done = "already stored under this key" if replayed else "stored"
     typer.echo(f"acquisition {acq.uid}: {len(acq.frames)} frame(s) {done}")
+    if notice:
+        typer.echo(f"warning: {notice}", err=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import cv2
 import typer
 
-from rasterserver.errors import InputError, NotFoundError
+from rasterserver.documents import load_calibration_document, load_raster_document
+from rasterserver.errors import InputError
 from rasterserver.export import overlay_image, write_points
 from rasterserver.imageio import read_frame
 from rasterserver.optics import Station
+from rasterserver.output_files import check_output, output_file
 from rasterserver.pipeline import parse_stage_options, run_chain
 from rasterserver.raster import Raster
 from rasterserver.records_surface import Points, Surface
@@ -20,16 +21,8 @@ from rasterserver.stage import StageContext
 
 
 def load_station(path: Path) -> Station:
-    """Read a calibration JSON file with a clear error for a missing or foreign file."""
-    if not path.is_file():
-        raise NotFoundError(f"calibration file {path} does not exist")
-    try:
-        return Station.load(path)
-    except (ValueError, KeyError, TypeError) as exc:
-        detail = exc.msg if isinstance(exc, json.JSONDecodeError) else str(exc)
-        raise InputError(
-            f"{path.name} is not a rasterserver calibration (rasterserver.calibration/1): {detail}"
-        ) from None
+    """Read and check a calibration JSON file (:mod:`rasterserver.documents`)."""
+    return load_calibration_document(path)
 
 
 def load_raster(path: Path | None, station: Station) -> Raster:
@@ -42,14 +35,7 @@ def load_raster(path: Path | None, station: Station) -> Raster:
                 f"the calibration names raster {station.raster!r}, which is not built in; "
                 f"give its definition with --raster ({exc})"
             ) from None
-    if not path.is_file():
-        raise NotFoundError(f"raster file {path} does not exist")
-    try:
-        return Raster.load(path)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(
-            f"{path.name} is not a raster definition (rasterserver.raster/1): {exc}"
-        ) from None
+    return load_raster_document(path)
 
 
 def reconstruct(
@@ -95,6 +81,12 @@ def reconstruct(
     """
     if out.suffix.lower() != ".ply":
         raise InputError(f"--out {out.name}: the point cloud is written as PLY (.ply)")
+    # refuse outputs that cannot be written before the work, not after it
+    check_output(out, what="--out")
+    if overlay is not None:
+        check_output(overlay, what="--overlay")
+        if not cv2.haveImageWriter(str(overlay)):
+            raise InputError(f"--overlay {overlay.name}: not an image name OpenCV can write (.png)")
     frame = read_frame(image)
     station = load_station(calibration)
     context = StageContext(calibration=station, raster=load_raster(raster, station))
@@ -107,9 +99,10 @@ def reconstruct(
     # the overlay first: when nothing is reconstructed it is what shows why
     numbers = results.get("numbers")
     if overlay is not None and numbers is not None:
-        written_overlay = cv2.imwrite(str(overlay), overlay_image(frame, numbers))
-        if not written_overlay:
-            raise InputError(f"could not write the overlay {overlay} (a .png path?)")
+        with output_file(overlay, what="--overlay") as temp:
+            # OpenCV picks the image format from the suffix, which the temporary name keeps
+            if not cv2.imwrite(str(temp), overlay_image(frame, numbers)):
+                raise InputError(f"could not write the overlay {overlay} (a .png path?)")
     points = results["points"]
     assert isinstance(points, Points)
     if smoothed:
