@@ -25,6 +25,7 @@ import numpy as np
 import open3d as o3d
 
 from rasterserver.errors import InputError
+from rasterserver.output_files import check_output, output_file
 from rasterserver.records import Record
 from rasterserver.records_surface import MeshRecord, Points, Surface
 
@@ -144,13 +145,6 @@ def _exportable(record: Record, uid: str, stage: str) -> MeshRecord | Points:
     return record
 
 
-def _check_target(path: Path) -> Path:
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise InputError(f"cannot write {path.name}: folder {path.parent} does not exist")
-    return path
-
-
 def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "ply") -> Path:
     """Write a point cloud with its per-point properties.
 
@@ -170,27 +164,37 @@ def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "pl
     Raises
     ------
     InputError
-        No points (the message carries the record's reason), an unknown format or a missing
-        folder.
+        No points (the message carries the record's reason), an unknown format, or a path
+        that cannot be written (:func:`rasterserver.output_files.check_output`). The file is
+        replaced whole or not at all.
     """
-    path = _check_target(path)
+    path = check_output(path)
     if len(points) == 0:
         raise InputError(f"no points to write: {points.reason or 'empty result'}")
-    if fmt == "csv":
-        table = np.column_stack(
-            [points.x, points.y, points.z, points.number, points.col, points.row, points.area]
-        )
-        np.savetxt(
-            path,
-            table,
-            delimiter=",",
-            header="x_mm,y_mm,z_mm,line_number,column,row,peak_area",
-            comments="",
-            fmt=["%.6f", "%.6f", "%.6f", "%d", "%d", "%.6f", "%.4f"],
-        )
-        return path
-    if fmt != "ply":
+    if fmt not in POINT_FORMATS:
         raise InputError(f"unknown point format {fmt!r}; use one of {', '.join(POINT_FORMATS)}")
+    if fmt == "ply" and path.suffix.lower() != ".ply":
+        # open3d picks the writer from the suffix
+        raise InputError(f"{path.name}: a ply file must end in .ply")
+    with output_file(path) as temp:
+        if fmt == "csv":
+            table = np.column_stack(
+                [points.x, points.y, points.z, points.number, points.col, points.row, points.area]
+            )
+            np.savetxt(
+                temp,
+                table,
+                delimiter=",",
+                header="x_mm,y_mm,z_mm,line_number,column,row,peak_area",
+                comments="",
+                fmt=["%.6f", "%.6f", "%.6f", "%d", "%d", "%.6f", "%.4f"],
+            )
+        else:
+            _write_ply_points(points, temp)
+    return path
+
+
+def _write_ply_points(points: Points, path: Path) -> None:
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points.xyz)))
     for name, values, dtype in (
         ("number", points.number, np.int32),
@@ -199,9 +203,9 @@ def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "pl
         ("area", points.area, np.float32),
     ):
         cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(values, dtype=dtype)[:, None])
+    # open3d picks the writer from the suffix, which a temporary name keeps
     if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
-        raise OSError(f"open3d could not write {path}")
-    return path
+        raise OSError(f"open3d could not write {path.name}")
 
 
 def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"] = "ply") -> Path:
@@ -223,9 +227,10 @@ def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"
     Raises
     ------
     InputError
-        An empty mesh (with its reason), an unknown format or a missing folder.
+        An empty mesh (with its reason), an unknown format, or a path that cannot be written.
+        The file is replaced whole or not at all.
     """
-    path = _check_target(path)
+    path = check_output(path)
     if fmt not in MESH_FORMATS:
         raise InputError(f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
     if len(mesh.triangles) == 0:
@@ -235,8 +240,9 @@ def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"
         raise InputError(f"{path.name}: a {fmt} file must end in .{fmt}")
     o3d_mesh: Any = mesh.to_open3d()
     o3d_mesh.compute_triangle_normals()
-    if not o3d.io.write_triangle_mesh(str(path), o3d_mesh, write_ascii=False):
-        raise OSError(f"open3d could not write {path}")
+    with output_file(path) as temp:
+        if not o3d.io.write_triangle_mesh(str(temp), o3d_mesh, write_ascii=False):
+            raise OSError(f"open3d could not write {path}")
     return path
 
 

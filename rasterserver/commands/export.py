@@ -9,6 +9,7 @@ import typer
 
 from rasterserver.commands.common import open_archive
 from rasterserver.export import ExportFormat, ExportWhat, select_export
+from rasterserver.output_files import check_output
 from rasterserver.pipeline import Pipeline
 from rasterserver.records_surface import MeshRecord
 
@@ -34,8 +35,10 @@ def export(
     """Export the newest stored mesh or point cloud of an acquisition.
 
     Meshes go to PLY, OBJ or STL (open3d); point clouds to PLY (with line number, column,
-    row and peak area per point) or CSV. Run `rasterserver process UID` first.
+    row and peak area per point) or CSV. Run `rasterserver process UID` first. The file is
+    replaced whole or not at all; a path that cannot be written exits 2 before any work.
     """
+    check_output(out, what="--out")  # before the archive is opened
     with open_archive(ctx) as archive:
         chosen = select_export(Pipeline(archive), uid, fmt=fmt, what=what, plugin=plugin)
         chosen.write(out)

@@ -18,6 +18,7 @@ import numpy as np
 import typer
 
 from rasterserver.errors import InputError
+from rasterserver.output_files import check_output_folder
 
 sim_app = typer.Typer(
     help=(
@@ -49,7 +50,7 @@ _Out = Annotated[
         "--out", "-o", help="Output folder (created if needed; existing files are overwritten)."
     ),
 ]
-_Seed = Annotated[int, typer.Option(help="Seed of the sensor noise: same seed, same image.")]
+_Seed = Annotated[int, typer.Option(help="Seed of the sensor noise (>= 0): same seed, same image.")]
 _Supersample = Annotated[
     int,
     typer.Option(
@@ -80,6 +81,12 @@ _Truth = Annotated[
 
 def _echo_progress(text: str) -> None:
     typer.echo(text, err=True)
+
+
+def _check_seed(option: str, value: int | None) -> None:
+    # numpy draws from non-negative seeds only; a negative one is a bad option, not a crash
+    if value is not None and value < 0:
+        raise InputError(f"{option} must be a whole number >= 0, got {value}")
 
 
 def _station(width: int, height: int) -> Any:
@@ -166,8 +173,8 @@ def back(
         int | None,
         typer.Option(
             "--random-back",
-            help="Draw a varied back (size, posture, scoliosis, skin) from this seed instead "
-            "of using a preset.",
+            help="Draw a varied back (size, posture, scoliosis, skin) from this seed (>= 0) "
+            "instead of using a preset.",
             show_default=False,
         ),
     ] = None,
@@ -257,6 +264,8 @@ def back(
     from rasterserver.simulator.back import random_back as rb
     from rasterserver.simulator.render import render
 
+    _check_seed("--seed", seed)
+    _check_seed("--random-back", random_back)
     if visits < 1 or visits > 50:
         raise InputError(f"--visits must lie in [1, 50], got {visits}")
     if not 0.0 <= progression <= 2.0:
@@ -280,11 +289,13 @@ def back(
         params = params.with_primary_curve(lateral_deviation=lateral_deviation, rotation=rotation)
     station = _station(width, height)
     settings = _render_settings(supersample=supersample, noise=noise, bit_depth=bit_depth)
+    folders = [out] if visits == 1 else [out / f"visit-{v + 1:02d}" for v in range(visits)]
+    for folder in folders:  # before rendering: a folder that cannot be written is an option
+        check_output_folder(folder, what="--out")
 
     written: list[tuple[Path, BackParameters, Any]] = []
-    for visit in range(visits):
+    for visit, folder in enumerate(folders):
         visit_params = progressed(params, visit, progression)
-        folder = out if visits == 1 else out / f"visit-{visit + 1:02d}"
         _echo_progress(f"[{visit + 1}/{visits}] rendering back -> {folder}")
         scene = _make_back(visit_params)
         rendering = render(scene, station, settings=settings, seed=seed + visit)
@@ -331,7 +342,11 @@ def _ingest_visits(
     ]
     with Archive.create(cli_settings(ctx)) as archive:
         rows = archive_visits(
-            archive, visits, station=station, patient=patient, station_name=station_name,
+            archive,
+            visits,
+            station=station,
+            patient=patient,
+            station_name=station_name,
             log=_echo_progress,
         )
     for acq in rows:
@@ -384,7 +399,9 @@ def calibration_body(
     from rasterserver.simulator.ground_truth import LineRows
     from rasterserver.simulator.render import render
 
+    _check_seed("--seed", seed)
     station = _station(width, height)
+    check_output_folder(out, what="--out")
     frames = [(k, on) for k in range(3) for on in (True, False)]
     for i, (k, on) in enumerate(frames):
         stem = f"config{k}-projector-{'on' if on else 'off'}"
