@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -67,6 +68,7 @@ __all__ = [
     "RasterLine",
     "calibration_from_document",
     "device_from_document",
+    "fill_format_tables",
     "format_tables",
     "load_calibration_document",
     "load_raster_document",
@@ -144,13 +146,13 @@ class _DeviceDocument(_Document):
         "(camera) or diapositive units (projector); fx, fy > 0 (checked)"
     )
     distortion: Annotated[list[Finite], Field(min_length=4, max_length=14)] = Field(
-        default_factory=lambda: [0.0] * 5,
+        [0.0] * 5,
         description="`[k1, k2, p1, p2, k3]`, OpenCV order, acting on normalised coordinates; "
         "4 values (k3 = 0) or OpenCV's 8, 12 or 14 with the terms after k3 zero are accepted; "
         "the lens model must not fold back inside the image (checked)",
     )
     R: Matrix3 = Field(
-        default_factory=lambda: np.eye(3).tolist(),
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         description="rotation world → device: orthonormal with determinant +1 (checked to "
         "1e-6; the nearest rotation is used)",
     )
@@ -802,6 +804,8 @@ def _type_text(schema: dict[str, Any], defs: dict[str, Any]) -> str:
         if items.get("type") == "number":
             return f"{n}–{schema.get('maxItems')} numbers"
         return f"array of {inner}"
+    if "minimum" in schema and "maximum" in schema:
+        return f"{kind}, {schema['minimum']} to {schema['maximum']}"
     bounds = []
     for key, sign in (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤")):
         if key in schema:
@@ -843,13 +847,17 @@ def format_tables() -> dict[str, str]:
     cdefs, rdefs = calibration["$defs"], raster["$defs"]
     camera, projector = cdefs["CameraDocument"], cdefs["ProjectorDocument"]
     # one device table: the fields both share, with the camera's and projector's sizes
-    device = {"properties": dict(camera["properties"]), "required": camera["required"]}
-    for side in ("width", "height"):
-        device["properties"][side] = {
+    shared = dict(camera["properties"])
+    sizes = {
+        side: {
             "type": "camera: integer ≥ 1; projector: number > 0",
-            "description": f"camera: {camera['properties'][side]['description']}; projector: "
+            "description": f"camera: {shared.pop(side)['description']}; projector: "
             f"{projector['properties'][side]['description']}",
         }
+        for side in ("width", "height")
+    }
+    model = {"model": shared.pop("model")}
+    device = {"properties": model | sizes | shared, "required": camera["required"]}
     return {
         "calibration": "\n".join(_table(calibration, cdefs)),
         "device": "\n".join(_table(device, cdefs)),
@@ -857,3 +865,20 @@ def format_tables() -> dict[str, str]:
         "raster-code": "\n".join(_table(rdefs["RasterCode"], rdefs)),
         "raster-line": "\n".join(_table(rdefs["RasterLine"], rdefs)),
     }
+
+
+_GENERATED = re.compile(
+    r"(<!-- generated from rasterserver\.documents\.format_tables\(\): ([a-z-]+) -->\n)"
+    r".*?(<!-- end generated -->)",
+    re.S,
+)
+
+
+def fill_format_tables(markdown: str) -> str:
+    """``markdown`` with every generated block replaced by the current :func:`format_tables`.
+
+    A block is ``<!-- generated from rasterserver.documents.format_tables(): KEY -->``, the
+    table, ``<!-- end generated -->``; text outside the blocks is kept as it is.
+    """
+    tables = format_tables()
+    return _GENERATED.sub(lambda m: f"{m[1]}{tables[m[2]]}\n{m[3]}", markdown)

@@ -58,6 +58,10 @@ _FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 MAX_DLT_RMS_PX = 2.0
 #: As a fraction of the line spacing: a plate numbered one line off misfits by a full spacing.
 MAX_PROJECTOR_DLT_RMS = 0.25
+#: Gravity in the world frame of a calibration from the control-point body. That frame is the
+#: control points' (the camera pose is fitted to them), which ``rasterserver.control_points/1``
+#: defines with Y down: the body stands with its plates plumb, so +Y is the vertical.
+BODY_GRAVITY = (0.0, 1.0, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -345,7 +349,10 @@ def calibrate_station(
         )
     timings["projector"] = time.perf_counter() - t0
 
-    station = Station(camera=cam.camera, projector=proj.projector, raster=raster, name=name)
+    station = Station(
+        camera=cam.camera, projector=proj.projector, raster=raster, name=name,
+        gravity=np.array(BODY_GRAVITY),
+    )
     mm_per_unit = float(np.linalg.norm(proj.projector.centre)) / float(proj.projector.K[1, 1])
     table: list[dict[str, Any]] = []
     keys: list[np.ndarray] = []

@@ -97,6 +97,9 @@ def test_calibration_document_round_trips(result, tmp_path) -> None:
     path = res.station.save(tmp_path / "calibration.json")
     back = Station.load(path)
     assert np.allclose(back.camera.K, res.station.camera.K)
+    # the vertical is the control points' +Y, whatever the camera's pose
+    assert res.station.gravity is not None and back.gravity is not None
+    assert back.gravity.tolist() == res.station.gravity.tolist() == [0.0, 1.0, 0.0]
     assert np.allclose(back.projector.R, res.station.projector.R)
     residuals = res.residuals_dict()
     assert len(residuals["camera"]["points"]) == 42
