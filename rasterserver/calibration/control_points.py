@@ -47,8 +47,15 @@ __all__ = [
 
 #: The simulator's hole layout (plate coordinates, mm): 2 x 3 grid row by row, then marker.
 DEFAULT_HOLE_LAYOUT = np.array(
-    [[-40.0, -120.0], [40.0, -120.0], [-40.0, 0.0], [40.0, 0.0], [-40.0, 120.0], [40.0, 120.0],
-     [20.0, 60.0]]
+    [
+        [-40.0, -120.0],
+        [40.0, -120.0],
+        [-40.0, 0.0],
+        [40.0, 0.0],
+        [-40.0, 120.0],
+        [40.0, 120.0],
+        [20.0, 60.0],
+    ]
 )
 
 _PERMUTATIONS = np.array(list(itertools.permutations(range(7))), dtype=np.int64)
@@ -105,22 +112,38 @@ class ControlPointFile:
 
 
 def _rows_from_file(path: Path) -> tuple[list[dict[str, object]], np.ndarray]:
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a control-point file")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: no such control-point file") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path.name}: not a control-point file (not UTF-8 text)") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the control-point file ({exc.strerror})") from None
     layout = DEFAULT_HOLE_LAYOUT.copy()
     if path.suffix.lower() == ".json":
         try:
             document = json.loads(text)
         except json.JSONDecodeError as exc:
             raise InputError(f"{path.name}: not JSON ({exc})") from None
-        if not isinstance(document, dict) or "points" not in document:
-            raise InputError(f"{path.name}: not a control-point document (no 'points')")
-        given = document.get("hole_layout", {}).get("plate_coordinates_mm")
+        except RecursionError:
+            raise InputError(f"{path.name}: not a control-point file: nested too deeply") from None
+        if not isinstance(document, dict) or not isinstance(document.get("points"), list):
+            raise InputError(f"{path.name}: not a control-point document (no 'points' list)")
+        hole_layout = document.get("hole_layout", {})
+        if not isinstance(hole_layout, dict):
+            raise InputError(f"{path.name}: 'hole_layout' must be an object")
+        given = hole_layout.get("plate_coordinates_mm")
         if given is not None:
-            layout = np.asarray(given, dtype=np.float64)
-        return list(document["points"]), layout
+            try:
+                layout = np.asarray(given, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"{path.name}: the hole layout must be 7 points (x, y) in mm"
+                ) from None
+        return document["points"], layout
     return list(csv.DictReader(text.splitlines())), layout
 
 
@@ -139,7 +162,9 @@ def load_control_points(path: str | Path) -> ControlPointFile:
     Raises
     ------
     InputError
-        Unreadable file, missing fields, or a plate without exactly one point per hole index.
+        Unreadable file, missing fields, a coordinate that is not a finite number (NaN or
+        infinity would make the camera fit fail), or a plate without exactly one point per
+        hole index.
     """
     path = Path(path)
     rows, layout = _rows_from_file(path)
@@ -147,6 +172,8 @@ def load_control_points(path: str | Path) -> ControlPointFile:
         raise InputError(
             f"{path.name}: the hole layout must have 7 points (x, y), got {layout.shape}"
         )
+    if not np.isfinite(layout).all():
+        raise InputError(f"{path.name}: the hole layout holds a coordinate that is not finite")
     groups: dict[tuple[int, str], dict[int, tuple[str, np.ndarray]]] = {}
     for i, row in enumerate(rows):
         try:
@@ -156,12 +183,19 @@ def load_control_points(path: str | Path) -> ControlPointFile:
             ident = str(row.get("id", f"c{key[0]}-{key[1]}-{index}"))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{path.name}: point {i} lacks a usable field ({exc})") from None
+        if not np.isfinite(xyz).all():
+            raise InputError(
+                f"{path.name}: point {ident} has a coordinate that is not a finite number "
+                f"(x, y, z = {', '.join(str(v) for v in xyz)})"
+            )
         if not 0 <= index < 7:
             raise InputError(f"{path.name}: point {ident} has hole index {index}, not 0-6")
         slot = groups.setdefault(key, {})
         if index in slot:
-            raise InputError(f"{path.name}: two points for hole {index} of {key[1]} plate, "
-                             f"configuration {key[0]}")
+            raise InputError(
+                f"{path.name}: two points for hole {index} of {key[1]} plate, "
+                f"configuration {key[0]}"
+            )
         slot[index] = (ident, xyz)
     plates: dict[int, list[PlatePoints]] = {}
     for (k, plate), slot in sorted(groups.items()):
@@ -239,8 +273,9 @@ def _subpixel_centre(
     return np.array([(weight * xx).sum() / total, (weight * yy).sum() / total]), level
 
 
-def identify_holes(points: np.ndarray, layout: np.ndarray, *, tolerance: float = 0.03
-                   ) -> tuple[np.ndarray, float]:
+def identify_holes(
+    points: np.ndarray, layout: np.ndarray, *, tolerance: float = 0.03
+) -> tuple[np.ndarray, float]:
     """Order seven image points as the layout's holes by the best affine fit.
 
     Parameters
