@@ -579,15 +579,13 @@ def _parent_surface(pipeline: Pipeline, row: StageResult) -> Surface | None:
 
 def _calibration(pipeline: Pipeline, calibration_id: int | None) -> tuple[str, list[float] | None]:
     """``"STATION:VERSION"`` and the gravity of calibration row ``calibration_id``."""
+    from rasterserver.documents import calibration_from_document
+
     if calibration_id is None:
         return "", None
     with pipeline.archive.session() as s:
         row = s.get(Calibration, calibration_id, options=[selectinload(Calibration.station)])
         if row is None:
             return "", None
-        label, gravity = f"{row.station.name}:{row.version}", row.parameters.get("gravity")
-    try:
-        vector = [float(v) for v in gravity] if gravity is not None else None
-    except (TypeError, ValueError):
-        vector = None
-    return label, vector if vector is not None and len(vector) == 3 else None
+        label, parameters = f"{row.station.name}:{row.version}", row.parameters
+    return label, _gravity(calibration_from_document(parameters, source=f"calibration {label}"))
