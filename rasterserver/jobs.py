@@ -62,6 +62,10 @@ class JobOutcome:
         Why it failed; empty when done.
     results : tuple of (int, bool)
         Stage result id and whether it was reused, per stage (not in :meth:`to_dict`).
+    exit_code : int
+        The CLI exit code of the failure: its error's (3 for an unknown acquisition, 2 for a
+        frame that does not fit), 1 for an unexpected one; 0 when done (not in
+        :meth:`to_dict`).
     """
 
     uid: str
@@ -71,6 +75,7 @@ class JobOutcome:
     reason: str = ""
     error: str = ""
     results: tuple[tuple[int, bool], ...] = ()
+    exit_code: int = 0
 
     @classmethod
     def done(cls, result: ProcessResult) -> JobOutcome:
@@ -101,6 +106,7 @@ class JobOutcome:
             "; ".join(dict.fromkeys(reasons)),
             self.error or other.error,
             tuple(results.items()),
+            self.exit_code or other.exit_code,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -118,10 +124,10 @@ class JobOutcome:
     def failed(cls, uid: str, exc: BaseException) -> JobOutcome:
         """The outcome of an acquisition that could not be processed."""
         if isinstance(exc, RasterServerError):
-            return cls(uid, "failed", error=str(exc))
+            return cls(uid, "failed", error=str(exc), exit_code=exc.exit_code)
         # a bug in a plugin or here: keep the job going, but say clearly what it was
         log.error("processing %s failed unexpectedly", uid, exc_info=exc)
-        return cls(uid, "failed", error=f"{type(exc).__name__}: {exc}")
+        return cls(uid, "failed", error=f"{type(exc).__name__}: {exc}", exit_code=1)
 
 
 @contextmanager

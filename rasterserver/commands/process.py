@@ -9,8 +9,26 @@ import typer
 
 from rasterserver.commands.common import open_archive, progress_bar
 from rasterserver.errors import InputError, RasterServerError
-from rasterserver.jobs import process_many
-from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, parse_stage_options
+from rasterserver.jobs import JobOutcome, process_many
+from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, parse_stage_options, resolve_chain
+
+
+class ProcessingFailedError(RasterServerError):
+    """Some acquisitions of a ``process`` command failed; each is listed with its reason.
+
+    The exit code says what kind of failure it was when they are all of one kind (3 for
+    unknown acquisitions or a missing calibration, 2 for frames that do not fit), else 1.
+    """
+
+    def __init__(self, message: str, *, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+    @staticmethod
+    def code_of(failed: list[JobOutcome]) -> int:
+        """The failures' common exit code, or 1 when they differ."""
+        codes = {o.exit_code or 1 for o in failed}
+        return codes.pop() if len(codes) == 1 else 1
 
 
 def parse_calibration(text: str | None) -> tuple[str, int | None] | None:
@@ -77,14 +95,24 @@ def process(
 
     Stored results of the same computation (same frame, plugins, versions, parameters and
     calibration) are reused, not recomputed; other plugins, parameters or calibrations add
-    results beside the old ones. Exits 1 if any acquisition failed (each is listed).
+    results beside the old ones. An unknown plugin, stage or calibration is refused before
+    any work. If an acquisition fails, the others are still processed and each failure is
+    listed; the exit code is the failures' (3 for an unknown acquisition, 2 for a frame that
+    does not fit its calibration, ...) when they agree, else 1.
 
     Runs that a killed process left "running" are marked interrupted when their acquisition
     is processed again (and see `rasterserver runs reap`).
     """
     chain = parse_stage_options(stage or [])
     wanted = parse_calibration(calibration)
+    targets = list(until or DEFAULT_TARGETS)
+    for target in targets:
+        # a misspelt plugin or stage is the request's fault, not each acquisition's: refuse
+        # it once (exit 3 or 2) before any work
+        resolve_chain(chain, until=target)
     with open_archive(ctx) as archive:
+        if wanted is not None:
+            archive.calibration(*wanted)  # an unknown station or version: exit 3, before work
         pipeline = Pipeline(archive)
         selected = list(uids or [])
         if all_unprocessed:
@@ -105,7 +133,7 @@ def process(
                 selected,
                 chain=chain,
                 calibration=wanted,
-                until=until or DEFAULT_TARGETS,
+                until=targets,
                 dask=dask,
                 progress=progress,
             )
@@ -119,9 +147,12 @@ def process(
             )
         else:
             typer.echo(f"{outcome.uid}\tfailed\t{outcome.error}")
-    failed = sum(o.status == "failed" for o in outcomes)
+    failed = [o for o in outcomes if o.status == "failed"]
     if failed:
-        raise RasterServerError(f"{failed} of {len(outcomes)} acquisition(s) failed, see above")
+        raise ProcessingFailedError(
+            f"{len(failed)} of {len(outcomes)} acquisition(s) failed, see above",
+            exit_code=ProcessingFailedError.code_of(failed),
+        )
 
 
 def register(app: typer.Typer) -> None:

@@ -83,15 +83,22 @@ def test_empty_results_and_failures_are_reported(setup, tmp_path: Path, capsys) 
     cal = gt.station().save(tmp_path / "cal.json")
     assert cli("station", "add-calibration", "clinic-2", str(cal)) == 0
     capsys.readouterr()
-    assert cli("process", uids["back"], "--calibration", "clinic-2:1") == 1
+    # a calibration of another station: bad input for this acquisition (exit 2)
+    assert cli("process", uids["back"], "--calibration", "clinic-2:1") == 2
     captured = capsys.readouterr()
     assert "failed" in captured.out and "station 'clinic-1'" in captured.out
     assert "1 of 1 acquisition(s) failed" in captured.err
     assert cli("process", uids["back"], "--calibration", "clinic-1:x") == 2
-    assert cli("process", uids["back"], "--calibration", "clinic-1:9") == 1
-    assert "no calibration version 9" in capsys.readouterr().out
-    assert cli("process", "f" * 32) == 1
+    # issue 11, defect 6: not found is 3 (the README's table), not 1
+    assert cli("process", uids["back"], "--calibration", "clinic-1:9") == 3
+    assert "no calibration version 9" in capsys.readouterr().err  # refused before any work
+    assert cli("process", "f" * 32) == 3
     assert "unknown acquisition" in capsys.readouterr().out
+    assert cli("process", uids["back"], "--stage", "peaks=no-such-plugin") == 3
+    assert "no stage plugin named 'no-such-plugin'" in capsys.readouterr().err
+    # failures of different kinds: 1, each listed
+    assert cli("process", "f" * 32, uids["back"], "--calibration", "clinic-2:1") == 1
+    assert capsys.readouterr().out.count("\tfailed\t") == 2
 
 
 def test_export_needs_a_processed_acquisition(setup, tmp_path: Path, capsys) -> None:
