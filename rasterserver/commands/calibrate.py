@@ -10,10 +10,12 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
+import cv2
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError, NotFoundError, RasterServerError
+from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
 
 if TYPE_CHECKING:
@@ -23,9 +25,13 @@ __all__ = ["CalibrationRejectedError", "register"]
 
 
 class CalibrationRejectedError(RasterServerError):
-    """The calibration was computed but is worse than the bounds; nothing was stored."""
+    """The calibration was computed but is worse than the bounds; nothing was stored.
 
-    exit_code = 6
+    Exit 7, a code of its own: 6 means the catalogue's schema is not current, which a script
+    running ``calibrate`` must be able to tell apart from a rejected calibration.
+    """
+
+    exit_code = 7
 
 
 _HELP = (
@@ -33,7 +39,7 @@ _HELP = (
     "the station's next calibration version.\n\n"
     "FRAMES_DIR holds config<k>-projector-off and config<k>-projector-on frames (PNG, TIFF or "
     "NPY), as `rasterserver simulate calibration-body` writes them. Prints the residuals and a "
-    "verdict; exits 6 without storing anything when the residuals exceed the bounds. On "
+    "verdict; exits 7 without storing anything when the residuals exceed the bounds. On "
     "success the six frames are ingested as a calibration acquisition and the calibration is "
     "stored (unless --dry-run); its version is printed."
 )
@@ -52,8 +58,11 @@ def calibrate(
     ] = None,
     station: Annotated[
         str | None,
-        typer.Option(help="Station to store the calibration for (registered if new); "
-                     "needed unless --dry-run.", show_default=False),
+        typer.Option(
+            help="Station to store the calibration for (registered if new); "
+            "needed unless --dry-run.",
+            show_default=False,
+        ),
     ] = None,
     raster: Annotated[
         Path | None,
@@ -80,8 +89,9 @@ def calibrate(
     ] = None,
     output: Annotated[
         Path | None,
-        typer.Option("--output", "-o", help="Also write the calibration JSON here.",
-                     show_default=False),
+        typer.Option(
+            "--output", "-o", help="Also write the calibration JSON here.", show_default=False
+        ),
     ] = None,
     max_rms_px: Annotated[
         float, typer.Option(help="Bound on the control points' rms reprojection error (px).")
@@ -93,16 +103,21 @@ def calibrate(
         float, typer.Option(help="Bound on the raster peaks' rms residual across lines (mm).")
     ] = 0.1,
     camera_distortion: Annotated[
-        str, typer.Option(help="Camera distortion terms to estimate, comma-separated "
-                          "(of k1,k2,p1,p2,k3; 'none' for a distortion-free model).")
+        str,
+        typer.Option(
+            help="Camera distortion terms to estimate, comma-separated "
+            "(of k1,k2,p1,p2,k3; 'none' for a distortion-free model)."
+        ),
     ] = "k1",
     projector_distortion: Annotated[
         str, typer.Option(help="Projector distortion terms to estimate, as above.")
     ] = "k1",
     valid_from: Annotated[
         str | None,
-        typer.Option(help=f"From when the calibration applies: {TIME_RULE}. Default: now.",
-                     show_default=False),
+        typer.Option(
+            help=f"From when the calibration applies: {TIME_RULE}. Default: now.",
+            show_default=False,
+        ),
     ] = None,
     notes: Annotated[str, typer.Option(help="Free text stored with the calibration.")] = "",
     dry_run: Annotated[
@@ -120,10 +135,23 @@ def calibrate(
         raise InputError("--station is needed to store the calibration (or use --dry-run)")
     name = station or "calibrated"
     when = parse_datetime(valid_from, "--valid-from")
-    for option, value in (("--max-rms-px", max_rms_px), ("--max-point-px", max_point_px),
-                          ("--max-line-mm", max_line_mm)):
+    for option, value in (
+        ("--max-rms-px", max_rms_px),
+        ("--max-point-px", max_point_px),
+        ("--max-line-mm", max_line_mm),
+    ):
         if not value > 0:
             raise InputError(f"{option} must be positive, got {value}")
+    # outputs that cannot be written are refused before the minutes of work, not after
+    if output is not None:
+        check_output(output, what="--output")
+    if report is not None:
+        check_output(report, what="--report")
+        if not cv2.haveImageWriter(str(report)) or report.suffix.lower() == ".txt":
+            raise InputError(
+                f"--report {report.name}: name an image (.png); the text goes beside it (.txt)"
+            )
+        check_output(report.with_suffix(".txt"), what="--report text")
     frames = load_frames(frames_dir)
     control = load_control_points(control_points or frames_dir / "control_points.json")
     raster_path = raster or frames_dir / "raster.json"
@@ -137,22 +165,27 @@ def calibrate(
         ref = default_station(width, height)
         typer.echo("reference: the nominal design (no earlier calibration)", err=True)
     result = calibrate_station(
-        frames, control, raster=raster_def, reference=ref, name=name,
+        frames,
+        control,
+        raster=raster_def,
+        reference=ref,
+        name=name,
         camera_distortion=_terms(camera_distortion),
         projector_distortion=_terms(projector_distortion),
     )
-    bounds = Bounds(max_rms_px=max_rms_px, max_point_px=max_point_px,
-                    max_line_rms_mm=max_line_mm)
+    bounds = Bounds(max_rms_px=max_rms_px, max_point_px=max_point_px, max_line_rms_mm=max_line_mm)
     verdict = judge(result, bounds)
     text = text_report(result, verdict)
     typer.echo(text, nl=False)
     if report is not None:
-        plot_residuals(result, frames, report, bounds=bounds)
-        report.with_suffix(".txt").write_text(text, encoding="utf-8")
+        with output_file(report, what="--report") as temp:
+            plot_residuals(result, frames, temp, bounds=bounds)
+        with output_file(report.with_suffix(".txt"), what="--report text") as temp:
+            temp.write_text(text, encoding="utf-8")
         typer.echo(f"report: {report} and {report.with_suffix('.txt')}")
     if output is not None:
-        output.write_text(json.dumps(result.station.to_dict(), indent=2) + "\n",
-                          encoding="utf-8")
+        with output_file(output, what="--output") as temp:
+            temp.write_text(json.dumps(result.station.to_dict(), indent=2) + "\n", encoding="utf-8")
         typer.echo(f"calibration JSON: {output}")
     if not verdict.ok:
         reasons = "; ".join(verdict.reasons)
@@ -163,8 +196,9 @@ def calibrate(
     from rasterserver.calibration.store import store_calibration
 
     with open_archive(ctx) as archive:
-        stored = store_calibration(archive, result, frames, station=name, valid_from=when,
-                                   notes=notes)
+        stored = store_calibration(
+            archive, result, frames, station=name, valid_from=when, notes=notes
+        )
     typer.echo(
         f"station {stored.station}: calibration version {stored.version} stored "
         f"(frames in acquisition {stored.acquisition}, raster {stored.raster})"
@@ -193,8 +227,9 @@ def _reference(
             row = archive.calibration(station)
         except NotFoundError:
             return None
-        return calibration_from_document(row.parameters,
-                                         source=f"calibration {station}:{row.version}")
+        return calibration_from_document(
+            row.parameters, source=f"calibration {station}:{row.version}"
+        )
 
 
 def export_calibration(
@@ -212,11 +247,13 @@ def export_calibration(
 
     parsed = parse_calibration(which)
     assert parsed is not None
+    check_output(out, what="--out")
     with open_archive(ctx) as archive:
         row = archive.calibration(parsed[0], parsed[1])
         document = row.residuals if residuals else row.parameters
         version = row.version
-    out.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    with output_file(out, what="--out") as temp:
+        temp.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     typer.echo(f"station {parsed[0]}: calibration version {version} written to {out}")
 
 

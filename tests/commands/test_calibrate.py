@@ -46,10 +46,10 @@ def test_dry_run_reports_and_stores_nothing(tmp_path: Path, capsys) -> None:
     assert station.camera.width == 576
 
 
-def test_worse_than_the_bounds_exits_6(tmp_path: Path, capsys) -> None:
+def test_worse_than_the_bounds_exits_7(tmp_path: Path, capsys) -> None:
     code = main(["calibrate", str(rendered_dir()), "--dry-run", "--max-rms-px", "0.001"])
     captured = capsys.readouterr()
-    assert code == 6
+    assert code == 7  # 6 is 'catalogue schema not current'
     assert "verdict: FAIL: control points" in captured.out
     assert "calibration rejected, nothing stored" in captured.err
 
@@ -61,6 +61,30 @@ def test_bad_inputs_say_what_is_wrong(tmp_path: Path, capsys) -> None:
     assert "no config<k>-projector-on/off frames" in capsys.readouterr().err
     assert main(["calibrate", str(rendered_dir())]) == 2
     assert "--station is needed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "name", "message"),
+    [
+        ("-o", "", "is a folder"),
+        ("-o", "missing/cal.json", "does not exist"),
+        ("-o", "file.txt/cal.json", "Not a directory"),
+        ("--report", "residuals.txt", "name an image"),
+        ("--report", "residuals.xyz", "name an image"),
+        ("--report", "missing/residuals.png", "does not exist"),
+    ],
+)
+def test_outputs_that_cannot_be_written_are_refused_before_the_work(
+    tmp_path: Path, capsys, option: str, name: str, message: str
+) -> None:
+    """Issue 11, defect 5: `calibrate -o` into a missing folder was a traceback after the
+    work. The frames folder does not exist either: the outputs are checked first."""
+    (tmp_path / "file.txt").write_text("x")
+    target = str(tmp_path / name) if name else str(tmp_path)
+    assert main(["calibrate", str(tmp_path / "nowhere"), "--dry-run", option, target]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
 
 
 def test_calibrate_stores_a_version_and_old_acquisitions_reprocess_with_it(
@@ -123,7 +147,7 @@ def test_distortion_terms_are_chosen_and_checked(capsys) -> None:
     # without the camera's k1 = -0.05 the control points misfit (0.05 against 0.02 px rms)
     tight = ["--max-rms-px", "0.04"]
     assert main(["calibrate", frames, "--dry-run", *tight]) == 0
-    assert main(["calibrate", frames, "--dry-run", *tight, "--camera-distortion", "none"]) == 6
+    assert main(["calibrate", frames, "--dry-run", *tight, "--camera-distortion", "none"]) == 7
     assert "verdict: FAIL: control points" in capsys.readouterr().out
     assert main(["calibrate", frames, "--dry-run", "--camera-distortion", "k1,k7"]) == 2
     assert "unknown distortion terms ['k7']" in capsys.readouterr().err
