@@ -8,7 +8,7 @@ from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import Engine
+from sqlalchemy import Engine, inspect
 
 from rasterserver.errors import RasterServerError
 
@@ -65,6 +65,33 @@ def current_revision(engine: Engine) -> str | None:
 def head_revision(engine: Engine) -> str | None:
     """Return the newest revision shipped with this version of rasterserver."""
     return ScriptDirectory.from_config(alembic_config(engine)).get_current_head()
+
+
+def create_embedded(engine: Engine) -> bool:
+    """Create the catalogue if it is a new, empty SQLite database; return whether it did.
+
+    The embedded default is set up by its first use, as ``rasterserver demo`` does, so that
+    ``rasterserver serve`` on a new archive just starts. PostgreSQL is never touched here:
+    its operators migrate on purpose (``rasterserver db upgrade``), and an SQLite catalogue
+    that holds anything already (an older revision, foreign tables) is left for
+    :func:`require_current` to explain: migrating it is a step to take with a backup.
+
+    Parameters
+    ----------
+    engine : sqlalchemy.Engine
+        The catalogue's engine.
+
+    Returns
+    -------
+    bool
+        True if the catalogue was created.
+    """
+    if engine.dialect.name != "sqlite" or current_revision(engine) is not None:
+        return False
+    if inspect(engine).get_table_names():
+        return False
+    upgrade(engine)
+    return True
 
 
 def require_current(engine: Engine) -> None:

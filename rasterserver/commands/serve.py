@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from typing import Annotated
 
 import typer
@@ -33,14 +32,27 @@ def serve(
     `rasterserver token create`. Uvicorn's own access log is off: it would print request
     paths, which can carry patient identifiers; rasterserver logs route templates instead.
     With several workers, /metrics sums the counts of all of them through a private
-    directory (PROMETHEUS_MULTIPROC_DIR), made at start and removed at exit.
+    directory (PROMETHEUS_MULTIPROC_DIR), made at start and removed at exit; those left by
+    servers that were killed are removed at the next start.
+
+    A new archive on the embedded SQLite catalogue is set up at the first start; a
+    PostgreSQL catalogue must be created with `rasterserver db upgrade` first.
     """
     import uvicorn
 
     from rasterserver.api.app import create_app
+    from rasterserver.api.metrics_dir import make_metrics_dir
     from rasterserver.archive import Archive
+    from rasterserver.catalog import migrate
+    from rasterserver.catalog.database import make_engine
 
     resolved = settings(ctx)
+    engine = make_engine(resolved.database_url)
+    try:
+        if migrate.create_embedded(engine):
+            typer.echo(f"created the catalogue {resolved.database_url}", err=True)
+    finally:
+        engine.dispose()
     # refuse to start on an old schema, with the message that says what to run
     Archive(resolved).close()
     common = {"host": host, "port": port, "access_log": False, "log_level": log_level,
@@ -55,7 +67,7 @@ def serve(
     # at start (stale files from an earlier run would be summed in), so a value already in
     # the environment is replaced. Set here, before uvicorn spawns the workers, which
     # inherit it and import prometheus_client afresh.
-    multiproc_dir = tempfile.mkdtemp(prefix="rasterserver-metrics-")
+    multiproc_dir = str(make_metrics_dir())
     previous = os.environ.get(MULTIPROC_ENV)
     os.environ[MULTIPROC_ENV] = multiproc_dir
     try:
