@@ -9,6 +9,10 @@ The OpenAPI document says so too (:func:`document_errors`): every protected oper
 401, 403 and 404, every POST 409, every operation with a body 400 and 413, all with the
 :class:`~rasterserver.api.schemas.ErrorOut` body, which also replaces FastAPI's
 ``HTTPValidationError`` for 422 (a service's 422 carries a sentence, not a field list).
+
+A method a path does not take is answered 405 with ``Allow`` naming every method of the
+path (Starlette named those of its first route only: ``GET`` for ``/patients``, which also
+takes POST), and ``OPTIONS`` is answered 204 with that header, without a token.
 """
 
 from __future__ import annotations
@@ -17,15 +21,16 @@ import json
 import logging
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from sqlalchemy.exc import DataError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from rasterserver.api.schemas import ErrorOut
@@ -115,6 +120,27 @@ def _openapi_with_errors(app: FastAPI) -> Callable[[], dict[str, Any]]:
     return openapi
 
 
+def allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
+    """The methods the app answers on the path of ``scope``, for an ``Allow`` header: those
+    of every route with that path, and OPTIONS (answered here, without a token)."""
+    methods = {"OPTIONS"}
+    for route in _routes(app.router.routes):
+        match, _ = route.matches(scope)
+        if match is not Match.NONE:
+            methods |= set(getattr(route, "methods", None) or ())
+    return sorted(methods)
+
+
+def _routes(routes: list[Any]) -> Iterator[Any]:
+    """Every route, descending into the routers FastAPI includes (ours have no prefix)."""
+    for route in routes:
+        inner = getattr(route, "original_router", None)
+        if inner is not None:
+            yield from _routes(inner.routes)
+        else:
+            yield route
+
+
 def install_handlers(app: FastAPI) -> None:
     """Register the exception handlers that turn every error into a JSON body, and document
     their responses in the app's OpenAPI document."""
@@ -126,10 +152,18 @@ def install_handlers(app: FastAPI) -> None:
                             status_code=exc.http_status)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        headers = exc.headers
+        if exc.status_code == 405:
+            # Starlette names the methods of the first route with this path only: "GET" for
+            # /patients, which also takes POST
+            allow = ", ".join(allowed_methods(request.app, request.scope))
+            if request.method == "OPTIONS":
+                return Response(status_code=204, headers={"Allow": allow})
+            headers = {**(headers or {}), "Allow": allow}
         kind = _HTTP_KINDS.get(exc.status_code, "HTTPError")
         return JSONResponse(error_body(exc.status_code, exc.detail, kind),
-                            status_code=exc.status_code, headers=exc.headers)
+                            status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -97,7 +97,13 @@ def list_runs(uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
 @router.get("/acquisitions/{uid}/export", name="export_result", response_class=Response,
             responses={200: {"content": {m: {} for m in sorted(set(_MEDIA.values()))},
                              "description": "The exported file"},
-                       304: {"description": "Not modified"}})
+                       304: {"description": "Not modified"},
+                       404: {"description": "No such acquisition, or it has no stored result "
+                                            "of that kind (of that plugin): process it first"},
+                       422: {"description": "The format cannot hold what is asked: csv holds "
+                                            "points (what=points or smoothed, not mesh), obj "
+                                            "and stl hold meshes (what=mesh); or the stored "
+                                            "result holds nothing to export"}})
 def export_result(
     uid: Uid, request: Request, svc: ServicesDep, note: NoteDep,
     fmt: Annotated[ExportFormat, Query(alias="format")] = ExportFormat.ply,
@@ -105,7 +111,12 @@ def export_result(
                                              "points for csv")] = None,
     plugin: Plugin = None,
 ) -> Response:
-    """The newest stored mesh or point cloud, as ``rasterserver export`` writes it."""
+    """The newest stored mesh or point cloud, as ``rasterserver export`` writes it.
+
+    ``format`` and ``what`` must agree: ``ply`` takes any, ``obj`` and ``stl`` only ``mesh``,
+    ``csv`` only ``points`` or ``smoothed`` (its default is ``points``); other combinations
+    are refused with 422.
+    """
     _touch(svc, note, uid)
     chosen = select_export(svc.pipeline, uid, fmt=fmt, what=what, plugin=plugin)
     etag = f"{chosen.row.output_checksum}-{chosen.what.value}.{fmt.value}"
