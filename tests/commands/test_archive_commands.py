@@ -25,7 +25,7 @@ def test_ingest_list_verify(cli, tmp_path: Path, capsys: pytest.CaptureFixture[s
             "--patient",
             "P7",
             "--acquired-at",
-            "2025-02-03T10:00",
+            "2025-02-03T10:00Z",
         )
         == 0
     )
