@@ -38,6 +38,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -102,8 +103,21 @@ _KNOWN_FORMATS = {
 
 # --- field types ---------------------------------------------------------------------------
 
-#: A JSON number that is finite (NaN and infinities are refused); not a string, not a boolean.
-Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+#: No quantity of a station comes near this (mm, px, units); beyond it arithmetic overflows.
+MAX_MAGNITUDE = 1e12
+
+
+def _bounded(value: float) -> float:
+    if abs(value) > MAX_MAGNITUDE:
+        raise _refuse(f"{_fmt(value)} is beyond ±{MAX_MAGNITUDE:g}")
+    return value
+
+
+#: A JSON number that is finite (NaN and infinities are refused) and not absurdly large; not a
+#: string, not a boolean.
+Finite = Annotated[float, Strict(), Field(allow_inf_nan=False), AfterValidator(_bounded)]
+#: The same, greater than 0 (the bound before the validator keeps it in the JSON Schema).
+Positive = Annotated[float, Strict(), Field(allow_inf_nan=False, gt=0), AfterValidator(_bounded)]
 Vector3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
 Name = Annotated[str, Strict(), Field(min_length=1, max_length=200)]
@@ -287,11 +301,11 @@ class ProjectorDocument(_DeviceDocument):
 
     model_config = ConfigDict(title="projector")
 
-    width: Annotated[Finite, Field(gt=0)] = Field(
+    width: Positive = Field(
         description="extent of the usable diapositive area (units, > 0): valid coordinates "
         "lie in `[-0.5, width - 0.5]`; the renderer sends no light outside it"
     )
-    height: Annotated[Finite, Field(gt=0)] = Field(
+    height: Positive = Field(
         description="extent of the usable diapositive area along `v` (units, > 0)"
     )
 
@@ -325,7 +339,7 @@ class RasterLine(_Document):
     )
     v: Finite = Field(description="diapositive coordinate of the line centre; strictly increasing")
     kind: Literal["light", "heavy"] = Field(description="`light` or `heavy`")
-    width: Annotated[Finite, Field(gt=0)] = Field(
+    width: Positive = Field(
         description="full width of the transparent stripe in diapositive units (> 0), before "
         "projector defocus"
     )

@@ -154,6 +154,12 @@ BROKEN_CALIBRATIONS = [
         "finite",
     ),
     (
+        "huge-number",
+        cal(lambda d: d["camera"]["R"][0].__setitem__(0, 1e308)),
+        "camera.R[0][0]",
+        "beyond",
+    ),
+    (
         "distortion-3",
         cal(_set("camera", "distortion", [0.0, 0.0, 0.0])),
         "camera.distortion",
