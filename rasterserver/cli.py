@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
+import sqlalchemy.exc
 import typer
 import typer.main
 from typer.models import CommandInfo
@@ -21,7 +22,9 @@ from typer.models import CommandInfo
 from rasterserver import __version__
 from rasterserver.commands import COMMAND_MODULES
 from rasterserver.config import Settings
-from rasterserver.errors import RasterServerError
+from rasterserver.errors import InputError, RasterServerError, UnavailableError
+
+log = logging.getLogger(__name__)
 
 app = typer.Typer(
     name="rasterserver",
@@ -137,7 +140,9 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, the error's ``exit_code`` for a :class:`RasterServerError`.
+        0 on success, the error's ``exit_code`` for a :class:`RasterServerError`; 2 for
+        a catalogue URL that cannot be parsed, 8 when the catalogue cannot be reached or the
+        archive folder cannot be used, 1 for anything else (a bug, said as such).
     """
     try:
         # Standalone mode lets Typer print usage errors and --help itself; it ends with
@@ -151,7 +156,46 @@ def main(argv: list[str] | None = None) -> int:
     except RasterServerError as exc:
         typer.echo(f"error: {exc}", err=True)
         return exc.exit_code
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        return 130  # the shell's code for a command stopped by Ctrl-C (SIGINT)
+    except Exception as exc:
+        # No traceback reaches a user: what the environment refused gets its sentence and
+        # code; anything else is a bug, said as such (the traceback with --verbose).
+        known = _environment_error(exc)
+        if known is not None:
+            typer.echo(f"error: {known}", err=True)
+            return known.exit_code
+        log.info("unexpected failure", exc_info=exc)
+        typer.echo(
+            f"error: unexpected failure, a bug in rasterserver or a plugin: {_one_line(exc)} "
+            "(run with --verbose for the traceback)",
+            err=True,
+        )
+        return 1
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, sqlalchemy.exc.StatementError) and exc.orig is not None:
+        exc = exc.orig  # its own text, without the SQL and parameters (patient data)
+    first = (str(exc).strip().splitlines() or [""])[0]
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+
+
+def _environment_error(exc: Exception) -> RasterServerError | None:
+    """The error a user can act on that ``exc`` stands for, or None for a bug.
+
+    The catalogue's URL (password hidden) or the file the operating system names is given,
+    with its reason; never the SQL or its parameters, which may hold patient data.
+    """
+    if isinstance(exc, sqlalchemy.exc.ArgumentError):  # incl. an unknown dialect
+        return InputError(f"the catalogue URL is not usable: {_one_line(exc)}")
+    if isinstance(exc, sqlalchemy.exc.OperationalError | sqlalchemy.exc.InterfaceError):
+        return UnavailableError(f"cannot use the catalogue: {_one_line(exc)}")
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return UnavailableError(f"cannot use {exc.filename}: {exc.strerror or exc}")
+    return None
 
 
 def run() -> None:

@@ -40,3 +40,11 @@ class IntegrityError(RasterServerError):
 
     exit_code = 5
     http_status = 500
+
+
+class UnavailableError(RasterServerError):
+    """The archive cannot be used: its catalogue database cannot be reached or opened, or
+    its folder cannot be created or written (a server down, a wrong URL, a read-only disk)."""
+
+    exit_code = 8
+    http_status = 503

@@ -150,3 +150,44 @@ def test_installed_command_help_flows() -> None:
     assert done.returncode == 0
     assert "Stored results of the same computation" in done.stdout
     assert ragged_breaks(done.stdout, _WIDTH) == []
+
+
+@pytest.mark.parametrize(
+    ("options", "code", "words"),
+    [
+        (["--database-url", "no-url"], 2, "the catalogue URL is not usable"),
+        (["--database-url", "nosuchdialect://x"], 2, "the catalogue URL is not usable"),
+        (["--database-url", "postgresql+psycopg://u:secret@127.0.0.1:1/x"], 8, "cannot use the"),
+        (["--database-url", "sqlite:////proc/no/such/catalog.sqlite"], 8, "cannot use"),
+    ],
+)
+def test_an_unusable_catalogue_is_a_message(
+    options: list[str], code: int, words: str, tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["--archive", str(tmp_path / "a"), *options, "list"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {words}") and err.count("\n") == 1
+    assert "secret" not in err
+
+
+def test_an_archive_folder_that_is_a_file_is_a_message(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "a").write_text("not a folder")
+    assert main(["--archive", str(tmp_path / "a"), "list"]) == 8
+    assert capsys.readouterr().err.startswith(f"error: cannot use {tmp_path / 'a'}")
+
+
+def test_a_bug_is_said_to_be_one_without_a_traceback(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import rasterserver.commands.plugins as plugins_command
+
+    def broken(*_args: object, **_kwargs: object) -> None:
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(plugins_command.Registry, "discover", broken)
+    assert main(["plugins"]) == 1
+    err = capsys.readouterr().err
+    assert "unexpected failure" in err and "ZeroDivisionError: division by zero" in err
+    assert "Traceback" not in err and "--verbose" in err

@@ -5,10 +5,12 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
+from alembic.util.exc import CommandError
 
 from rasterserver.catalog import migrate
 from rasterserver.catalog.database import make_engine
 from rasterserver.commands.common import settings
+from rasterserver.errors import InputError
 
 db_app = typer.Typer(
     help="Create or migrate the catalogue's SQL schema (Alembic migrations).",
@@ -25,7 +27,13 @@ def upgrade(
     engine = make_engine(settings(ctx).database_url)
     try:
         before = migrate.current_revision(engine)
-        migrate.upgrade(engine, revision)
+        try:
+            migrate.upgrade(engine, revision)
+        except CommandError as exc:
+            # Alembic's words ("Can't locate revision ...") for a revision that is no option
+            raise InputError(
+                f"db upgrade {revision!r}: {exc}; the newest is {migrate.head_revision(engine)}"
+            ) from None
         after = migrate.current_revision(engine)
     finally:
         engine.dispose()
