@@ -114,21 +114,22 @@ def check_frames_fit(
     }
     if not wanted:
         return
-    with archive.session() as s:
-        rows = s.execute(
-            select(
-                Calibration.id,
-                Calibration.version,
-                Calibration.sha256,
-                Calibration.parameters,
-                StationRow.name,
-            )
+    # one statement each, outside a transaction: calibrations are immutable
+    with archive.reading() as conn:
+        rows = conn.execute(
+            select(Calibration.id, Calibration.version, Calibration.sha256, StationRow.name)
             .join(StationRow, StationRow.id == Calibration.station_id)
             .where(Calibration.id.in_(wanted))
         ).all()
+    # the documents only of calibrations not parsed before (a JSON column is not free)
+    documents: dict[int, object] = {}
+    if unknown := [row.id for row in rows if row.sha256 not in _SHAPES]:
+        with archive.reading() as conn:
+            query = select(Calibration.id, Calibration.parameters)
+            documents = dict(conn.execute(query.where(Calibration.id.in_(unknown))).all())
     cameras = {
         row.id: (
-            _camera_shape(row.sha256, row.parameters, f"{row.name}:{row.version}", row.name),
+            _camera_shape(row.sha256, documents.get(row.id), f"{row.name}:{row.version}", row.name),
             f"{row.name}:{row.version}",
         )
         for row in rows
