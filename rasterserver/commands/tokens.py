@@ -11,6 +11,7 @@ import typer
 from rasterserver.api import auth
 from rasterserver.api.audit import audit_events, fhir_bundle
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
 
 users = typer.Typer(help="API accounts: people and service accounts (stations).",
@@ -98,6 +99,8 @@ def audit_export(
     until: Annotated[str | None, typer.Option(help="Before this time (as --since).")] = None,
 ) -> None:
     """Export the audit trail as a FHIR R4 Bundle of AuditEvent resources (JSON)."""
+    if out is not None:
+        check_output(out, what="--out")
     with open_archive(ctx) as archive:
         events = audit_events(archive, patient=patient,
                               since=parse_datetime(since, "--since"),
@@ -106,7 +109,8 @@ def audit_export(
     if out is None:
         typer.echo(text)
     else:
-        out.write_text(text + "\n")
+        with output_file(out, what="--out") as temp:
+            temp.write_text(text + "\n", encoding="utf-8")
         typer.echo(f"{len(events)} audit event(s) written to {out}", err=True)
 
 
