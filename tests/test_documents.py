@@ -495,3 +495,15 @@ def test_docs_tables_are_generated_from_the_models() -> None:
         "docs/formats.md differs from the document models: run RASTERSERVER_UPDATE_DOCS=1 "
         ".venv/bin/pytest tests/test_documents.py -k docs_tables"
     )
+
+
+def test_devices_read_alone_go_through_the_same_checks() -> None:
+    from rasterserver.optics import Camera, Projector
+
+    station = default_station()
+    camera = Camera.from_dict(station.camera.to_dict())
+    assert isinstance(camera, Camera) and camera.shape == (604, 576)
+    assert isinstance(Projector.from_dict(station.projector.to_dict()), Projector)
+    broken = station.camera.to_dict() | {"K": [[0.0] * 3] * 3}
+    with pytest.raises(InputError, match=r"^camera: K: focal lengths must be positive"):
+        Camera.from_dict(broken)
