@@ -527,8 +527,8 @@ def acquisition_analysis(
     if not rows:
         raise NotFoundError(
             f"acquisition {uid} has no stored analysis yet: process it first "
-            f"(`rasterserver process {uid}`, `rasterserver show {uid} --process`, or a job: "
-            "POST /jobs)"
+            f"(`rasterserver process {uid}`, `rasterserver show {uid} --process`, or over "
+            'HTTP a job: POST /jobs with "until": "analysis")'
         )
     frames = []
     for index, row in rows.items():

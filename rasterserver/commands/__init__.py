@@ -8,6 +8,7 @@ from __future__ import annotations
 from types import ModuleType
 
 from rasterserver.commands import (
+    analyse,
     calibrate,
     db,
     demo,
@@ -37,6 +38,7 @@ COMMAND_MODULES: list[ModuleType] = [
     plugins,
     simulate,
     reconstruct,
+    analyse,
     process,
     runs,
     export,

@@ -7,6 +7,7 @@ from fastapi import APIRouter
 from rasterserver.api.routers import (
     accounts,
     acquisitions,
+    analysis,
     audit,
     health,
     jobs,
@@ -25,6 +26,7 @@ ROUTERS: list[APIRouter] = [
     accounts.router,
     stations.router,
     results.router,
+    analysis.router,
     jobs.router,
     audit.router,
 ]
