@@ -1,12 +1,181 @@
-"""Back-shape analysis stage (placeholder: replaced by the analysis of issue 12)."""
+"""The back-shape analysis stage: curvature, landmarks, symmetry line, midline, parameters.
+
+A pure function of the smoothed :class:`~rasterserver.records_surface.Surface` and the
+station's vertical (``context.calibration.gravity``), wiring the concepts of their own modules:
+
+1. :mod:`~rasterserver_plugins.level_frame`: the surface in a frame whose ``y'`` axis is
+   plumb (profiles are horizontal sections);
+2. :mod:`~rasterserver_plugins.curvature`: H, K, κ1, κ2 and principal directions;
+3. :mod:`~rasterserver_plugins.trunk`: the measured trunk, its outline and centre;
+4. :mod:`~rasterserver_plugins.landmarks`: VP, DL, DR, DM, SP (Drerup & Hierholzer 1987);
+5. :mod:`~rasterserver_plugins.body_frame`: the body-fixed frame from VP, DL, DR;
+6. :mod:`~rasterserver_plugins.symmetry_line`: Hierholzer's symmetry line VP → DM;
+7. :mod:`~rasterserver_plugins.spinal_midline`: surface rotation and the vertebral-body
+   centres (Drerup & Hierholzer 1994);
+8. :mod:`~rasterserver_plugins.back_parameters`: the clinical parameters.
+
+Positions are returned in the calibration's world frame; the curvature maps lie on the level
+grid (the world grid itself when gravity is the world's +Y, as for the default station),
+whose axes the record keeps in ``level_axes``. Several frames of one acquisition are combined
+by :func:`rasterserver.records_analysis.combine` (mean and spread of every parameter).
+
+Definitions, units and signs: ``docs/analysis.md``. Tuned on simulated backs (presets and
+``random_back`` seeds 0–99); the benchmark's seeds from 1000 on were never looked at.
+"""
 
 from __future__ import annotations
 
+import json
 from typing import ClassVar
 
-from rasterserver.records_analysis import BackShape
+import numpy as np
+from pydantic import Field
+from rasterserver_plugins.back_parameters import PARAMETER_UNITS, back_parameters
+from rasterserver_plugins.body_frame import body_frame
+from rasterserver_plugins.curvature import surface_curvature
+from rasterserver_plugins.landmarks import (
+    Landmark,
+    find_dimples,
+    find_sacrum_point,
+    find_vertebra_prominens,
+    midpoint,
+)
+from rasterserver_plugins.level_frame import LevelFrame
+from rasterserver_plugins.spinal_midline import spinal_midline, surface_rotation
+from rasterserver_plugins.symmetry_line import find_symmetry_line
+from rasterserver_plugins.trunk import find_trunk
+
+from rasterserver.records_analysis import LANDMARKS, SAGITTAL_POINTS, BackShape
 from rasterserver.records_surface import Surface
 from rasterserver.stage import Stage, StageContext, StageParams
+
+__all__ = ["NO_VERTICAL", "BackShapeAnalysis", "analyse_back"]
+
+#: The reason of an analysis refused for want of gravity in the calibration.
+NO_VERTICAL = (
+    "the calibration has no vertical (gravity): clinical heights, inclinations and "
+    "horizontal profiles cannot be defined; add the gravity direction to the calibration"
+)
+
+
+def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float = 5.0) -> BackShape:
+    """Analyse one smoothed surface.
+
+    Parameters
+    ----------
+    surface : Surface
+        The back as a height field in the world frame.
+    gravity : numpy.ndarray or None
+        ``(3,)`` direction of gravity (down) in the world frame; None refuses the analysis.
+    sigma : float, optional
+        Gaussian scale (mm) of the curvature used for the landmarks and the symmetry line.
+
+    Returns
+    -------
+    BackShape
+        The analysis; empty with a reason when there is no vertical or no trunk.
+    """
+    if gravity is None:
+        return BackShape.empty(NO_VERTICAL)
+    try:
+        level = LevelFrame.from_gravity(np.asarray(gravity, dtype=float))
+    except ValueError as exc:
+        return BackShape.empty(f"the calibration's gravity is unusable: {exc}")
+    if surface.z.size == 0 or not np.isfinite(surface.z).any():
+        why = f": {surface.reason}" if surface.reason else ""
+        return BackShape.empty(f"no surface to analyse{why}")
+    grid = level.level_grid(surface.x0, surface.y0, surface.spacing, surface.z)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=sigma)
+    trunk = find_trunk(grid.z, grid.spacing)
+    if not trunk.found:
+        return BackShape.empty(f"no trunk in the surface: {trunk.reason}")
+
+    reasons: dict[str, str] = {}
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    dl, dr = find_dimples(grid, curv, trunk, vp)
+    dm = midpoint(grid, curv, dl, dr)
+    sp = find_sacrum_point(grid, curv, trunk, dl, dr)
+    found: dict[str, Landmark] = {lm.name: lm for lm in (vp, dl, dr, dm, sp)}
+    for lm in found.values():
+        if not lm.found:
+            reasons[lm.name] = lm.reason
+
+    frame = None
+    if vp.found and dl.found and dr.found:
+        frame = body_frame(vp.point, dl.point, dr.point)
+        if frame is None:
+            reasons["frame"] = "VP, DL and DR are degenerate (in line)"
+    else:
+        reasons["frame"] = "needs VP, DL and DR"
+
+    line = midline = None
+    if vp.found and dm.found:
+        line = find_symmetry_line(grid, curv, vp.point, dm.point, trunk.reference_half_width())
+        if not line.found:
+            reasons["symmetry_line"] = line.reason
+            line = None
+    else:
+        reasons["symmetry_line"] = "needs VP and DM"
+    if line is not None:
+        rotation = surface_rotation(grid, line)
+        midline = spinal_midline(line, rotation, vp.point, dm.point)
+    else:
+        reasons["midline"] = "needs the symmetry line"
+
+    values, sagittal, why = back_parameters(
+        grid,
+        trunk,
+        {k: found[k].point for k in ("VP", "DL", "DR", "DM")},
+        line,
+        midline,
+        None if frame is None else frame[1][0],
+    )
+    reasons.update(why)
+    parameters = {
+        name: {"value": float(values[name]), "unit": unit, "spread": None}
+        for name, unit in PARAMETER_UNITS.items()
+        if name in values and np.isfinite(values[name])
+    }
+
+    def world(points: np.ndarray) -> np.ndarray:
+        return level.to_world(points) if points.size else np.zeros((0, 3))
+
+    landmarks = np.full((len(LANDMARKS), 3), np.nan)
+    confidence = np.zeros(len(LANDMARKS))
+    for k, name in enumerate(LANDMARKS):
+        lm = found[name]
+        if lm.point is not None:
+            landmarks[k] = world(lm.point)
+            confidence[k] = lm.confidence
+    sagittal_points = np.full((len(SAGITTAL_POINTS), 3), np.nan)
+    for k, name in enumerate(SAGITTAL_POINTS):
+        if name in sagittal:
+            sagittal_points[k] = world(sagittal[name])
+    origin, axes = np.full(3, np.nan), np.full((3, 3), np.nan)
+    if frame is not None:
+        origin, axes = world(frame[0]), level.vectors_to_world(frame[1])
+    empty3 = np.zeros((0, 3))
+    return BackShape(
+        x0=grid.x0,
+        y0=grid.y0,
+        spacing=grid.spacing,
+        mean_curvature=curv.mean.astype(np.float32),
+        gaussian_curvature=curv.gaussian.astype(np.float32),
+        landmarks=landmarks,
+        landmark_confidence=confidence,
+        frame_origin=origin,
+        frame_axes=axes,
+        symmetry_line=empty3 if line is None else world(line.points()),
+        surface_rotation=np.zeros(0) if midline is None else midline.rotation,
+        midline=empty3 if midline is None else world(midline.points),
+        parameters=json.dumps(parameters),
+        reasons=json.dumps(reasons, sort_keys=True),
+        max_curvature=curv.k1.astype(np.float32),
+        min_curvature=curv.k2.astype(np.float32),
+        principal_direction=curv.direction.astype(np.float32),
+        sagittal_points=sagittal_points,
+        level_axes=level.rotation.copy(),
+    )
 
 
 class BackShapeAnalysis(Stage[Surface, BackShape]):
@@ -14,11 +183,22 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
 
     name: ClassVar[str] = "analysis.back-shape"
     stage: ClassVar[str] = "analysis"
-    version: ClassVar[str] = "0"
+    version: ClassVar[str] = "1"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
 
-    def run(self, data: Surface, params: StageParams, context: StageContext) -> BackShape:
-        """Not implemented yet."""
-        return BackShape.empty("the back-shape analysis is not implemented yet")
+    class Params(StageParams):
+        """Parameters of :class:`BackShapeAnalysis`."""
+
+        sigma: float = Field(
+            5.0,
+            ge=2.0,
+            le=30.0,
+            description="Gaussian scale (mm) of the curvature for landmarks and symmetry line.",
+        )
+
+    def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
+        """Analyse ``data`` with the vertical of ``context.calibration``."""
+        gravity = getattr(context.calibration, "gravity", None)
+        return analyse_back(data, gravity, sigma=params.sigma)

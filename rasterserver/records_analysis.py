@@ -21,11 +21,16 @@ import numpy as np
 from rasterserver.errors import InputError
 from rasterserver.records import Record
 
-__all__ = ["LANDMARKS", "BackShape"]
+__all__ = ["LANDMARKS", "SAGITTAL_POINTS", "BackShape", "combine"]
 
 LANDMARKS: tuple[str, ...] = ("VP", "DL", "DR", "DM", "SP")
 """Landmark order in :attr:`BackShape.landmarks`: vertebra prominens, left and right lumbar
 dimple, their midpoint, sacrum point (top of the rima ani)."""
+
+SAGITTAL_POINTS: tuple[str, ...] = ("ICT", "KA", "ITL", "LA", "ILS")
+"""Order in :attr:`BackShape.sagittal_points`: the inflection points of the symmetry line's
+sagittal profile (cervico-thoracic, thoraco-lumbar, lumbo-sacral) and the kyphosis and
+lordosis apices."""
 
 
 def _loads(owner: str, text: str, kind: type) -> Any:
@@ -71,6 +76,20 @@ class BackShape(Record):
         JSON object ``{what: why}`` for every landmark, line or parameter not computed.
     reason : str
         Why the whole analysis is empty, or "".
+    max_curvature, min_curvature : numpy.ndarray or None
+        ``(ny, nx)`` float32 principal curvature maps κ1 ≥ κ2 (1/mm), on the grid of the
+        curvature maps.
+    principal_direction : numpy.ndarray or None
+        ``(ny, nx)`` float32 angle (radians, in (-π/2, π/2]) of the κ1 direction projected
+        onto the grid plane, from the grid's x axis towards its y axis.
+    sagittal_points : numpy.ndarray or None
+        ``(5, 3)`` world mm of the sagittal profile's points in the order of
+        :data:`SAGITTAL_POINTS`; NaN rows when not found.
+    level_axes : numpy.ndarray or None
+        ``(3, 3)`` rows are the axes of the grid the curvature maps lie on (the *level
+        frame*: x to the patient's right, y along gravity, z the horizontal camera axis) in
+        world coordinates; the identity when gravity is the world's +Y. Cell ``[i, j]`` of a
+        map is the level point ``(x0 + j * spacing, y0 + i * spacing)``.
     """
 
     kind: ClassVar[str] = "backshape"
@@ -89,6 +108,11 @@ class BackShape(Record):
     parameters: str = "{}"
     reasons: str = "{}"
     reason: str = ""
+    max_curvature: np.ndarray | None = None
+    min_curvature: np.ndarray | None = None
+    principal_direction: np.ndarray | None = None
+    sagittal_points: np.ndarray | None = None
+    level_axes: np.ndarray | None = None
 
     def validate(self) -> None:
         """Refuse arrays of the wrong shape or parameters that are not a JSON object."""
@@ -107,6 +131,17 @@ class BackShape(Record):
             raise InputError("BackShape.symmetry_line and midline must both be (M, 3)")
         if self.surface_rotation.shape != (m,):
             raise InputError("BackShape.surface_rotation must be (M,)")
+        for name in ("max_curvature", "min_curvature", "principal_direction"):
+            grid = getattr(self, name)
+            if grid is not None and grid.shape != self.mean_curvature.shape:
+                raise InputError(f"BackShape.{name} must have the curvature maps' shape")
+        if self.sagittal_points is not None and self.sagittal_points.shape != (
+            len(SAGITTAL_POINTS),
+            3,
+        ):
+            raise InputError("BackShape.sagittal_points must be (5, 3)")
+        if self.level_axes is not None and self.level_axes.shape != (3, 3):
+            raise InputError("BackShape.level_axes must be (3, 3)")
         _loads("parameters", self.parameters, dict)
         _loads("reasons", self.reasons, dict)
 
@@ -117,6 +152,18 @@ class BackShape(Record):
         except ValueError:
             raise InputError(f"no landmark {name!r}; landmarks: {', '.join(LANDMARKS)}") from None
         return None if not np.all(np.isfinite(point)) else np.array(point)
+
+    def sagittal_point(self, name: str) -> np.ndarray | None:
+        """The world position of sagittal point ``name`` (see :data:`SAGITTAL_POINTS`)."""
+        try:
+            k = SAGITTAL_POINTS.index(name)
+        except ValueError:
+            raise InputError(
+                f"no sagittal point {name!r}; points: {', '.join(SAGITTAL_POINTS)}"
+            ) from None
+        if self.sagittal_points is None or not np.all(np.isfinite(self.sagittal_points[k])):
+            return None
+        return np.array(self.sagittal_points[k])
 
     def parameter_table(self) -> dict[str, dict[str, Any]]:
         """The parameters as ``{name: {"value", "unit", "spread"}}``."""
@@ -135,6 +182,10 @@ class BackShape(Record):
             },
             "landmark_confidence": {
                 name: float(c) for name, c in zip(LANDMARKS, self.landmark_confidence, strict=True)
+            },
+            "sagittal_points": {
+                name: (None if (p := self.sagittal_point(name)) is None else [float(v) for v in p])
+                for name in SAGITTAL_POINTS
             },
             "parameters": self.parameter_table(),
             "reasons": self.reason_table(),
@@ -162,3 +213,141 @@ class BackShape(Record):
             reasons=json.dumps(reasons or {}, sort_keys=True),
             reason=reason,
         )
+
+
+def _representative(shapes: list[BackShape], names: list[str]) -> BackShape:
+    """The frame whose parameters lie closest to the mean (each scaled by its spread)."""
+    table = np.full((len(shapes), len(names)), np.nan)
+    for i, shape in enumerate(shapes):
+        params = shape.parameter_table()
+        for j, name in enumerate(names):
+            value = params.get(name, {}).get("value")
+            if isinstance(value, int | float):
+                table[i, j] = float(value)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.nanstd(table, axis=0)
+        z = (table - np.nanmean(table, axis=0)) / np.where(scale > 0, scale, 1.0)
+    distance = np.nansum(np.where(np.isfinite(z), z * z, 4.0), axis=1)
+    return shapes[int(np.argmin(distance))]
+
+
+def combine(shapes: list[BackShape] | tuple[BackShape, ...]) -> BackShape:
+    """Combine the analyses of several frames of one acquisition: mean and spread.
+
+    An acquisition may hold several raster frames (DIERS averages 12, as one frame differs
+    from the mean by up to 7 mm / 1.2° through breathing and sway). Frames whose analysis
+    is empty (``reason`` set) are left out.
+
+    * every parameter: ``value`` the mean over the frames that have it, ``spread`` the sample
+      standard deviation (``ddof=1``; None with one frame); a parameter missing from some
+      frames says so in ``reasons``;
+    * every landmark and sagittal point: the mean position over the frames that found it,
+      its confidence the mean over all frames (0 where not found);
+    * the body frame: the mean origin, and the mean axes made orthonormal again;
+    * curvature maps and lines: those of the *representative* frame, the one whose
+      parameters lie closest to the means (distances in units of each parameter's spread).
+
+    Parameters
+    ----------
+    shapes : sequence of BackShape
+        One analysis per frame, at least one.
+
+    Returns
+    -------
+    BackShape
+        The combined analysis; with a single analysed frame, that frame's analysis. When no
+        frame was analysed: empty, with the frames' reasons.
+
+    Raises
+    ------
+    InputError
+        For an empty sequence.
+    """
+    shapes = list(shapes)
+    if not shapes:
+        raise InputError("no analysis to combine")
+    analysed = [s for s in shapes if not s.reason]
+    if not analysed:
+        reasons = sorted({s.reason for s in shapes})
+        return BackShape.empty(f"no frame could be analysed: {'; '.join(reasons)}")
+    if len(analysed) == 1 and len(shapes) == 1:
+        return analysed[0]
+    n = len(analysed)
+    tables = [s.parameter_table() for s in analysed]
+    names: list[str] = []
+    for table in tables:
+        names += [k for k in table if k not in names]
+    parameters: dict[str, dict[str, Any]] = {}
+    reasons: dict[str, str] = {}
+    for name in names:
+        values = [
+            float(t[name]["value"])
+            for t in tables
+            if name in t and isinstance(t[name].get("value"), int | float)
+        ]
+        unit = next(t[name].get("unit") for t in tables if name in t)
+        if not values:
+            continue
+        parameters[name] = {
+            "value": float(np.mean(values)),
+            "unit": unit,
+            "spread": float(np.std(values, ddof=1)) if len(values) > 1 else None,
+        }
+        if len(values) < n:
+            reasons[name] = f"computed on {len(values)} of {n} frames"
+
+    def mean_points(stack: np.ndarray, labels: tuple[str, ...], what: str) -> np.ndarray:
+        found = np.all(np.isfinite(stack), axis=2)
+        out = np.full(stack.shape[1:], np.nan)
+        for k, label in enumerate(labels):
+            if found[:, k].any():
+                out[k] = stack[found[:, k], k].mean(axis=0)
+                if not found[:, k].all():
+                    reasons[label] = f"found in {int(found[:, k].sum())} of {n} frames"
+            elif what == "landmark":
+                whys = sorted({s.reason_table().get(label, "not found") for s in analysed})
+                reasons[label] = "; ".join(whys)
+        return out
+
+    landmarks = mean_points(np.stack([s.landmarks for s in analysed]), LANDMARKS, "landmark")
+    confidence = np.mean([s.landmark_confidence for s in analysed], axis=0)
+    sag = [s.sagittal_points for s in analysed if s.sagittal_points is not None]
+    sagittal = mean_points(np.stack(sag), SAGITTAL_POINTS, "point") if sag else None
+    frames = [
+        s
+        for s in analysed
+        if np.all(np.isfinite(s.frame_origin)) and np.all(np.isfinite(s.frame_axes))
+    ]
+    origin, axes = np.full(3, np.nan), np.full((3, 3), np.nan)
+    if frames:
+        origin = np.mean([s.frame_origin for s in frames], axis=0)
+        u, _, vt = np.linalg.svd(np.mean([s.frame_axes for s in frames], axis=0))
+        axes = u @ vt  # the nearest orthonormal matrix to the mean axes
+    rep = _representative(analysed, list(parameters))
+    for what, why in rep.reason_table().items():
+        if what not in LANDMARKS and what not in SAGITTAL_POINTS and what not in parameters:
+            reasons.setdefault(what, why)
+    for shape in shapes:
+        if shape.reason:
+            reasons.setdefault("frames", f"{len(shapes) - n} of {len(shapes)} frames not analysed")
+    return BackShape(
+        x0=rep.x0,
+        y0=rep.y0,
+        spacing=rep.spacing,
+        mean_curvature=rep.mean_curvature,
+        gaussian_curvature=rep.gaussian_curvature,
+        landmarks=landmarks,
+        landmark_confidence=confidence,
+        frame_origin=origin,
+        frame_axes=axes,
+        symmetry_line=rep.symmetry_line,
+        surface_rotation=rep.surface_rotation,
+        midline=rep.midline,
+        parameters=json.dumps(parameters),
+        reasons=json.dumps(reasons, sort_keys=True),
+        max_curvature=rep.max_curvature,
+        min_curvature=rep.min_curvature,
+        principal_direction=rep.principal_direction,
+        sagittal_points=sagittal,
+        level_axes=rep.level_axes,
+    )

@@ -1,0 +1,450 @@
+"""Anatomical landmarks of the back from its curvature: VP, the lumbar dimples DL/DR, DM, SP.
+
+After Drerup & Hierholzer (*Automatic localization of anatomical landmarks on the back
+surface and construction of a body-fixed coordinate system*, J Biomech 20 (1987) 961-970):
+the landmarks are regions of distinct curvature, found automatically in search regions
+derived from the measured trunk:
+
+* **VP**, the vertebra prominens (C7): the convex maximum (largest mean curvature H > 0) at
+  the cervico-thoracic junction, near the trunk's centre line, where the narrow neck widens
+  into the shoulders;
+* **DL, DR**, the lumbar dimples over the posterior superior iliac spines: the pair of concave
+  maxima (most negative H) in the lower trunk, one each side of the centre line, at about the
+  same height — the patient's left dimple DL at ``-x``, the right one DR at ``+x``;
+* **DM**, the midpoint of DL and DR;
+* **SP**, the sacrum point at the top of the rima ani (gluteal cleft): where, going down the
+  midline from DM, the cleft's lateral concavity appears (see :func:`find_sacrum_point`).
+
+A landmark is never guessed: when the region is not measured (cropped image, holes, an arm
+in front), when no candidate is distinct enough or when two candidates are too alike, it is
+reported missing with a reason. Each found landmark has a confidence in [0, 1]: the product of
+its *strength* (its curvature against the smallest accepted one) and its *distinctness* (how
+much it exceeds the best competing candidate).
+
+All positions are in the level frame (:mod:`rasterserver_plugins.level_frame`); the depth
+of a landmark is the measured surface's (bilinear), not the smoothed fit's, which would lift a
+dimple's bottom by millimetres.
+
+The search regions and thresholds were tuned on simulated backs (presets ``normal``,
+``moderate``, ``severe`` and :func:`~rasterserver.simulator.back.random_back` seeds 0-99);
+seeds from 1000 on are kept for the benchmark.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from rasterserver_plugins.curvature import Curvature
+from rasterserver_plugins.level_frame import LevelGrid
+from rasterserver_plugins.symmetry_line import curvature_features, profile_asymmetry
+from rasterserver_plugins.trunk import Trunk
+from scipy.ndimage import maximum_filter, median_filter
+
+__all__ = [
+    "Landmark",
+    "find_dimples",
+    "find_sacrum_point",
+    "find_vertebra_prominens",
+    "midpoint",
+]
+
+#: Smallest mean curvature (1/mm) of a vertebra prominens or a dimple at the 10 mm scale.
+MIN_LANDMARK_CURVATURE = 0.003
+#: A runner-up this close (ratio of curvatures) to the best candidate makes the choice
+#: ambiguous: the landmark is refused.
+AMBIGUOUS_RATIO = 0.85
+#: Range of the distance between the dimples, in units of the trunk's median half-width.
+DIMPLE_DISTANCE = (0.45, 1.1)
+#: Lateral concavity (1/mm, ``-z_xx`` at the landmark scale) that marks the top of the cleft.
+CLEFT_CONCAVITY = 0.02
+#: Rows below SP the cleft must stay that concave (so that SP is not an edge artefact).
+CLEFT_ROWS = 2
+#: Reach of the mirrored pairs (fraction of the trunk's half-width) when finding the lower
+#: back's mirror axis, about which the dimples are a pair: wide enough to hold the dimples.
+DIMPLE_AXIS_REACH = 0.4
+#: Least share of a candidate's curvature window that must be measured: below it the fit
+#: extrapolates over a border or a hole, where curvature extremes are artefacts.
+MIN_SUPPORT = 0.6
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """A landmark found (``point`` set) or not (``reason`` set).
+
+    Attributes
+    ----------
+    name : str
+        ``VP``, ``DL``, ``DR``, ``DM`` or ``SP``.
+    point : numpy.ndarray or None
+        ``(3,)`` level-frame position (mm), None when not found.
+    confidence : float
+        In [0, 1]; 0 when not found.
+    reason : str
+        Why it was not found, or "".
+    """
+
+    name: str
+    point: np.ndarray | None
+    confidence: float = 0.0
+    reason: str = ""
+
+    @property
+    def found(self) -> bool:
+        """Whether the landmark was found."""
+        return self.point is not None
+
+
+def _missing(name: str, reason: str) -> Landmark:
+    return Landmark(name, None, 0.0, reason)
+
+
+@dataclass(frozen=True)
+class _Peak:
+    row: float
+    col: float
+    value: float
+
+
+def _peaks(score: np.ndarray, region: np.ndarray, *, size: int = 5) -> list[_Peak]:
+    """Local maxima of ``score`` inside ``region``, strongest first (cell positions)."""
+    s = np.where(region & np.isfinite(score), score, -np.inf)
+    is_peak = (s == maximum_filter(s, size=size, mode="constant", cval=-np.inf)) & np.isfinite(s)
+    ii, jj = np.nonzero(is_peak)
+    order = np.argsort(-s[ii, jj])
+    return [_Peak(float(ii[k]), float(jj[k]), float(s[ii[k], jj[k]])) for k in order]
+
+
+def _refine(score: np.ndarray, peak: _Peak, *, half: int = 2) -> tuple[float, float]:
+    """Sub-cell position of a maximum: vertex of a quadric fitted to the cells around it."""
+    ny, nx = score.shape
+    i0, j0 = int(peak.row), int(peak.col)
+    di, dj = np.mgrid[-half : half + 1, -half : half + 1]
+    ii, jj = i0 + di.ravel(), j0 + dj.ravel()
+    ok = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
+    ii, jj, u, v = ii[ok], jj[ok], dj.ravel()[ok].astype(float), di.ravel()[ok].astype(float)
+    val = score[ii, jj]
+    ok = np.isfinite(val)
+    if ok.sum() < 6:
+        return peak.row, peak.col
+    u, v, val = u[ok], v[ok], val[ok]
+    a = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+    c = np.linalg.lstsq(a, val, rcond=None)[0]
+    hess = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    if np.linalg.det(hess) <= 0 or hess[0, 0] >= 0:
+        return peak.row, peak.col  # not a proper maximum of the fit: keep the cell
+    du, dv = np.linalg.solve(hess, -c[1:3])
+    if abs(du) > 1.0 or abs(dv) > 1.0:
+        return peak.row, peak.col
+    return peak.row + float(dv), peak.col + float(du)
+
+
+def _surface_point(grid: LevelGrid, curv: Curvature, row: float, col: float) -> np.ndarray:
+    point = grid.point(col, row)
+    if point is None:  # a cell on the border of a hole: the fitted depth is all there is
+        i, j = round(row), round(col)
+        point = np.array([float(grid.x_of(col)), float(grid.y_of(row)), curv.depth[i, j]])
+    return point
+
+
+def _confidence(value: float, runner_up: float, minimum: float) -> float:
+    strength = min(1.0, value / (2.0 * minimum))
+    distinct = min(1.0, max(0.0, 1.0 - runner_up / value) / 0.5) if value > 0 else 0.0
+    return float(strength * distinct)
+
+
+def _centre_cols(trunk: Trunk) -> np.ndarray:
+    """The trunk's centre column in every row, filled across gaps (NaN outside the trunk)."""
+    centre = trunk.centre.copy()
+    rows = np.arange(centre.size)
+    good = np.isfinite(centre)
+    if good.any():
+        inside = (rows >= trunk.top) & (rows <= trunk.bottom)
+        centre[inside] = np.interp(rows[inside], rows[good], centre[good])
+    return centre
+
+
+def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> Landmark:
+    """The vertebra prominens: the convex maximum at the cervico-thoracic junction.
+
+    Search region (derived from the trunk, ``W`` its median half-width): rows from
+    ``0.25 W`` above to ``0.7 W`` below the *neck line*, the first row from the top where
+    the trunk is wider than ``0.6 W`` (the neck widening into the shoulders); columns within
+    ``0.25 W`` of the trunk's centre line.
+
+    Parameters
+    ----------
+    grid : LevelGrid
+        The surface in the level frame.
+    curv : Curvature
+        Its curvature (at the landmark scale).
+    trunk : Trunk
+        The trunk found in it.
+
+    Returns
+    -------
+    Landmark
+        ``VP`` in level coordinates, or missing with a reason.
+    """
+    if not trunk.found:
+        return _missing("VP", trunk.reason or "no trunk in the surface")
+    s = grid.spacing
+    w = trunk.reference_half_width()
+    hw = trunk.half_width
+    rows = np.arange(trunk.top, trunk.bottom + 1)
+    wide = rows[hw[rows] >= 0.6 * w]
+    neck = int(wide[0]) if wide.size else trunk.top
+    r0 = max(trunk.top, neck - round(0.25 * w / s))
+    r1 = min(trunk.bottom, neck + round(0.7 * w / s))
+    centre = _centre_cols(trunk)
+    region = _band(grid.shape, centre, r0, r1, 0.0, 0.25 * w / s)
+    h = curv.mean
+    all_peaks = _peaks(h, region)
+    if not all_peaks or all_peaks[0].value < MIN_LANDMARK_CURVATURE:
+        return _missing("VP", "no convex point near the midline at the neck's base")
+    supported = curv.support >= MIN_SUPPORT
+    best = all_peaks[0]
+    at_top = best.row - trunk.top < 1.5 * curv.sigma / s
+    if at_top or not supported[int(best.row), int(best.col)]:
+        where = "top" if at_top else "border"
+        return _missing(
+            "VP",
+            f"the strongest convex point near the neck's base lies at the {where} of the "
+            "measured surface (image cropped or region not measured)",
+        )
+    runner = _runner_up(all_peaks, best, min_distance=15.0 / s, supported=supported)
+    if runner >= AMBIGUOUS_RATIO * best.value:
+        return _missing("VP", "two similar convex points near the neck's base: ambiguous")
+    row, col = _refine(h, best)
+    point = _surface_point(grid, curv, row, col)
+    return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), MIN_LANDMARK_CURVATURE))
+
+
+def _runner_up(
+    peaks: list[_Peak], best: _Peak, *, min_distance: float, supported: np.ndarray
+) -> float:
+    for p in peaks[1:]:
+        if not supported[int(p.row), int(p.col)]:
+            continue
+        if math.hypot(p.row - best.row, p.col - best.col) >= min_distance:
+            return p.value
+    return 0.0
+
+
+def _band(
+    shape: tuple[int, int], centre: np.ndarray, r0: int, r1: int, inner: float, outer: float
+) -> np.ndarray:
+    """Cells of rows ``r0..r1`` whose column offset from ``centre`` lies in [inner, outer]."""
+    ny, nx = shape
+    rows = np.arange(ny)[:, None]
+    off = np.abs(np.arange(nx)[None, :] - centre[:, None])
+    with np.errstate(invalid="ignore"):
+        return (rows >= r0) & (rows <= r1) & (off >= inner) & (off <= outer)
+
+
+def find_dimples(
+    grid: LevelGrid, curv: Curvature, trunk: Trunk, vp: Landmark
+) -> tuple[Landmark, Landmark]:
+    """The lumbar dimples DL (patient's left, ``-x``) and DR (right, ``+x``).
+
+    Search region: rows of the lower 45 % of the trunk between VP (or the trunk's top) and
+    the trunk's bottom, columns within ``0.8 W`` of the centre line. The concave maxima
+    (most negative H) found there are paired: a pair must be roughly level (height
+    difference at most 30 % of their distance), centred (midpoint within ``0.3 W`` of the
+    centre line), :data:`DIMPLE_DISTANCE` apart (which keeps the midline furrow, a string of
+    concave points, out of the pairs) and of comparable depth (the weaker at least a quarter of
+    the stronger); the pair with the largest summed concavity wins, unless another pair comes
+    within :data:`AMBIGUOUS_RATIO` of it.
+
+    Parameters
+    ----------
+    grid : LevelGrid
+        The surface in the level frame.
+    curv : Curvature
+        Its curvature.
+    trunk : Trunk
+        The trunk.
+    vp : Landmark
+        The vertebra prominens (its height starts the search), found or not.
+
+    Returns
+    -------
+    tuple of Landmark
+        ``DL`` and ``DR``.
+    """
+    if not trunk.found:
+        reason = trunk.reason or "no trunk in the surface"
+        return _missing("DL", reason), _missing("DR", reason)
+    s = grid.spacing
+    w = trunk.reference_half_width()
+    top = float(grid.row_of(vp.point[1])) if vp.point is not None else float(trunk.top)
+    r0 = round(top + 0.55 * (trunk.bottom - top))
+    r1 = trunk.bottom
+    centre = _centre_cols(trunk)
+    concave = -curv.mean
+    supported = curv.support >= MIN_SUPPORT
+    region = _band(grid.shape, centre, r0, r1, 0.0, 0.8 * w / s)
+    peaks = [
+        p
+        for p in _peaks(concave, region)
+        if p.value >= MIN_LANDMARK_CURVATURE and supported[int(p.row), int(p.col)]
+    ][:16]
+    axis = _local_axes(curv, centre, r0, r1, w / s)
+    pairs = []
+    for pl in peaks:
+        for pr in peaks:
+            dx = (pr.col - pl.col) * s
+            if dx <= 0:
+                continue
+            dy = (pr.row - pl.row) * s
+            mid_row = round(0.5 * (pl.row + pr.row))
+            mid_off = (0.5 * (pl.col + pr.col) - axis[mid_row]) * s
+            weak, strong = sorted((pl.value, pr.value))
+            if (
+                DIMPLE_DISTANCE[0] * w <= dx <= DIMPLE_DISTANCE[1] * w
+                and abs(dy) <= 0.3 * dx
+                and abs(mid_off) <= 0.1 * dx
+                and weak >= strong / 4.0
+            ):
+                pairs.append((pl.value + pr.value, pl, pr))
+    if not pairs:
+        if not peaks:
+            reason = "no concavity in the lower back (dimples not in view, covered or not measured)"
+        else:
+            reason = "no level, symmetric pair of concavities in the lower back"
+        return _missing("DL", reason), _missing("DR", reason)
+    pairs.sort(key=lambda p: -p[0])
+    score, pl, pr = pairs[0]
+    runner = 0.0
+    for other_score, ql, qr in pairs[1:]:
+        moved = max(
+            math.hypot(ql.row - pl.row, ql.col - pl.col),
+            math.hypot(qr.row - pr.row, qr.col - pr.col),
+        )
+        if moved * s >= 15.0:
+            runner = other_score
+            break
+    if runner >= AMBIGUOUS_RATIO * score:
+        reason = "two similar pairs of concavities in the lower back: ambiguous"
+        return _missing("DL", reason), _missing("DR", reason)
+    below = (trunk.bottom - max(pl.row, pr.row)) * s
+    if below < 2.0 * curv.sigma:
+        reason = "the dimples lie at the bottom edge of the measured surface (image cropped)"
+        return _missing("DL", reason), _missing("DR", reason)
+    out = []
+    for name, peak in (("DL", pl), ("DR", pr)):
+        row, col = _refine(concave, peak)
+        point = _surface_point(grid, curv, row, col)
+        conf = _confidence(score, runner, 2 * MIN_LANDMARK_CURVATURE) * min(
+            1.0, peak.value / (2.0 * MIN_LANDMARK_CURVATURE)
+        )
+        out.append(Landmark(name, point, conf))
+    return out[0], out[1]
+
+
+def _local_axes(curv: Curvature, centre: np.ndarray, r0: int, r1: int, reach: float) -> np.ndarray:
+    """Column of the mirror axis of every row ``r0..r1`` (NaN elsewhere).
+
+    The axis minimising the curvature asymmetry of the row (as for the symmetry line, see
+    :func:`rasterserver_plugins.symmetry_line.profile_asymmetry`) within ``0.6 reach``
+    columns of the trunk's centre, median-filtered over 7 rows: the midline of the lower
+    back, about which the dimples are a mirror pair.
+    """
+    rows = np.arange(r0, r1 + 1)
+    out = np.full(centre.size, np.nan)
+    table = profile_asymmetry(
+        curvature_features(curv, rows), reach=max(2, round(2 * DIMPLE_AXIS_REACH * reach))
+    )
+    k = np.arange(table.shape[1])[None, :] / 2.0
+    near = np.abs(k - centre[rows][:, None]) <= 0.6 * reach
+    cost = np.where(near & np.isfinite(table), table, np.inf)
+    best = np.argmin(cost, axis=1) / 2.0
+    best = np.where(np.isfinite(cost.min(axis=1)), best, centre[rows])
+    out[rows] = median_filter(best, size=7, mode="nearest")
+    return out
+
+
+def midpoint(grid: LevelGrid, curv: Curvature, dl: Landmark, dr: Landmark) -> Landmark:
+    """DM: the point of the skin midway between the dimples (found when both are).
+
+    The midpoint of DL and DR lies inside the body when the back is curved across; DM is
+    the surface point at the same horizontal position (the measured depth there), a skin
+    landmark like VP.
+    """
+    if dl.point is None or dr.point is None:
+        return _missing("DM", "needs both lumbar dimples")
+    mid = 0.5 * (dl.point + dr.point)
+    row, col = float(grid.row_of(mid[1])), float(grid.col_of(mid[0]))
+    return Landmark("DM", _surface_point(grid, curv, row, col), min(dl.confidence, dr.confidence))
+
+
+def find_sacrum_point(
+    grid: LevelGrid, curv: Curvature, trunk: Trunk, dl: Landmark, dr: Landmark
+) -> Landmark:
+    """The sacrum point SP: the top of the rima ani (gluteal cleft), below DM on the midline.
+
+    Going down from DM along the midline (columns within a quarter of the dimple distance of
+    DM), the lateral concavity ``c = -∂²z/∂x²`` of the smoothed surface first falls as the
+    lumbar furrow ends over the sacrum (the *sacral plateau*, ``c`` below half of
+    :data:`CLEFT_CONCAVITY`), then rises where the gluteal cleft begins. SP is where ``c``
+    crosses :data:`CLEFT_CONCAVITY` (interpolated between rows), at the cleft's bottom; the
+    cleft must then stay at least that concave for :data:`CLEFT_ROWS` more rows of measured
+    surface, or SP is refused as not in view.
+
+    Parameters
+    ----------
+    grid : LevelGrid
+        The surface in the level frame.
+    curv : Curvature
+        Its curvature.
+    trunk : Trunk
+        The trunk.
+    dl, dr : Landmark
+        The lumbar dimples.
+
+    Returns
+    -------
+    Landmark
+        ``SP`` in level coordinates, or missing with a reason.
+    """
+    if dl.point is None or dr.point is None:
+        return _missing("SP", "needs both lumbar dimples (it is looked for below DM)")
+    s = grid.spacing
+    dm = 0.5 * (dl.point + dr.point)
+    half = 0.25 * float(np.linalg.norm(dr.point - dl.point)) / s
+    c_dm = float(grid.col_of(dm[0]))
+    r0 = int(np.ceil(float(grid.row_of(dm[1]))))
+    r1 = trunk.bottom
+    if r1 - r0 < 3:
+        return _missing("SP", "the image ends at DM: the gluteal cleft is not in view")
+    j0 = max(0, int(np.floor(c_dm - half)))
+    j1 = min(grid.shape[1], int(np.ceil(c_dm + half)) + 1)
+    band = -curv.zxx[r0 : r1 + 1, j0:j1]
+    band = np.where(curv.support[r0 : r1 + 1, j0:j1] >= MIN_SUPPORT, band, np.nan)
+    has = np.isfinite(band).any(axis=1)
+    conc = np.where(has, np.nanmax(np.where(np.isfinite(band), band, -np.inf), axis=1), np.nan)
+    cols = np.where(has, np.argmax(np.where(np.isfinite(band), band, -np.inf), axis=1) + j0, -1)
+    low = np.flatnonzero(conc < 0.5 * CLEFT_CONCAVITY)
+    if low.size == 0:
+        return _missing("SP", "no sacral plateau below DM: the midline furrow runs on")
+    start = int(low[0])
+    above = conc >= CLEFT_CONCAVITY
+    for k in range(start + 1, conc.size):
+        if not above[k]:
+            continue
+        run = above[k : k + 1 + CLEFT_ROWS]
+        if run.size < 1 + CLEFT_ROWS or not run.all():
+            break
+        c_prev, c_here = conc[k - 1], conc[k]
+        frac = (CLEFT_CONCAVITY - c_prev) / (c_here - c_prev) if c_here > c_prev else 1.0
+        row = r0 + k - 1 + float(np.clip(frac, 0.0, 1.0))
+        col = float(np.mean(cols[k : k + 1 + CLEFT_ROWS]))
+        point = _surface_point(grid, curv, row, col)
+        visible = int(np.argmin(np.append(above[k:], False)))
+        return Landmark("SP", point, float(min(1.0, visible / (2.0 * (CLEFT_ROWS + 1)))))
+    below = (r1 - r0) * s
+    return _missing(
+        "SP",
+        f"the gluteal cleft is not in view: the measured surface ends {below:.0f} mm below DM",
+    )
