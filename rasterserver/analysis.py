@@ -56,6 +56,7 @@ __all__ = [
     "analyse_frames",
     "combine",
     "ordered_parameters",
+    "parameter_columns",
     "parameter_label",
 ]
 
@@ -124,6 +125,44 @@ def ordered_parameters(names: Sequence[str] | Mapping[str, Any]) -> list[str]:
     """``names`` in clinical order: the known parameters first, then the others sorted."""
     known = [n for n in _LABELS if n in names]
     return known + sorted(set(names) - set(known))
+
+
+def parameter_columns(
+    columns: Sequence[tuple[str, Mapping[str, Mapping[str, Any]] | None]],
+    *,
+    names: Sequence[str] = KEY_PARAMETERS,
+) -> list[str]:
+    """A compact text table of parameters: one row per parameter, one column per analysis.
+
+    Parameters
+    ----------
+    columns : sequence of (str, mapping or None)
+        Heading and ``parameters`` of a document (:meth:`Analysis.document`), or None for an
+        analysis that could not be made (its column shows ``-``).
+    names : sequence of str, optional
+        The rows, :data:`KEY_PARAMETERS` by default; a parameter no column has is left out.
+
+    Returns
+    -------
+    list of str
+        The lines, heading first.
+    """
+    rows = [n for n in names if any(p and n in p for _h, p in columns)]
+    units = {n: next(p[n]["unit"] for _h, p in columns if p and n in p) for n in rows}
+    first = max([len(parameter_label(n)) for n in rows] + [9])
+    width = max([len(h) for h, _p in columns] + [8]) + 2
+
+    def cell(parameters: Mapping[str, Mapping[str, Any]] | None, name: str) -> str:
+        entry = parameters.get(name) if parameters else None
+        value = _number(entry.get("value")) if entry else None
+        return f"{'-':>{width}}" if value is None else f"{round(value, 1) + 0.0:>{width}.1f}"
+
+    lines = [f"{'parameter':{first}}" + "".join(f"{h:>{width}}" for h, _p in columns) + "  unit"]
+    lines += [
+        f"{parameter_label(n):{first}}" + "".join(cell(p, n) for _h, p in columns) + f"  {units[n]}"
+        for n in rows
+    ]
+    return lines
 
 
 class AnalysisRefusedError(InputError):

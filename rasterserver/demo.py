@@ -2,8 +2,9 @@
 
 ``rasterserver demo`` renders a progressing scoliosis (one rasterstereograph per visit, six
 months apart) with the project's simulator, ingests the frames into the archive (SQLite and a
-local folder by default), processes every acquisition through the registered stage plugins,
-exports a mesh per visit for longitudinal comparison, and verifies the archive — the whole
+local folder by default), processes every acquisition through the registered stage plugins
+(mesh and back-shape analysis), exports a mesh and a one-page report per visit, verifies the
+archive and ends with the key clinical parameters of every visit side by side — the whole
 path a clinic's data takes, on a fresh machine, with one command.
 """
 
@@ -13,13 +14,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rasterserver.analysis import acquisition_analysis, parameter_columns
 from rasterserver.archive import Archive
 from rasterserver.catalog.models import Acquisition
 from rasterserver.config import Settings
 from rasterserver.export import write_mesh
 from rasterserver.jobs import JobOutcome, process_many
 from rasterserver.optics import default_station
-from rasterserver.pipeline import Pipeline
+from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline
 from rasterserver.records_surface import MeshRecord
 from rasterserver.simulated_visits import SimulatedVisit, archive_visits, progressed
 from rasterserver.simulator.back import make_back, preset
@@ -36,6 +38,10 @@ class DemoResult:
     acquisitions: list[Acquisition]
     outcomes: list[JobOutcome]
     meshes: list[Path] = field(default_factory=list)
+    reports: list[Path] = field(default_factory=list)
+    #: each visit's ``parameters`` (:meth:`rasterserver.analysis.Analysis.document`), or None
+    #: when its analysis found nothing
+    parameters: list[dict | None] = field(default_factory=list)
     verified_frames: int = 0
     problems: int = 0
 
@@ -77,7 +83,7 @@ def run_demo(
     export_dir: Path | None = None,
     log: Callable[[str], None] = print,
 ) -> DemoResult:
-    """Simulate, ingest, process, export and verify a demo patient's visits.
+    """Simulate, ingest, process, export, report and verify a demo patient's visits.
 
     Parameters
     ----------
@@ -86,7 +92,7 @@ def run_demo(
     visits : int
         How many visits to simulate.
     export_dir : Path, optional
-        Where the meshes go; default ``<archive>/exports``.
+        Where the meshes and reports go; default ``<archive>/exports``.
     log : callable
         Where progress lines go (no patient data).
 
@@ -99,11 +105,15 @@ def run_demo(
     simulated = simulate_visits(visits)
     with Archive.create(settings) as archive:
         acquisitions = archive_visits(
-            archive, simulated, station=default_station(), patient=DEMO_PATIENT,
-            station_name=DEMO_STATION, log=log,
+            archive,
+            simulated,
+            station=default_station(),
+            patient=DEMO_PATIENT,
+            station_name=DEMO_STATION,
+            log=log,
         )
         uids = [a.uid for a in acquisitions]
-        outcomes = process_many(archive, uids)
+        outcomes = process_many(archive, uids, until=DEFAULT_TARGETS)
         result = DemoResult(acquisitions, outcomes)
         pipeline = Pipeline(archive)
         export_dir.mkdir(parents=True, exist_ok=True)
@@ -120,6 +130,7 @@ def run_demo(
                 f"visit {i + 1}: processed ({outcome.computed} stages computed, "
                 f"{outcome.reused} reused); mesh of {len(mesh.vertices)} vertices -> {path}"
             )
+            result.parameters.append(_report(pipeline, outcome.uid, i, export_dir, result, log))
         report = archive.verify()
         derived = pipeline.verify()
         result.verified_frames = report.frames_checked
@@ -128,4 +139,33 @@ def run_demo(
             f"verify: {report.acquisitions_checked} acquisitions, {report.frames_checked} "
             f"frames, {derived.frames_checked} stored results, {result.problems} problem(s)"
         )
+    columns = [(f"visit {i + 1}", p) for i, p in enumerate(result.parameters)]
+    if any(p for _h, p in columns):
+        log("back-shape parameters (docs/analysis.md):")
+        for line in parameter_columns(columns):
+            log("  " + line)
     return result
+
+
+def _report(
+    pipeline: Pipeline,
+    uid: str,
+    visit: int,
+    export_dir: Path,
+    result: DemoResult,
+    log: Callable[[str], None],
+) -> dict | None:
+    """Write visit ``visit``'s report beside its mesh; its parameters, None if refused."""
+    from rasterserver.analysis_report import write_report
+    from rasterserver.errors import InputError
+
+    try:
+        analysis = acquisition_analysis(pipeline, uid, surfaces=True).check()
+    except InputError as exc:  # the analysis found nothing: say why, go on
+        log(f"visit {visit + 1}: {exc}")
+        return None
+    path = export_dir / f"{DEMO_PATIENT}-visit-{visit + 1:02d}-report.png"
+    write_report(analysis, path, header=[f"visit {visit + 1}", f"acquisition {uid}"])
+    result.reports.append(path)
+    log(f"visit {visit + 1}: back-shape report -> {path}")
+    return analysis.document()["parameters"]

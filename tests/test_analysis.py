@@ -22,6 +22,7 @@ from rasterserver.analysis import (
     analyse_frames,
     combine,
     ordered_parameters,
+    parameter_columns,
     parameter_label,
 )
 from rasterserver.archive import Archive, FrameSource
@@ -236,3 +237,18 @@ def test_archived_analysis_is_read_and_processed_on_request(settings: Settings, 
             assert len(provenance["output_checksum"]) == 64
             assert provenance["created_at"].endswith("Z")
         json.dumps(document, allow_nan=False)
+
+
+def test_parameter_columns_one_column_per_visit() -> None:
+    visit = {
+        "trunk_length": {"value": 430.46, "unit": "mm", "spread": None},
+        "scoliosis_angle_deg": {"value": -0.04, "unit": "deg", "spread": None},
+        "not_a_key_parameter": {"value": 1.0, "unit": "mm", "spread": None},
+    }
+    lines = parameter_columns([("visit 1", visit), ("visit 2", None)])
+    assert [line.split() for line in lines] == [
+        ["parameter", "visit", "1", "visit", "2", "unit"],
+        ["Trunk", "length", "VP-DM", "430.5", "-", "mm"],
+        ["Scoliosis", "angle", "0.0", "-", "deg"],  # never "-0.0"
+    ]
+    assert parameter_columns([("visit 1", None)]) == ["parameter   visit 1  unit"]

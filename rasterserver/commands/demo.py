@@ -16,8 +16,9 @@ def demo(
     visits: Annotated[int, typer.Option(min=1, max=20, help="Visits to simulate.")] = 3,
 ) -> None:
     """Run the main job on a simulated patient: render a progressing scoliosis over several
-    visits, ingest the frames, process them through the stage plugins, export one mesh per
-    visit (to <archive>/exports) and verify the archive.
+    visits, ingest the frames, process them through the stage plugins (mesh and back-shape
+    analysis), export one mesh and one report page per visit (to <archive>/exports), verify
+    the archive, and end with the key parameters of every visit side by side.
 
     Uses the archive and catalogue named by --archive / --database-url (default: ./archive
     with SQLite inside it). Running it again adds further visits of the same demo patient.
