@@ -5,11 +5,11 @@ The roles:
 ``admin``
     Accounts, stations, rasters, calibrations, the audit trail and metrics; no patient data.
 ``clinician``
-    Patients, visits, acquisitions, frames, processing, results and exports.
+    Patients, visits, acquisitions, frames, processing, results, analyses and exports.
 ``station``
     Uploads acquisitions, nothing else (a service account on an acquisition station).
 ``researcher``
-    Reads patients, acquisitions, frames, results and exports, pseudonymised
+    Reads patients, acquisitions, frames, results, analyses and exports, pseudonymised
     (see :mod:`rasterserver.api.pseudonym`); writes nothing.
 
 A route missing from :data:`RULES` is refused to everyone (and a test fails), so a new
