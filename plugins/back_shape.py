@@ -89,6 +89,11 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
     trunk = find_trunk(grid.z, grid.spacing)
     if not trunk.found:
         return BackShape.empty(f"no trunk in the surface: {trunk.reason}")
+    if trunk.cut:
+        return BackShape.empty(
+            f"the measured trunk ends at a straight vertical edge on the patient's {trunk.cut}: "
+            "the back is not wholly in view (image cropped, or half the back not measured)"
+        )
 
     reasons: dict[str, str] = {}
     vp = find_vertebra_prominens(grid, curv, trunk)
@@ -155,6 +160,12 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
     if frame is not None:
         origin, axes = world(frame[0]), level.vectors_to_world(frame[1])
     empty3 = np.zeros((0, 3))
+    reason = ""
+    if not any(lm.found for lm in (vp, dl, dr)):
+        reason = (
+            "no back recognised: neither the vertebra prominens nor the lumbar dimples were "
+            f"found ({reasons['VP']}; {reasons['DL']})"
+        )
     return BackShape(
         x0=grid.x0,
         y0=grid.y0,
@@ -170,6 +181,7 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
         midline=empty3 if midline is None else world(midline.points),
         parameters=json.dumps(parameters),
         reasons=json.dumps(reasons, sort_keys=True),
+        reason=reason,
         max_curvature=curv.k1.astype(np.float32),
         min_curvature=curv.k2.astype(np.float32),
         principal_direction=curv.direction.astype(np.float32),

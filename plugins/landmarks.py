@@ -50,8 +50,12 @@ __all__ = [
     "midpoint",
 ]
 
-#: Smallest mean curvature (1/mm) of a vertebra prominens or a dimple at the 10 mm scale.
+#: Smallest mean curvature (1/mm, at the 5 mm scale) of a lumbar dimple (the simulated
+#: ones reach 0.005 to 0.06; the measurement noise on a flat wall stays below 0.001).
 MIN_LANDMARK_CURVATURE = 0.003
+#: Smallest mean curvature (1/mm) of a vertebra prominens (0.023 to 0.04 on the simulated
+#: backs).
+MIN_VP_CURVATURE = 0.008
 #: A runner-up this close (ratio of curvatures) to the best candidate makes the choice
 #: ambiguous: the landmark is refused.
 AMBIGUOUS_RATIO = 0.85
@@ -64,6 +68,8 @@ CLEFT_ROWS = 2
 #: Reach of the mirrored pairs (fraction of the trunk's half-width) when finding the lower
 #: back's mirror axis, about which the dimples are a pair: wide enough to hold the dimples.
 DIMPLE_AXIS_REACH = 0.4
+#: Least ratio of the trunk's extent on the shorter side of VP to the longer one.
+MIN_BALANCE = 0.4
 #: Least share of a candidate's curvature window that must be measured: below it the fit
 #: extrapolates over a border or a hole, where curvature extremes are artefacts.
 MIN_SUPPORT = 0.6
@@ -201,7 +207,7 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
     region = _band(grid.shape, centre, r0, r1, 0.0, 0.25 * w / s)
     h = curv.mean
     all_peaks = _peaks(h, region)
-    if not all_peaks or all_peaks[0].value < MIN_LANDMARK_CURVATURE:
+    if not all_peaks or all_peaks[0].value < MIN_VP_CURVATURE:
         return _missing("VP", "no convex point near the midline at the neck's base")
     supported = curv.support >= MIN_SUPPORT
     best = all_peaks[0]
@@ -216,9 +222,28 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
     runner = _runner_up(all_peaks, best, min_distance=15.0 / s, supported=supported)
     if runner >= AMBIGUOUS_RATIO * best.value:
         return _missing("VP", "two similar convex points near the neck's base: ambiguous")
+    balance = _balance(trunk, best, 10.0 / s)
+    if balance < MIN_BALANCE:
+        return _missing(
+            "VP",
+            "the trunk is not measured on both sides of the convex point at the neck's base "
+            "(half a back in view?)",
+        )
     row, col = _refine(h, best)
     point = _surface_point(grid, curv, row, col)
-    return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), MIN_LANDMARK_CURVATURE))
+    return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), MIN_VP_CURVATURE))
+
+
+def _balance(trunk: Trunk, peak: _Peak, rows: float) -> float:
+    """How evenly the trunk extends on both sides of ``peak`` (shorter / longer side)."""
+    r = np.arange(int(peak.row - rows), int(peak.row + rows) + 1)
+    r = r[(r >= 0) & (r < trunk.left.size)]
+    a = peak.col - trunk.left[r]
+    b = trunk.right[r] - peak.col
+    ok = np.isfinite(a) & np.isfinite(b) & (a >= 0) & (b >= 0)
+    if not ok.any():
+        return 0.0
+    return float(np.median(np.minimum(a[ok], b[ok]) / np.maximum(np.maximum(a[ok], b[ok]), 1)))
 
 
 def _runner_up(
@@ -313,6 +338,9 @@ def find_dimples(
             reason = "no concavity in the lower back (dimples not in view, covered or not measured)"
         else:
             reason = "no level, symmetric pair of concavities in the lower back"
+        side = _less_measured_side(grid, trunk, axis, r0, r1, w / s)
+        if side:
+            reason += f"; the {side} side of the lower back is not fully measured (covered?)"
         return _missing("DL", reason), _missing("DR", reason)
     pairs.sort(key=lambda p: -p[0])
     score, pl, pr = pairs[0]
@@ -341,6 +369,27 @@ def find_dimples(
         )
         out.append(Landmark(name, point, conf))
     return out[0], out[1]
+
+
+def _less_measured_side(
+    grid: LevelGrid, trunk: Trunk, axis: np.ndarray, r0: int, r1: int, reach: float
+) -> str:
+    """``"left"`` or ``"right"`` when that side of the lower back (rows ``r0..r1``, from
+    ``0.2`` to ``0.8 reach`` columns off the axis) has under 80 % of the other's measured
+    cells; "" otherwise."""
+    nx = grid.shape[1]
+    rows = np.arange(r0, r1 + 1)
+    off = np.arange(nx)[None, :] - axis[rows][:, None]
+    measured = np.isfinite(grid.z[rows])
+    with np.errstate(invalid="ignore"):
+        band = (np.abs(off) >= 0.2 * reach) & (np.abs(off) <= 0.8 * reach)
+        left = int((measured & band & (off < 0)).sum())
+        right = int((measured & band & (off > 0)).sum())
+    if left < 0.8 * right:
+        return "left"
+    if right < 0.8 * left:
+        return "right"
+    return ""
 
 
 def _local_axes(curv: Curvature, centre: np.ndarray, r0: int, r1: int, reach: float) -> np.ndarray:

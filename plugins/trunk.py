@@ -20,7 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import label, median_filter, uniform_filter1d
 
-__all__ = ["Trunk", "find_trunk"]
+__all__ = ["MAX_STRAIGHT_EDGE", "Trunk", "find_trunk"]
+
+#: Share of the trunk's height above which a straight vertical edge means a cut-off back
+#: (at most 0.4 on the simulated backs, whole or with arms; 1.0 for half a back).
+MAX_STRAIGHT_EDGE = 0.6
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,11 @@ class Trunk:
         Grid step (mm).
     reason : str
         Why no trunk was found, or "".
+    cut : str
+        ``"left"`` or ``"right"`` (the patient's, ``-x`` or ``+x``) when the trunk ends on that
+        side at a straight vertical edge over more than :data:`MAX_STRAIGHT_EDGE` of its
+        height: the image or the measured area cuts the back off (no body outline is
+        straight over that length); "" otherwise.
     """
 
     mask: np.ndarray
@@ -56,6 +65,7 @@ class Trunk:
     half_width: np.ndarray
     spacing: float
     reason: str = ""
+    cut: str = ""
 
     @property
     def found(self) -> bool:
@@ -161,6 +171,11 @@ def find_trunk(
     colgrid = np.arange(nx)[None, :]
     with np.errstate(invalid="ignore"):
         mask = rows[:, None] & (colgrid >= left[:, None]) & (colgrid <= right[:, None]) & valid
+    cut = ""
+    if _straight(left) > MAX_STRAIGHT_EDGE:
+        cut = "left"
+    elif _straight(right) > MAX_STRAIGHT_EDGE:
+        cut = "right"
     return Trunk(
         mask=mask,
         left=left,
@@ -170,7 +185,18 @@ def find_trunk(
         bottom=bottom,
         half_width=np.where(rows, 0.5 * (right - left + 1) * spacing, np.nan),
         spacing=spacing,
+        cut=cut,
     )
+
+
+def _straight(edge: np.ndarray) -> float:
+    """Largest share of the rows whose edge lies within one column of a single column."""
+    e = np.rint(edge[np.isfinite(edge)]).astype(int)
+    if e.size == 0:
+        return 0.0
+    counts = np.bincount(e - e.min())
+    near = counts + np.concatenate([[0], counts[:-1]]) + np.concatenate([counts[1:], [0]])
+    return float(near.max() / e.size)
 
 
 def _main_rows(rows: np.ndarray) -> np.ndarray:
@@ -194,4 +220,5 @@ def _with_reason(trunk: Trunk, reason: str) -> Trunk:
         trunk.half_width,
         trunk.spacing,
         reason,
+        trunk.cut,
     )
