@@ -59,6 +59,7 @@ __all__ = [
     "CALIBRATION_FORMAT",
     "GRAVITY_TOL",
     "MAX_DOCUMENT_BYTES",
+    "MAX_MAGNITUDE",
     "RASTER_FORMAT",
     "ROTATION_TOL",
     "CalibrationDocument",
@@ -75,6 +76,8 @@ __all__ = [
     "load_raster_document",
     "raster_from_document",
     "read_document",
+    "validate_calibration",
+    "validate_raster",
 ]
 
 #: A calibration is a few kilobytes, with an inline raster some tens: anything this large is
