@@ -7,7 +7,9 @@ from typing import Annotated
 
 import typer
 
+from rasterserver.catalog.models import ACQUISITION_KINDS
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.errors import InputError
 from rasterserver.times import TIME_RULE
 
 
@@ -17,14 +19,16 @@ def list_acquisitions(
     since: Annotated[
         str | None, typer.Option(help=f"Taken at or after this time: {TIME_RULE}.")
     ] = None,
-    until: Annotated[str | None, typer.Option(help="Taken before this time (as --since).")]
-    = None,
+    until: Annotated[str | None, typer.Option(help="Taken before this time (as --since).")] = None,
     kind: Annotated[str | None, typer.Option(help="patient, calibration or test.")] = None,
     limit: Annotated[int, typer.Option(min=1, help="Rows per page.")] = 100,
     offset: Annotated[int, typer.Option(min=0, help="Rows to skip.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line.")] = False,
 ) -> None:
     """List acquisitions, newest first."""
+    if kind is not None and kind not in ACQUISITION_KINDS:
+        # an unknown kind would list nothing, as if the archive were empty
+        raise InputError(f"--kind must be one of {', '.join(ACQUISITION_KINDS)}, got {kind!r}")
     with open_archive(ctx) as archive:
         rows = archive.find(
             patient=patient,
