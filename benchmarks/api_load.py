@@ -167,7 +167,8 @@ def _paths(mix: str, uids: list[str],
             query = {"patient": rng.choice(patients), "limit": 100}
             path = "/acquisitions?" + urlencode(query)
         elif kind == "range":
-            start = (T0 + dt.timedelta(days=rng.uniform(0, 5 * 365 - 30))).replace(tzinfo=None)
+            # with its zone: the API refuses a time without one
+            start = T0 + dt.timedelta(days=rng.uniform(0, 5 * 365 - 30))
             query = {"since": start.isoformat(timespec="seconds"),
                      "until": (start + dt.timedelta(days=30)).isoformat(timespec="seconds")}
             path = "/acquisitions?" + urlencode(query)
