@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from rasterserver.errors import InputError
 from rasterserver.output_files import check_output, output_file
@@ -195,6 +194,8 @@ def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "pl
 
 
 def _write_ply_points(points: Points, path: Path) -> None:
+    import open3d as o3d  # here, not at the top: the CLI starts a second faster without it
+
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points.xyz)))
     for name, values, dtype in (
         ("number", points.number, np.int32),
@@ -238,6 +239,8 @@ def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"
     if path.suffix.lower() != f".{fmt}":
         # open3d picks the writer from the suffix
         raise InputError(f"{path.name}: a {fmt} file must end in .{fmt}")
+    import open3d as o3d
+
     o3d_mesh: Any = mesh.to_open3d()
     o3d_mesh.compute_triangle_normals()
     with output_file(path) as temp:

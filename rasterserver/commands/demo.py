@@ -7,7 +7,6 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import settings
-from rasterserver.demo import run_demo
 from rasterserver.errors import IntegrityError, RasterServerError
 
 
@@ -23,6 +22,9 @@ def demo(
     Uses the archive and catalogue named by --archive / --database-url (default: ./archive
     with SQLite inside it). Running it again adds further visits of the same demo patient.
     """
+    # imported here: the simulator and open3d cost every other command a second at start
+    from rasterserver.demo import run_demo
+
     result = run_demo(settings(ctx), visits=visits, log=typer.echo)
     if result.problems:
         raise IntegrityError("the archive failed verification; run `rasterserver verify`")
