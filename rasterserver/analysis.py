@@ -24,7 +24,6 @@ with the analysis's own reason.
 from __future__ import annotations
 
 import datetime as dt
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,7 +34,7 @@ from sqlalchemy.orm import selectinload
 
 from rasterserver.catalog.models import Calibration, StageResult
 from rasterserver.errors import InputError, NotFoundError
-from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_analysis import BackShape, combine
 from rasterserver.records_surface import Surface
 
 if TYPE_CHECKING:
@@ -54,7 +53,6 @@ __all__ = [
     "FrameAnalysis",
     "acquisition_analysis",
     "analyse_frames",
-    "combine",
     "ordered_parameters",
     "parameter_columns",
     "parameter_label",
@@ -208,8 +206,8 @@ class Analysis:
     frames : tuple of FrameAnalysis
         One per camera frame, in order.
     combined : BackShape
-        The frames' analyses combined (:func:`combine`): parameters with their mean and
-        spread; the single frame's analysis when there is one.
+        The frames' analyses combined (:func:`rasterserver.records_analysis.combine`):
+        parameters with their mean and spread; the single frame's analysis when there is one.
     calibration : str
         Which calibration: ``"STATION:VERSION"`` (archive) or the calibration's name.
     gravity : list of float or None
@@ -248,13 +246,23 @@ class Analysis:
             why = [f"{f.name}: {f.shape.reason or 'nothing found'}" for f in self.frames]
         subject = f"acquisition {self.uid}" if self.uid else ", ".join(f.name for f in self.frames)
         message = f"no back-shape analysis of {subject}: {'; '.join(why)}"
-        details = self.combined.reason_table()
+        details = self.frames[0].shape.reason_table() if len(self.frames) == 1 else {}
         if details:
             message += " (" + "; ".join(f"{k}: {v}" for k, v in details.items()) + ")"
         raise AnalysisRefusedError(message)
 
     def shown_frame(self) -> FrameAnalysis:
-        """The frame whose maps and lines a report shows: the first one analysed."""
+        """The frame whose maps and lines a report shows: the one :func:`combine` took them
+        from (the representative frame), else the first one analysed."""
+        combined = self.combined
+        for frame in self.frames:
+            shape = frame.shape
+            if (
+                frame.analysed
+                and np.array_equal(shape.mean_curvature, combined.mean_curvature, equal_nan=True)
+                and np.array_equal(shape.symmetry_line, combined.symmetry_line, equal_nan=True)
+            ):
+                return frame
         return next((f for f in self.frames if f.analysed), self.frames[0])
 
     def document(
@@ -366,81 +374,6 @@ def _frame_entry(
     return entry
 
 
-# --- combining frames ---------------------------------------------------------------------
-
-
-def combine(shapes: Sequence[BackShape]) -> BackShape:
-    """Combine the analyses of several frames of one session into mean and spread.
-
-    Frames whose analysis is empty (``reason`` set) are left out. Each parameter's value is
-    the mean over the frames that have it and its spread the sample standard deviation
-    (``ddof=1``; with one frame, the frame's own spread). Each landmark is the mean of the
-    frames that found it. Maps and lines are the first analysed frame's.
-
-    Parameters
-    ----------
-    shapes : sequence of BackShape
-        One per frame, at least one.
-
-    Returns
-    -------
-    BackShape
-        The only analysed frame's when there is one; empty with the first reason when none
-        was analysed.
-    """
-    if not shapes:
-        raise InputError("no frame to combine")
-    analysed = [s for s in shapes if not s.reason]
-    if not analysed:
-        return shapes[0]
-    if len(analysed) == 1:
-        return analysed[0]
-    first = analysed[0]
-    tables = [s.parameter_table() for s in analysed]
-    parameters: dict[str, dict[str, Any]] = {}
-    for name in ordered_parameters({n: 0 for t in tables for n in t}):
-        values = [
-            v for t in tables if name in t if (v := _number(t[name].get("value"))) is not None
-        ]
-        unit = next(t[name].get("unit", "") for t in tables if name in t)
-        parameters[name] = {
-            "value": float(np.mean(values)) if values else None,
-            "unit": unit,
-            "spread": float(np.std(values, ddof=1)) if len(values) > 1 else None,
-        }
-    stacked = np.stack([s.landmarks for s in analysed])
-    found = np.all(np.isfinite(stacked), axis=2)
-    landmarks = np.full((len(LANDMARKS), 3), np.nan)
-    confidence = np.zeros(len(LANDMARKS))
-    reasons: dict[str, str] = {}
-    for k, name in enumerate(LANDMARKS):
-        if found[:, k].any():
-            landmarks[k] = stacked[found[:, k], k].mean(axis=0)
-            confidence[k] = float(np.mean([s.landmark_confidence[k] for s in analysed]))
-        else:
-            reasons[name] = first.reason_table().get(name, "not found in any frame")
-    for shape in analysed:
-        for what, why in shape.reason_table().items():
-            if what not in LANDMARKS:
-                reasons.setdefault(what, why)
-    return BackShape(
-        x0=first.x0,
-        y0=first.y0,
-        spacing=first.spacing,
-        mean_curvature=first.mean_curvature,
-        gaussian_curvature=first.gaussian_curvature,
-        landmarks=landmarks,
-        landmark_confidence=confidence,
-        frame_origin=first.frame_origin,
-        frame_axes=first.frame_axes,
-        symmetry_line=first.symmetry_line,
-        surface_rotation=first.surface_rotation,
-        midline=first.midline,
-        parameters=json.dumps(parameters),
-        reasons=json.dumps(reasons, sort_keys=True),
-    )
-
-
 # --- the verbs ------------------------------------------------------------------------------
 
 
@@ -461,7 +394,7 @@ def analyse_frames(
     """Analyse camera frames of one patient session in memory, without an archive.
 
     Each frame runs through the whole chain (peaks → … → surface → analysis); the analyses
-    are then combined (:func:`combine`).
+    are then combined (:func:`rasterserver.records_analysis.combine`).
 
     Parameters
     ----------
@@ -524,7 +457,8 @@ def acquisition_analysis(
     """The back-shape analysis of an archived acquisition: its stored results.
 
     Each raster frame's newest stored ``analysis`` result is read (verified against its
-    checksum); with several raster frames they are combined (:func:`combine`).
+    checksum); with several raster frames they are combined
+    (:func:`rasterserver.records_analysis.combine`).
 
     Parameters
     ----------

@@ -20,7 +20,6 @@ from rasterserver.analysis import (
     FrameAnalysis,
     acquisition_analysis,
     analyse_frames,
-    combine,
     ordered_parameters,
     parameter_columns,
     parameter_label,
@@ -30,7 +29,7 @@ from rasterserver.config import Settings
 from rasterserver.errors import InputError, NotFoundError
 from rasterserver.optics import default_station
 from rasterserver.pipeline import Pipeline
-from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_analysis import LANDMARKS, BackShape, combine
 from rasterserver.simulated_visits import register_station
 
 
@@ -51,41 +50,39 @@ def _analysis(*frames: tuple[str, BackShape], surface=None) -> Analysis:
     )
 
 
-def test_combine_reports_mean_and_spread(back) -> None:
+def test_several_frames_give_mean_and_spread(back) -> None:
     _image, surface, truth = back
-    a = truth_backshape(truth, surface)
-    b = truth_backshape(truth, surface, shift=(2.0, 0.0, 0.0), scale=1.1)
-    combined = combine([a, b])
-    table = combined.parameter_table()
+    analysis = _analysis(
+        ("a.png", truth_backshape(truth, surface)),
+        ("b.png", truth_backshape(truth, surface, shift=(2.0, 0.0, 0.0), scale=1.1)),
+    )
+    document = analysis.check().document()
     length = truth["parameters"]["trunk_length"]["value"]
-    assert table["trunk_length"]["value"] == pytest.approx(1.05 * length)
-    assert table["trunk_length"]["spread"] == pytest.approx(np.std([length, 1.1 * length], ddof=1))
-    assert table["trunk_length"]["unit"] == "mm"
-    assert table["scoliosis_angle_deg"]["unit"] == "deg"
-    np.testing.assert_allclose(combined.landmark("VP"), truth["landmarks"]["VP"] + [1, 0, 0])
-    # one frame: its own analysis, unchanged
-    assert combine([a]) is a
+    assert document["parameters"]["trunk_length"] == {
+        "value": pytest.approx(1.05 * length),
+        "unit": "mm",
+        "spread": pytest.approx(np.std([length, 1.1 * length], ddof=1)),
+    }
+    assert document["parameters"]["scoliosis_angle_deg"]["unit"] == "deg"
+    vp = np.asarray(truth["landmarks"]["VP"]) + np.array([1.0, 0.0, 0.0])
+    assert document["landmarks"]["VP"] == pytest.approx(list(vp))
+    # the report draws the frame the maps and lines come from
+    shown = analysis.shown_frame().shape
+    assert shown.symmetry_line.tolist() == analysis.combined.symmetry_line.tolist()
 
 
-def test_combine_keeps_landmarks_found_in_some_frames(back) -> None:
+def test_landmarks_found_in_some_frames_or_none(back) -> None:
     _image, surface, truth = back
-    a = truth_backshape(truth, surface, drop=("DL",))
-    b = truth_backshape(truth, surface, shift=(0.0, 4.0, 0.0), drop=("DL", "SP"))
-    combined = combine([a, b])
-    assert combined.landmark("DL") is None
-    assert combined.reason_table()["DL"] == "arms over the dimples"
-    np.testing.assert_allclose(combined.landmark("SP"), truth["landmarks"]["SP"])
-    np.testing.assert_allclose(combined.landmark("DR"), truth["landmarks"]["DR"] + [0, 2, 0])
-
-
-def test_combine_leaves_out_empty_frames(back) -> None:
-    _image, surface, truth = back
-    good = truth_backshape(truth, surface)
-    empty = BackShape.empty("no back in view")
-    assert combine([empty, good]) is good
-    assert combine([empty, BackShape.empty("other")]) is empty
-    with pytest.raises(InputError, match="no frame"):
-        combine([])
+    document = _analysis(
+        ("a.png", truth_backshape(truth, surface, drop=("DL",))),
+        ("b.png", truth_backshape(truth, surface, shift=(0.0, 4.0, 0.0), drop=("DL", "SP"))),
+    ).document()
+    reasons = {r["what"]: r["why"] for r in document["reasons"]}
+    assert document["landmarks"]["DL"] is None and reasons["DL"] == "arms over the dimples"
+    assert document["landmarks"]["SP"] == pytest.approx(list(truth["landmarks"]["SP"]))
+    assert reasons["SP"] == "found in 1 of 2 frames"
+    dr = np.asarray(truth["landmarks"]["DR"]) + np.array([0.0, 2.0, 0.0])
+    assert document["landmarks"]["DR"] == pytest.approx(list(dr))
 
 
 def test_document_is_strict_json_in_the_world_frame(back) -> None:

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from backshape_truth import simulated, truth_backshape
 
-from rasterserver.analysis import Analysis, AnalysisRefusedError, FrameAnalysis, combine
+from rasterserver.analysis import Analysis, AnalysisRefusedError, FrameAnalysis
 from rasterserver.analysis_report import render_report, write_report
 from rasterserver.errors import InputError
-from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_analysis import LANDMARKS, BackShape, combine
 
 
 @pytest.fixture(scope="module")
