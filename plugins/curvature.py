@@ -269,6 +269,7 @@ def fit_quadric_at(
     sigma: tuple[float, float],
     *,
     min_cells: int = 12,
+    cubic: bool = False,
 ) -> np.ndarray:
     """Local quadric fits of the height field at arbitrary points.
 
@@ -290,6 +291,11 @@ def fit_quadric_at(
         Gaussian scales (mm) along x and y.
     min_cells : int, optional
         Fewest measured cells a fit needs.
+    cubic : bool, optional
+        Add the terms ``u³`` and ``u v²`` (odd in ``u``): the slope ``b`` then stays unbiased
+        where the surface is a turned, curved cross-section (a rounded back turned about the
+        vertical is no longer even about the turning point, and a quadric's slope would take
+        up the odd part over a wide window).
 
     Returns
     -------
@@ -317,13 +323,16 @@ def fit_quadric_at(
     # scale offsets to units of sigma for conditioning
     uu = np.broadcast_to(u / sigma[0], ok.shape).reshape(cols.size, -1)
     vv = np.broadcast_to(v / sigma[1], ok.shape).reshape(cols.size, -1)
-    basis = np.stack([np.ones_like(uu), uu, vv, uu * uu, uu * vv, vv * vv])  # (6, n, k)
+    terms = [np.ones_like(uu), uu, vv, uu * uu, uu * vv, vv * vv]
+    if cubic:
+        terms += [uu * uu * uu, uu * vv * vv]
+    basis = np.stack(terms)  # (p, n, k)
     normal = np.einsum("pnk,qnk,nk->pqn", basis, basis, w)
     rhs = np.einsum("pnk,nk->pn", basis, w * zz)
-    enough = ok.reshape(cols.size, -1).sum(axis=1) >= min_cells
+    enough = ok.reshape(cols.size, -1).sum(axis=1) >= min_cells + 2 * cubic
     # keep impossible systems solvable, then blank them
-    normal[:, :, ~enough] = np.eye(6)[:, :, None]
-    coef = _solve_spd(normal, rhs).T
+    normal[:, :, ~enough] = np.eye(len(terms))[:, :, None]
+    coef = _solve_spd(normal, rhs).T[:, :6]
     scale = np.array([1.0, sigma[0], sigma[1], sigma[0] ** 2, sigma[0] * sigma[1], sigma[1] ** 2])
     coef = coef / scale
     coef[~enough] = np.nan

@@ -163,7 +163,7 @@ class LevelFrame:
         return np.asarray(vectors, dtype=float) @ self.rotation
 
     def level_grid(
-        self, x0: float, y0: float, spacing: float, z: np.ndarray, *, iterations: int = 4
+        self, x0: float, y0: float, spacing: float, z: np.ndarray, *, iterations: int = 6
     ) -> LevelGrid:
         """The world height field ``z`` (grid origin ``x0, y0``) on a level grid.
 

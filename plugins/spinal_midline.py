@@ -88,7 +88,7 @@ def surface_rotation(grid: LevelGrid, line: SymmetryLine) -> np.ndarray:
         ``(M,)`` degrees; NaN where the fit had too few measured cells.
     """
     coef = fit_quadric_at(
-        grid.z, grid.spacing, grid.col_of(line.x), grid.row_of(line.y), ROTATION_SCALE
+        grid.z, grid.spacing, grid.col_of(line.x), grid.row_of(line.y), ROTATION_SCALE, cubic=True
     )
     zx, zy = coef[:, 1], coef[:, 2]
     w = np.sqrt(1.0 + zx * zx + zy * zy)

@@ -1,0 +1,98 @@
+"""Landmarks VP, DL, DR, DM, SP against the simulator's truth, and refusals with reasons."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from back_surfaces import back, with_z
+from rasterserver_plugins.curvature import surface_curvature
+from rasterserver_plugins.landmarks import (
+    Landmark,
+    find_dimples,
+    find_sacrum_point,
+    find_vertebra_prominens,
+    midpoint,
+)
+from rasterserver_plugins.level_frame import LevelGrid
+from rasterserver_plugins.trunk import find_trunk
+
+from rasterserver.records_surface import Surface
+
+
+def _landmarks(surface: Surface) -> dict[str, Landmark]:
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    dl, dr = find_dimples(grid, curv, trunk, vp)
+    return {
+        "VP": vp,
+        "DL": dl,
+        "DR": dr,
+        "DM": midpoint(grid, curv, dl, dr),
+        "SP": find_sacrum_point(grid, curv, trunk, dl, dr),
+    }
+
+
+@pytest.mark.parametrize("name", ["normal", "moderate", "severe"])
+def test_landmarks_against_the_truth(name: str) -> None:
+    surface, truth = back(name)
+    found = _landmarks(surface)
+    for key, limit in (("VP", 2.0), ("DL", 2.0), ("DR", 2.0), ("DM", 2.0), ("SP", 5.0)):
+        lm = found[key]
+        assert lm.found, f"{key}: {lm.reason}"
+        error = float(np.linalg.norm(lm.point - truth["landmarks"][key]))
+        assert error <= limit, f"{name} {key} is {error:.2f} mm off"
+        assert 0.0 < lm.confidence <= 1.0 and lm.reason == ""
+
+
+def _cut(surface: Surface, keep: np.ndarray) -> Surface:
+    return with_z(surface, np.where(keep, surface.z, np.nan))
+
+
+def test_lower_back_cropped_refuses_the_dimples() -> None:
+    surface, truth = back("normal")
+    _, ys = surface.coordinates()
+    keep = (ys < truth["landmarks"]["DL"][1] - 15.0)[:, None] & np.ones_like(surface.z, bool)
+    found = _landmarks(_cut(surface, keep))
+    assert found["VP"].found
+    for key in ("DL", "DR", "DM", "SP"):
+        assert not found[key].found and found[key].point is None
+        assert found[key].reason and found[key].confidence == 0.0
+
+
+@pytest.mark.parametrize("name", ["normal", "severe"])
+def test_a_covered_dimple_is_refused_not_guessed(name: str) -> None:
+    # Something in front of the left dimple (a hand, an arm): 25 mm around it unmeasured.
+    surface, truth = back(name)
+    xs, ys = surface.coordinates()
+    dl = truth["landmarks"]["DL"]
+    keep = (xs[None, :] - dl[0]) ** 2 + (ys[:, None] - dl[1]) ** 2 > 25.0**2
+    found = _landmarks(_cut(surface, keep))
+    assert not found["DL"].found and not found["DR"].found
+    assert "pair" in found["DL"].reason
+
+
+def test_upper_back_cropped_refuses_the_vertebra_prominens() -> None:
+    surface, truth = back("moderate")
+    _, ys = surface.coordinates()
+    keep = (ys > truth["landmarks"]["VP"][1] + 5.0)[:, None] & np.ones_like(surface.z, bool)
+    found = _landmarks(_cut(surface, keep))
+    assert not found["VP"].found and found["VP"].reason
+    assert found["DL"].found and found["DR"].found
+
+
+def test_sacrum_point_refused_when_the_cleft_is_not_in_view() -> None:
+    surface, truth = back("normal")
+    _, ys = surface.coordinates()
+    keep = (ys < truth["landmarks"]["SP"][1] + 3.0)[:, None] & np.ones_like(surface.z, bool)
+    sp = _landmarks(_cut(surface, keep))["SP"]
+    assert not sp.found and "not in view" in sp.reason
+
+
+def test_flat_noisy_wall_has_no_landmarks() -> None:
+    rng = np.random.default_rng(4)
+    z = 1000.0 + rng.normal(0.0, 0.3, (200, 190))
+    found = _landmarks(Surface(x0=-285.0, y0=-300.0, spacing=3.0, z=z))
+    assert not any(lm.found for lm in found.values())
+    assert all(lm.reason for lm in found.values())
