@@ -34,7 +34,7 @@ from sqlalchemy.orm import selectinload
 
 from rasterserver.catalog.models import Calibration, StageResult
 from rasterserver.errors import InputError, NotFoundError
-from rasterserver.records_analysis import BackShape, combine
+from rasterserver.records_analysis import SAGITTAL_POINTS, BackShape, combine
 from rasterserver.records_surface import Surface
 
 if TYPE_CHECKING:
@@ -279,7 +279,8 @@ class Analysis:
         -------
         dict
             ``format``, ``uid`` (archived), ``frame`` (the coordinate frame: name, unit, axes,
-            gravity, calibration), ``landmarks``, ``landmark_confidence``, ``body_frame``,
+            gravity, calibration), ``landmarks``, ``landmark_confidence``, ``sagittal_points``
+            (ICT, KA, ITL, LA, ILS of the sagittal profile, or None), ``body_frame``,
             ``parameters``, ``reasons`` (a list of ``{"what", "why"}``), ``frames`` (name,
             index, analysed, reason and, archived, ``provenance``) and ``plugin``.
         """
@@ -293,6 +294,10 @@ class Analysis:
             "frame": {**WORLD_FRAME, "gravity": self.gravity, "calibration": self.calibration},
             "landmarks": summary["landmarks"],
             "landmark_confidence": summary["landmark_confidence"],
+            "sagittal_points": {
+                name: None if (p := shape.sagittal_point(name)) is None else [float(v) for v in p]
+                for name in SAGITTAL_POINTS
+            },
             "body_frame": _body_frame(shape),
             "parameters": {
                 name: _parameter(parameters[name]) for name in ordered_parameters(parameters)

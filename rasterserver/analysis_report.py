@@ -22,7 +22,7 @@ import numpy as np
 
 from rasterserver.analysis import WORLD_FRAME, Analysis, ordered_parameters, parameter_label
 from rasterserver.errors import InputError
-from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_analysis import LANDMARKS, SAGITTAL_POINTS, BackShape
 from rasterserver.records_surface import Surface
 
 if TYPE_CHECKING:
@@ -288,6 +288,19 @@ def _figure(analysis: Analysis, header: Sequence[str]) -> Figure:
     for points, style in ((shape.symmetry_line, _SYMMETRY), (shape.midline, _MIDLINE)):
         if len(points):
             sagittal_ax.plot(points[:, 2] - z0, points[:, 1], **style)
+    for name in SAGITTAL_POINTS:  # inflection points and apices of the profile
+        point = shape.sagittal_point(name)
+        if point is not None:
+            sagittal_ax.plot(point[2] - z0, point[1], "o", markersize=4, color="black")
+            sagittal_ax.annotate(
+                name,
+                (point[2] - z0, point[1]),
+                xytext=(4, 0),
+                textcoords="offset points",
+                fontsize=7,
+                ha="left",
+                va="center",
+            )
     sagittal_ax.set_xlabel("Z - Z(DM) (mm)  post. ← → ant.", fontsize=8)
     _profile_panel(rotation_ax, "Surface rotation", "degrees (+: right side back)")
     if len(shape.surface_rotation):

@@ -98,6 +98,7 @@ def test_document_is_strict_json_in_the_world_frame(back) -> None:
     for name in ("VP", "DL", "DR", "DM"):
         assert document["landmarks"][name] == pytest.approx(list(truth["landmarks"][name]))
     assert document["landmarks"]["SP"] is None
+    assert document["sagittal_points"] == dict.fromkeys(("ICT", "KA", "ITL", "LA", "ILS"))
     assert document["landmark_confidence"]["SP"] == 0.0
     assert document["reasons"] == [{"what": "SP", "why": "image cropped"}]
     for name, entry in document["parameters"].items():

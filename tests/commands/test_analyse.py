@@ -71,6 +71,7 @@ def _check_document(document: dict, frames: int) -> None:
     assert list(document["landmarks"]) == list(LANDMARKS)
     for name, point in document["landmarks"].items():
         assert point is None or (len(point) == 3 and all(isinstance(v, float) for v in point)), name
+    assert list(document["sagittal_points"]) == ["ICT", "KA", "ITL", "LA", "ILS"]
     found = {r["what"] for r in document["reasons"]}
     for name in LANDMARKS:  # found, or said why not
         assert document["landmarks"][name] is not None or name in found, name

@@ -80,6 +80,10 @@ class AnalysisOut(BaseModel):
         description="VP, DL, DR, DM, SP: [x, y, z] mm in `frame`, null when not found."
     )
     landmark_confidence: dict[str, float]
+    sagittal_points: dict[str, list[float] | None] = Field(
+        description="ICT, KA, ITL, LA, ILS: inflection points and apices of the sagittal "
+        "profile, [x, y, z] mm in `frame`, null when not found."
+    )
     body_frame: BodyFrameOut | None
     parameters: dict[str, ParameterOut]
     reasons: list[ReasonOut] = Field(description="What could not be found, and why.")
