@@ -107,7 +107,7 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
 
     frame = None
     if vp.found and dl.found and dr.found:
-        frame = body_frame(vp.point, dl.point, dr.point)
+        frame = body_frame(vp.point, dl.point, dr.point, dm.point)
         if frame is None:
             reasons["frame"] = "VP, DL and DR are degenerate (in line)"
     else:

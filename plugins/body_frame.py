@@ -4,7 +4,8 @@ After Drerup & Hierholzer (J Biomech 20 (1987) 961-970), who construct a body-fi
 coordinate system from VP, DL and DR so that measurements of one patient at different visits
 (standing a little differently each time) can be compared:
 
-* origin: DM, the midpoint of DL and DR;
+* origin: DM, midway between DL and DR (the analysis takes the skin point there, see
+  :func:`rasterserver_plugins.landmarks.midpoint`);
 * vertical axis: from DM up to VP;
 * transverse axis: along DL → DR (towards the patient's right), made perpendicular to the
   vertical axis;
@@ -20,7 +21,7 @@ __all__ = ["body_frame"]
 
 
 def body_frame(
-    vp: np.ndarray, dl: np.ndarray, dr: np.ndarray
+    vp: np.ndarray, dl: np.ndarray, dr: np.ndarray, dm: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Origin and axes of the body-fixed frame.
 
@@ -28,6 +29,8 @@ def body_frame(
     ----------
     vp, dl, dr : numpy.ndarray
         ``(3,)`` points of VP, DL and DR (any right-handed frame; the result is in the same).
+    dm : numpy.ndarray, optional
+        ``(3,)`` DM; the midpoint of DL and DR when not given.
 
     Returns
     -------
@@ -37,7 +40,7 @@ def body_frame(
         dimples on the vertical axis).
     """
     vp, dl, dr = (np.asarray(p, dtype=float) for p in (vp, dl, dr))
-    origin = 0.5 * (dl + dr)
+    origin = 0.5 * (dl + dr) if dm is None else np.asarray(dm, dtype=float)
     up = vp - origin
     norm = float(np.linalg.norm(up))
     if not np.isfinite(norm) or norm < 1e-6:

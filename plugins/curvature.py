@@ -63,6 +63,12 @@ class Curvature:
         ``(ny, nx)`` share of the full Gaussian window's weight that fell on measured cells.
     sigma : float
         The fit's Gaussian scale (mm).
+    depth_noise : float
+        Estimated standard deviation of the measured depths about the fitted quadrics (mm):
+        the measurement noise, plus detail finer than ``sigma``.
+    noise : float
+        The standard deviation (1/mm) that ``depth_noise`` causes in the mean curvature: a
+        curvature extreme must stand well above it to be a feature, not noise.
     """
 
     depth: np.ndarray
@@ -78,6 +84,8 @@ class Curvature:
     direction: np.ndarray
     support: np.ndarray
     sigma: float
+    depth_noise: float = 0.0
+    noise: float = 0.0
 
     @property
     def valid(self) -> np.ndarray:
@@ -212,6 +220,7 @@ def surface_curvature(
     coef = coef.T
     h = sigma  # offsets were in units of sigma (mm)
     c0 = coef[:, 0]
+    depth_noise, noise = _noise(z.ravel()[idx][inner] - c0[inner], a_full, k, sigma)
     gx, gy = coef[:, 1] / h, coef[:, 2] / h
     gxx, gxy, gyy = 2.0 * coef[:, 3] / h**2, coef[:, 4] / h**2, 2.0 * coef[:, 5] / h**2
     out = _differential_geometry(gx, gy, gxx, gxy, gyy)
@@ -235,7 +244,35 @@ def surface_curvature(
         direction=grid(out["direction"]),
         support=support,
         sigma=float(sigma),
+        depth_noise=depth_noise,
+        noise=noise,
     )
+
+
+def _noise(
+    residual: np.ndarray, a_full: np.ndarray, k: dict[int, np.ndarray], sigma: float
+) -> tuple[float, float]:
+    """Depth noise (mm) from the fits' residuals, and the mean curvature's noise (1/mm).
+
+    The fits are linear in the depths: with ``A`` the full window's normal matrix and ``B``
+    the same sums with squared weights, a depth noise ``s`` gives the coefficients the
+    covariance ``s² A⁻¹ B A⁻¹``; in the interior ``H ≈ (d + f) / σ²`` and the residual at
+    the centre has variance ``s² (1 − 2 l₀ + (A⁻¹ B A⁻¹)₀₀)``, ``l₀ = (A⁻¹)₀₀`` the centre's
+    own weight in the fit. The residuals' spread is taken robustly (1.4826 × MAD).
+    """
+    if residual.size < 10:
+        return 0.0, 0.0
+    k2 = {p: k[0] * k[0] * (k[1] / np.where(k[0] > 0, k[0], 1.0)) ** p for p in range(5)}
+    b_full = np.array(
+        [[float(k2[a1 + a2].sum() * k2[b1 + b2].sum()) for a2, b2 in _BASIS] for a1, b1 in _BASIS]
+    )
+    a_inv = np.linalg.inv(a_full)
+    cov = a_inv @ b_full @ a_inv
+    mad = float(np.median(np.abs(residual - np.median(residual))))
+    factor = 1.0 - 2.0 * a_inv[0, 0] + cov[0, 0]
+    depth_noise = 1.4826 * mad / np.sqrt(max(factor, 1e-6))
+    g = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 1.0]) / sigma**2
+    return float(depth_noise), float(depth_noise * np.sqrt(g @ cov @ g))
 
 
 def _differential_geometry(

@@ -68,6 +68,9 @@ CLEFT_ROWS = 2
 #: Reach of the mirrored pairs (fraction of the trunk's half-width) when finding the lower
 #: back's mirror axis, about which the dimples are a pair: wide enough to hold the dimples.
 DIMPLE_AXIS_REACH = 0.4
+#: A landmark's curvature must also exceed this many times the curvature noise that the
+#: measurement noise causes (:attr:`Curvature.noise`): noisy surfaces need clearer features.
+NOISE_FACTOR = 8.0
 #: Least ratio of the trunk's extent on the shorter side of VP to the longer one.
 MIN_BALANCE = 0.4
 #: Least share of a candidate's curvature window that must be measured: below it the fit
@@ -207,7 +210,8 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
     region = _band(grid.shape, centre, r0, r1, 0.0, 0.25 * w / s)
     h = curv.mean
     all_peaks = _peaks(h, region)
-    if not all_peaks or all_peaks[0].value < MIN_VP_CURVATURE:
+    minimum = max(MIN_VP_CURVATURE, NOISE_FACTOR * curv.noise)
+    if not all_peaks or all_peaks[0].value < minimum:
         return _missing("VP", "no convex point near the midline at the neck's base")
     supported = curv.support >= MIN_SUPPORT
     best = all_peaks[0]
@@ -231,7 +235,7 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
         )
     row, col = _refine(h, best)
     point = _surface_point(grid, curv, row, col)
-    return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), MIN_VP_CURVATURE))
+    return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), minimum))
 
 
 def _balance(trunk: Trunk, peak: _Peak, rows: float) -> float:
@@ -310,10 +314,11 @@ def find_dimples(
     concave = -curv.mean
     supported = curv.support >= MIN_SUPPORT
     region = _band(grid.shape, centre, r0, r1, 0.0, 0.8 * w / s)
+    minimum = max(MIN_LANDMARK_CURVATURE, NOISE_FACTOR * curv.noise)
     peaks = [
         p
         for p in _peaks(concave, region)
-        if p.value >= MIN_LANDMARK_CURVATURE and supported[int(p.row), int(p.col)]
+        if p.value >= minimum and supported[int(p.row), int(p.col)]
     ][:16]
     axis = _local_axes(curv, centre, r0, r1, w / s)
     pairs = []
@@ -364,9 +369,7 @@ def find_dimples(
     for name, peak in (("DL", pl), ("DR", pr)):
         row, col = _refine(concave, peak)
         point = _surface_point(grid, curv, row, col)
-        conf = _confidence(score, runner, 2 * MIN_LANDMARK_CURVATURE) * min(
-            1.0, peak.value / (2.0 * MIN_LANDMARK_CURVATURE)
-        )
+        conf = _confidence(score, runner, 2 * minimum) * min(1.0, peak.value / (2.0 * minimum))
         out.append(Landmark(name, point, conf))
     return out[0], out[1]
 

@@ -51,9 +51,9 @@ class Trunk:
         Why no trunk was found, or "".
     cut : str
         ``"left"`` or ``"right"`` (the patient's, ``-x`` or ``+x``) when the trunk ends on that
-        side at a straight vertical edge over more than :data:`MAX_STRAIGHT_EDGE` of its
-        height: the image or the measured area cuts the back off (no body outline is
-        straight over that length); "" otherwise.
+        side, and only that side, at a straight vertical edge over more than
+        :data:`MAX_STRAIGHT_EDGE` of its height: the image or the measured area cuts the back
+        off (no body outline is straight over that length); "" otherwise.
     """
 
     mask: np.ndarray
@@ -171,10 +171,14 @@ def find_trunk(
     colgrid = np.arange(nx)[None, :]
     with np.errstate(invalid="ignore"):
         mask = rows[:, None] & (colgrid >= left[:, None]) & (colgrid <= right[:, None]) & valid
+    # One straight side cuts a back off; two (a wall, a board filling the view) are no back
+    # at all, which the landmark search will say.
+    straight_left = _straight(left) > MAX_STRAIGHT_EDGE
+    straight_right = _straight(right) > MAX_STRAIGHT_EDGE
     cut = ""
-    if _straight(left) > MAX_STRAIGHT_EDGE:
+    if straight_left and not straight_right:
         cut = "left"
-    elif _straight(right) > MAX_STRAIGHT_EDGE:
+    elif straight_right and not straight_left:
         cut = "right"
     return Trunk(
         mask=mask,

@@ -53,7 +53,7 @@ def _cut(surface: Surface, keep: np.ndarray) -> Surface:
 def test_lower_back_cropped_refuses_the_dimples() -> None:
     surface, truth = back("normal")
     _, ys = surface.coordinates()
-    keep = (ys < truth["landmarks"]["DL"][1] - 15.0)[:, None] & np.ones_like(surface.z, bool)
+    keep = (ys < truth["landmarks"]["DL"][1] - 3.0)[:, None] & np.ones_like(surface.z, bool)
     found = _landmarks(_cut(surface, keep))
     assert found["VP"].found
     for key in ("DL", "DR", "DM", "SP"):

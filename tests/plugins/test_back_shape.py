@@ -1,0 +1,156 @@
+"""The ``analysis.back-shape`` stage: found as a plugin, run by the pipeline, refusals, gravity."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import pytest
+from back_surfaces import GRAVITY, back, with_z
+from image_truth import station
+from rasterserver_plugins.back_shape import NO_VERTICAL, BackShapeAnalysis, analyse_back
+
+from rasterserver.pipeline import run_chain
+from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_surface import Surface
+from rasterserver.registry import Registry
+from rasterserver.stage import StageContext, run_stage
+
+
+def test_found_through_the_entry_point() -> None:
+    stage = Registry().discover().get("analysis.back-shape")
+    assert isinstance(stage, BackShapeAnalysis)
+    assert stage.stage == "analysis" and stage.requires == ("calibration",)
+
+
+def test_the_pipeline_runs_it_after_the_surface() -> None:
+    surface, truth = back("normal")
+    st = station()
+    records = run_chain(surface, context=StageContext(calibration=st), until="analysis")
+    shape = records["analysis"]
+    assert isinstance(shape, BackShape) and shape.reason == ""
+    summary = shape.summary()
+    assert set(summary["landmarks"]) == set(LANDMARKS)
+    vp = summary["landmarks"]["VP"]
+    assert np.linalg.norm(np.array(vp) - truth["landmarks"]["VP"]) < 2.0
+    entry = summary["parameters"]["trunk_length"]
+    assert set(entry) == {"value", "unit", "spread"} and entry["unit"] == "mm"
+    assert entry["spread"] is None
+    # the body frame: origin DM, right-handed unit axes
+    np.testing.assert_allclose(shape.frame_origin, shape.landmark("DM"))
+    np.testing.assert_allclose(shape.frame_axes @ shape.frame_axes.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(shape.frame_axes) > 0.999
+    m = shape.symmetry_line.shape[0]
+    assert m > 100 and shape.midline.shape == (m, 3) and shape.surface_rotation.shape == (m,)
+    assert shape.mean_curvature.dtype == np.float32
+    assert (
+        shape.max_curvature is not None and shape.max_curvature.shape == shape.mean_curvature.shape
+    )
+
+
+def test_a_calibration_without_vertical_is_refused() -> None:
+    surface, _ = back("normal")
+    no_gravity = dataclasses.replace(station(), gravity=None)
+    shape = run_stage(BackShapeAnalysis, surface, context=StageContext(calibration=no_gravity))
+    assert shape.reason == NO_VERTICAL and "gravity" in shape.reason
+    assert np.isnan(shape.landmarks).all() and shape.parameter_table() == {}
+
+
+@pytest.mark.parametrize(
+    "z",
+    [np.zeros((0, 0)), np.full((50, 60), np.nan)],
+    ids=["empty", "all-NaN"],
+)
+def test_no_surface(z: np.ndarray) -> None:
+    shape = analyse_back(Surface(x0=0.0, y0=0.0, spacing=3.0, z=z, reason="x"), GRAVITY)
+    assert shape.reason.startswith("no surface to analyse")
+
+
+def test_flat_wall_is_no_back() -> None:
+    rng = np.random.default_rng(2)
+    z = 900.0 + rng.normal(0.0, 0.3, (200, 190))
+    shape = analyse_back(Surface(x0=-285.0, y0=-300.0, spacing=3.0, z=z), GRAVITY)
+    assert "no back recognised" in shape.reason
+    assert {"VP", "DL", "DR"} <= set(shape.reason_table())
+    assert np.isnan(shape.landmarks).all()
+
+
+def test_half_a_back_is_refused() -> None:
+    surface, truth = back("severe")
+    xs, _ = surface.coordinates()
+    half = np.where(xs[None, :] <= truth["landmarks"]["VP"][0] + 2.0, surface.z, np.nan)
+    shape = analyse_back(with_z(surface, half), GRAVITY)
+    assert "straight vertical edge" in shape.reason and "right" in shape.reason
+    assert np.isnan(shape.landmarks).all()
+
+
+def test_missing_dimples_leave_what_needs_them_out() -> None:
+    surface, truth = back("moderate")
+    _, ys = surface.coordinates()
+    cropped = np.where(ys[:, None] < truth["landmarks"]["DL"][1] - 3.0, surface.z, np.nan)
+    shape = analyse_back(with_z(surface, cropped), GRAVITY)
+    assert shape.reason == "" and shape.landmark("VP") is not None
+    reasons = shape.reason_table()
+    for key in ("DL", "DR", "DM", "SP", "symmetry_line", "pelvic_tilt_mm", "trunk_length"):
+        assert key in reasons
+    assert shape.parameter_table() == {} and shape.symmetry_line.shape == (0, 3)
+    assert np.isnan(shape.frame_axes).all()
+
+
+def _rolled(surface: Surface, angle: float) -> tuple[Surface, np.ndarray]:
+    """The surface seen by a camera rolled by ``angle`` (rad) about its optical axis."""
+    from scipy.interpolate import griddata
+    from scipy.spatial import cKDTree
+
+    c, s = math.cos(angle), math.sin(angle)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    points = surface.grid_points() @ rot.T
+    step = surface.spacing
+    x0 = math.floor(points[:, 0].min() / step) * step
+    y0 = math.floor(points[:, 1].min() / step) * step
+    gx = np.arange(x0, points[:, 0].max(), step)
+    gy = np.arange(y0, points[:, 1].max(), step)
+    mx, my = np.meshgrid(gx, gy)
+    z = griddata(points[:, :2], points[:, 2], (mx, my), method="linear")
+    far = cKDTree(points[:, :2]).query(np.column_stack([mx.ravel(), my.ravel()]))[0]
+    z[far.reshape(z.shape) > step] = np.nan
+    return Surface(x0=x0, y0=y0, spacing=step, z=z), rot
+
+
+def test_gravity_defines_the_vertical() -> None:
+    # The camera rolled by 4°: the same back, gravity no longer along the world's Y.
+    surface, _ = back("moderate")
+    plain = analyse_back(surface, GRAVITY)
+    rolled, rot = _rolled(surface, math.radians(4.0))
+    shape = analyse_back(rolled, rot @ GRAVITY)
+    assert shape.reason == "" and shape.level_axes is not None
+    np.testing.assert_allclose(shape.level_axes, rot.T, atol=1e-9)
+    for name in ("VP", "DL", "DR"):
+        expected = rot @ plain.landmark(name)
+        assert np.linalg.norm(shape.landmark(name) - expected) < 1.5, name
+    p, q = plain.parameter_table(), shape.parameter_table()
+    for key, tol in (
+        ("trunk_length", 1.5),
+        ("trunk_imbalance_mm", 1.5),
+        ("pelvic_tilt_deg", 0.5),
+        ("surface_rotation_max_deg", 0.5),
+        ("lateral_deviation_max_mm", 1.0),
+    ):
+        assert q[key]["value"] == pytest.approx(p[key]["value"], abs=tol), key
+    # wrongly believing the camera level shows up as an imbalance of the trunk
+    naive = analyse_back(rolled, GRAVITY).parameter_table()
+    assert abs(naive["trunk_imbalance_mm"]["value"] - p["trunk_imbalance_mm"]["value"]) > 20.0
+
+
+@pytest.mark.slow
+def test_time_per_acquisition() -> None:
+    surface, _ = back("severe")
+    analyse_back(surface, GRAVITY)
+    spent = []
+    for _ in range(5):
+        start = time.process_time()
+        analyse_back(surface, GRAVITY)
+        spent.append(time.process_time() - start)
+    assert float(np.median(spent)) < 0.1
