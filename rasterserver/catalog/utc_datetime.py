@@ -57,3 +57,27 @@ class UtcDateTime(TypeDecorator[dt.datetime]):
         if value.tzinfo is None:
             return value.replace(tzinfo=dt.UTC)
         return value.astimezone(dt.UTC)
+
+    def result_processor(self, dialect: Dialect, coltype: object) -> Any:
+        """On SQLite, parse the stored text straight into an aware datetime.
+
+        Lists of a hundred acquisitions read a hundred times: parsing ``text + "+00:00"``
+        costs a tenth of parsing and then ``replace(tzinfo=...)`` (keyword arguments are
+        slow), so the UTC type reads faster than the plain one plus a conversion did. Text
+        in any other form goes the general way.
+        """
+        general = super().result_processor(dialect, coltype)
+        if dialect.name != "sqlite" or general is None:
+            return general
+        parse = dt.datetime.fromisoformat
+
+        def process(value: Any) -> dt.datetime | None:
+            if value is None:
+                return None
+            try:
+                parsed = parse(value + "+00:00")
+            except (TypeError, ValueError):
+                return general(value)
+            return parsed if parsed.tzinfo is not None else general(value)
+
+        return process

@@ -115,3 +115,19 @@ def test_postgresql_in_another_session_zone_still_reads_utc(postgres_url: str, t
         assert archive.info(uid).acquired_at == INSTANT
     finally:
         archive.close()
+
+
+def test_stored_text_in_any_iso_form_reads_back_utc(archive: Archive) -> None:
+    # rows written by hand or by earlier versions hold other ISO forms of the same UTC time
+    with archive.engine.begin() as conn:
+        for identifier, created in (("P-2", "2026-01-01"), ("P-3", "2026-01-02 03:04:05")):
+            conn.execute(
+                text(
+                    "INSERT INTO patient (identifier, identifier_key, name, sex, created_at) "
+                    "VALUES (:i, :i, '', 'unknown', :c)"
+                ),
+                {"i": identifier, "c": created},
+            )
+    assert archive.patient_info("P-2").created_at == dt.datetime(2026, 1, 1, tzinfo=dt.UTC)
+    assert archive.patient_info("P-3").created_at == dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.UTC)
+    assert archive.patient_info("P-1").created_at.tzinfo is dt.UTC
