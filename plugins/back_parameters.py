@@ -226,9 +226,7 @@ def sagittal_profile(
     z[extra : extra + line.z.size] = line.z
     y = grid.y_of(rows)
     ok = np.isfinite(z)
-    # Keep the contiguous measured stretch around the line.
-    core = np.zeros(z.size, bool)
-    core[extra : extra + line.z.size] = True
+    # Keep the line and the measured continuation next to it at both ends.
     lo = extra
     while lo > 0 and ok[lo - 1]:
         lo -= 1
@@ -271,9 +269,9 @@ def _upward_tilt(grid: LevelGrid, point: np.ndarray) -> float:
         grid.row_of(np.array([point[1]])),
         (DIMPLE_NORMAL_SCALE, DIMPLE_NORMAL_SCALE),
     )[0]
-    zx, zy = coef[1], coef[2]
-    # outward normal (z_x, z_y, -1)/W: -n_y / -n_z = -z_y
-    return math.degrees(math.atan2(-zy, 1.0)) if np.isfinite(zy) and np.isfinite(zx) else math.nan
+    zy = coef[2]
+    # the outward normal is (z_x, z_y, -1) / W, so atan2(-n_y, -n_z) = atan2(-z_y, 1)
+    return math.degrees(math.atan2(-zy, 1.0)) if np.isfinite(zy) else math.nan
 
 
 def asymmetry_rms(

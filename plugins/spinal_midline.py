@@ -12,12 +12,13 @@ sagittal direction turned by that rotation: in the frontal plane the centre lies
 Definitions used here (level frame, :mod:`rasterserver_plugins.level_frame`):
 
 * **surface rotation** ``φ = atan2(-n_x, -n_z)`` (degrees) of the outward unit normal
-  ``n = (z_x, z_y, -1) / W`` of the surface smoothed by a local quadric fit (Gaussian scales
-  :data:`ROTATION_SCALE` across and along the height, wide enough to average the midline
-  furrow out, whose flanks would otherwise make the normal swing with every millimetre the
-  line is off its bottom). The reference is the station's sagittal direction (the camera's
-  optical axis made horizontal); ``φ > 0`` turns the patient's right side (+x) backwards
-  (−z), the simulator's sign of axial rotation.
+  ``n = (z_x, z_y, -1) / W`` of the surface smoothed by a local fit (a quadric plus the odd
+  cubic terms ``u³``, ``u v²``; Gaussian scales :data:`ROTATION_SCALE` across and along the
+  height), wide enough to average the midline furrow out, whose flanks would otherwise make
+  the normal swing with every millimetre the line is off its bottom; on turned, strongly
+  rounded backs it overestimates the rotation by a few per cent. The reference is the
+  station's sagittal direction (the camera's optical axis made horizontal); ``φ > 0`` turns
+  the patient's right side (+x) backwards (−z), the simulator's sign of axial rotation.
 * **body depth** ``d(t) = (L / 440 mm) · (45 mm + 25 mm · t)``, ``L`` the trunk length VP–DM
   and ``t`` the height fraction from VP (0) to DM (1): 45 mm from the skin over C7 to the
   centre of its body, 70 mm at S1, for a 440 mm trunk, scaled with the trunk (anatomical
