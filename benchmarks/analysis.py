@@ -267,6 +267,25 @@ def score(shape: Any, tr: dict[str, Any], camera: Any) -> dict[str, Any]:
 _STATE: dict[str, Any] = {}
 
 
+def analysis_code() -> str:
+    """The installed analysis plugin and a hash of its package's sources.
+
+    Rows made by other code are neither reused on resuming nor summarised, so a run never
+    mixes versions of an analysis that is being changed.
+    """
+    import hashlib
+
+    import rasterserver_plugins
+
+    from rasterserver.registry import get_registry
+
+    stage = get_registry().default_for("analysis")
+    digest = hashlib.sha256()
+    for path in sorted(Path(rasterserver_plugins.__file__).parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return f"{stage.name} {stage.version} {digest.hexdigest()[:12]}"
+
+
 def _station() -> tuple[Any, Any]:
     if "station" not in _STATE:
         from rasterserver.optics import default_station
@@ -275,6 +294,7 @@ def _station() -> tuple[Any, Any]:
         station = default_station()
         _STATE["station"] = station
         _STATE["context"] = StageContext(calibration=station, raster=station.raster_definition)
+        _STATE["code"] = analysis_code()
     return _STATE["station"], _STATE["context"]
 
 
@@ -316,6 +336,7 @@ def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
         "render_s": round(t1 - t0, 3),
         "chain_s": round(t2 - t1, 3),
         "analysis_ms": round(1e3 * durations["analysis"], 3),
+        "code": _STATE["code"],
         **score(shape, tr, station.camera),
     }
     return result
@@ -329,6 +350,7 @@ def _safe(task: tuple[str, str, int]) -> dict[str, Any]:
             "set": task[0],
             "back": task[1],
             "repeat": task[2],
+            "code": _STATE.get("code") or analysis_code(),
             "error": f"{type(exc).__name__}: {exc}",
         }
 
@@ -533,9 +555,11 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
         '(`run_chain(..., until="surface")`), runs the installed analysis stage '
         f"(`{meta.get('plugin', 'analysis')}`) and scores it against the simulator's truth "
         "(`rasterserver.simulator.back_truth.truth`, definitions in `docs/simulator_truth.md`). "
-        "Tuning set: presets normal, moderate, severe and `random_back` seeds "
-        f"{meta['tuning_seeds']}; held-out set: seeds {meta['held_out_seeds']} (never looked "
-        "at while tuning). Random backs also lean sideways (σ 1.5°) and turn (σ 2°). "
+        "Tuning set: "
+        + ("presets normal, moderate, severe and " if meta.get("presets", True) else "")
+        + f"`random_back` seeds {meta['tuning_seeds']}; "
+        f"held-out set: seeds {meta['held_out_seeds']} (never looked at while tuning). "
+        "Random backs also lean sideways (σ 1.5°) and turn (σ 2°). "
         f"Landmark errors are 3-D, over true landmarks at least {EDGE_PX:.0f} px inside the "
         "image; midline errors are frontal (X) distances to the true vertebral-body centres at "
         "the same height; rotation errors are against the true surface rotation at the same "
@@ -744,16 +768,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.summary is None:
         out.parent.mkdir(parents=True, exist_ok=True)
         todo_all = tasks(args.count, args.seeds, args.repeat_backs, args.repeats)
+        code = analysis_code()
         done = set()
         if lines_path.exists():
-            done = {_key(json.loads(x)) for x in lines_path.read_text().splitlines() if x.strip()}
+            rows = [json.loads(x) for x in lines_path.read_text().splitlines() if x.strip()]
+            done = {_key(r) for r in rows if r.get("code") == code}
         todo = [t for t in todo_all if _key(t) not in done]
         print(f"{len(done)} acquisitions done, {len(todo)} to go", flush=True)
         load_before = os.getloadavg()[0]
         start = time.time()
         if todo:
             with (
-                mp.get_context("spawn").Pool(args.workers, maxtasksperchild=40) as pool,
+                # workers live the whole run: they load the analysis once, so it cannot change
+                # half-way through (rows of other code are left out below anyway)
+                mp.get_context("spawn").Pool(args.workers) as pool,
                 lines_path.open("a") as fh,
             ):
                 for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):
@@ -778,13 +806,10 @@ def main(argv: list[str] | None = None) -> int:
                 if k.split(":")[1].startswith("random") and not k.startswith("repeat")
             }
         )
-        from rasterserver.registry import get_registry
 
-        stage = get_registry().default_for("analysis")
-        plugin = f"{stage.name} {stage.version}"
         command = (
             "python benchmarks/analysis.py"
-            + (" --quick" if args.quick else f" --count {args.count}")
+            + (" --quick" if args.quick else "" if args.seeds else f" --count {args.count}")
             + f" --out {out}"
         )
         if args.seeds is not None:
@@ -800,14 +825,19 @@ def main(argv: list[str] | None = None) -> int:
             "wall_min": wall,
             "timing": timing,
             "timing_repeat": args.timing_repeat,
-            "plugin": str(plugin),
+            "plugin": code,
+            "presets": args.seeds is None,
             "keys": sorted(keys),
         }
         meta_path.write_text(json.dumps(meta, indent=2))
     meta = json.loads(meta_path.read_text())
     keys = set(meta.pop("keys", []))
-    rows = [json.loads(x) for x in lines_path.read_text().splitlines() if x.strip()]
-    rows = [r for r in rows if not keys or _key(r) in keys]
+    all_rows = [json.loads(x) for x in lines_path.read_text().splitlines() if x.strip()]
+    all_rows = [r for r in all_rows if not keys or _key(r) in keys]
+    rows = [r for r in all_rows if r.get("code") == meta["plugin"]]
+    stale = [r for r in all_rows if r.get("code") != meta["plugin"]]
+    if stale:
+        print(f"left out {len(stale)} rows made by other analysis code", flush=True)
     summary = summarise(rows)
     out.write_text(json.dumps({"meta": meta, **summary}, indent=2, default=float))
     report = markdown(summary, meta)
