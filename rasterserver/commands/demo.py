@@ -7,7 +7,8 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import settings
-from rasterserver.errors import IntegrityError, RasterServerError
+from rasterserver.commands.process import ProcessingFailedError
+from rasterserver.errors import IntegrityError
 
 
 def demo(
@@ -28,8 +29,12 @@ def demo(
     result = run_demo(settings(ctx), visits=visits, log=typer.echo)
     if result.problems:
         raise IntegrityError("the archive failed verification; run `rasterserver verify`")
-    if any(o.status != "done" for o in result.outcomes):
-        raise RasterServerError("some visits could not be processed (listed above)")
+    failed = [o for o in result.outcomes if o.status != "done"]
+    if failed:
+        raise ProcessingFailedError(
+            "some visits could not be processed (listed above)",
+            exit_code=ProcessingFailedError.code_of(failed),
+        )
 
 
 def register(app: typer.Typer) -> None:
