@@ -73,6 +73,12 @@ DIMPLE_AXIS_REACH = 0.4
 NOISE_FACTOR = 8.0
 #: Least ratio of the trunk's extent on the shorter side of VP to the longer one.
 MIN_BALANCE = 0.4
+#: Why a landmark next to an unmeasured cell is refused: its curvature extreme may be an
+#: artefact of the one-sided fits at the hole's rim, and the true one inside the hole.
+HOLE_REASON = (
+    "a hole in the measured surface lies next to it (lost raster line pieces, a shadow): "
+    "its position cannot be trusted"
+)
 #: Least share of a candidate's curvature window that must be measured: below it the fit
 #: extrapolates over a border or a hole, where curvature extremes are artefacts.
 MIN_SUPPORT = 0.6
@@ -211,8 +217,10 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
     h = curv.mean
     all_peaks = _peaks(h, region)
     minimum = max(MIN_VP_CURVATURE, NOISE_FACTOR * curv.noise)
+    # When the trunk is already wide in its first profile, no neck is in view: say so.
+    hint = " (no neck in view: is the image cropped at the top?)" if neck == trunk.top else ""
     if not all_peaks or all_peaks[0].value < minimum:
-        return _missing("VP", "no convex point near the midline at the neck's base")
+        return _missing("VP", "no convex point near the midline at the neck's base" + hint)
     supported = curv.support >= MIN_SUPPORT
     best = all_peaks[0]
     at_top = best.row - trunk.top < 1.5 * curv.sigma / s
@@ -225,7 +233,7 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
         )
     runner = _runner_up(all_peaks, best, min_distance=15.0 / s, supported=supported)
     if runner >= AMBIGUOUS_RATIO * best.value:
-        return _missing("VP", "two similar convex points near the neck's base: ambiguous")
+        return _missing("VP", "two similar convex points near the neck's base: ambiguous" + hint)
     balance = _balance(trunk, best, 10.0 / s)
     if balance < MIN_BALANCE:
         return _missing(
@@ -234,8 +242,24 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
             "(half a back in view?)",
         )
     row, col = _refine(h, best)
+    if _next_to_hole(grid, row, col, curv.sigma):
+        return _missing("VP", HOLE_REASON)
     point = _surface_point(grid, curv, row, col)
     return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), minimum))
+
+
+def _next_to_hole(grid: LevelGrid, row: float, col: float, radius: float) -> bool:
+    """Whether an unmeasured cell lies within ``radius`` mm of the fractional cell."""
+    s = grid.spacing
+    k = int(np.ceil(radius / s)) + 1
+    i0, j0 = round(row), round(col)
+    ii, jj = np.mgrid[i0 - k : i0 + k + 1, j0 - k : j0 + k + 1]
+    near = (ii - row) ** 2 + (jj - col) ** 2 <= (radius / s) ** 2
+    ny, nx = grid.shape
+    inside = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
+    if not inside[near].all():
+        return True
+    return bool(np.isnan(grid.z[ii[near], jj[near]]).any())
 
 
 def _balance(trunk: Trunk, peak: _Peak, rows: float) -> float:
@@ -338,6 +362,9 @@ def find_dimples(
                 and weak >= strong / 4.0
             ):
                 pairs.append((pl.value + pr.value, pl, pr))
+    # Where the measured trunk ends tells whether the lower back can be in view at all.
+    extent = (trunk.bottom - top) * s
+    hint = f" (the measured trunk ends {extent:.0f} mm below {'VP' if vp.found else 'its top'})"
     if not pairs:
         if not peaks:
             reason = "no concavity in the lower back (dimples not in view, covered or not measured)"
@@ -346,6 +373,7 @@ def find_dimples(
         side = _less_measured_side(grid, trunk, axis, r0, r1, w / s)
         if side:
             reason += f"; the {side} side of the lower back is not fully measured (covered?)"
+        reason += hint
         return _missing("DL", reason), _missing("DR", reason)
     pairs.sort(key=lambda p: -p[0])
     score, pl, pr = pairs[0]
@@ -359,15 +387,17 @@ def find_dimples(
             runner = other_score
             break
     if runner >= AMBIGUOUS_RATIO * score:
-        reason = "two similar pairs of concavities in the lower back: ambiguous"
+        reason = "two similar pairs of concavities in the lower back: ambiguous" + hint
         return _missing("DL", reason), _missing("DR", reason)
     below = (trunk.bottom - max(pl.row, pr.row)) * s
     if below < 2.0 * curv.sigma:
         reason = "the dimples lie at the bottom edge of the measured surface (image cropped)"
         return _missing("DL", reason), _missing("DR", reason)
+    refined = [_refine(concave, peak) for peak in (pl, pr)]
+    if any(_next_to_hole(grid, row, col, curv.sigma) for row, col in refined):
+        return _missing("DL", HOLE_REASON), _missing("DR", HOLE_REASON)
     out = []
-    for name, peak in (("DL", pl), ("DR", pr)):
-        row, col = _refine(concave, peak)
+    for name, peak, (row, col) in zip(("DL", "DR"), (pl, pr), refined, strict=True):
         point = _surface_point(grid, curv, row, col)
         conf = _confidence(score, runner, 2 * minimum) * min(1.0, peak.value / (2.0 * minimum))
         out.append(Landmark(name, point, conf))

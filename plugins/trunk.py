@@ -106,6 +106,7 @@ def find_trunk(
     max_slope: float = 2.5,
     min_width: float = 60.0,
     min_area: float = 15000.0,
+    max_hole: float = 30.0,
 ) -> Trunk:
     """Find the trunk in a height field.
 
@@ -122,6 +123,9 @@ def find_trunk(
         Narrowest run (mm) counted as trunk.
     min_area : float, optional
         Smallest measured area (mm²) worth looking at.
+    max_hole : float, optional
+        Widest gap (mm) in a row, within a quarter of the trunk's width of its centre, that
+        is taken as a hole in the back rather than its end.
 
     Returns
     -------
@@ -129,6 +133,7 @@ def find_trunk(
         The trunk, or one with ``top == -1`` and a reason.
     """
     ny, nx = z.shape
+    max_bridge = max(1, int(max_hole / spacing))
     nan_rows = np.full(ny, np.nan)
     nothing = Trunk(
         np.zeros(z.shape, bool), nan_rows, nan_rows, nan_rows, -1, -1, nan_rows, spacing
@@ -151,8 +156,12 @@ def find_trunk(
         return _with_reason(nothing, "the largest connected piece of surface is too small")
     cols = np.nonzero(biggest)[1]
     centre = np.full(ny, float(np.median(cols)))
-    for _ in range(2):
-        left, right = _runs(biggest, centre)
+    span = float(np.ptp(cols)) + 1.0
+    for _ in range(3):
+        # Holes inside the back (a shadowed furrow, a lost line piece) must not cut a row's
+        # run short: bridge short gaps near the centre line, where no arm can be.
+        bridged = _bridge_inner_gaps(biggest, centre, reach=0.25 * span, longest=max_bridge)
+        left, right = _runs(bridged, centre)
         width = (right - left + 1) * spacing
         rows = np.isfinite(width) & (width >= min_width)
         if not rows.any():
@@ -164,6 +173,7 @@ def find_trunk(
         filled = np.interp(np.arange(ny), good, mid[good])
         size = max(3, round(60.0 / spacing) | 1)
         centre = uniform_filter1d(median_filter(filled, size=size, mode="nearest"), size)
+        span = float(np.median(right[rows] - left[rows] + 1))
     rows = _main_rows(rows)
     top, bottom = int(np.flatnonzero(rows)[0]), int(np.flatnonzero(rows)[-1])
     left = np.where(rows, left, np.nan)
@@ -201,6 +211,24 @@ def _straight(edge: np.ndarray) -> float:
     counts = np.bincount(e - e.min())
     near = counts + np.concatenate([[0], counts[:-1]]) + np.concatenate([counts[1:], [0]])
     return float(near.max() / e.size)
+
+
+def _bridge_inner_gaps(
+    valid: np.ndarray, centre: np.ndarray, *, reach: float, longest: int
+) -> np.ndarray:
+    """``valid`` with gaps of at most ``longest`` cells bridged where they lie within
+    ``reach`` columns of ``centre`` (for finding runs only; depths are not invented)."""
+    ny, nx = valid.shape
+    cols = np.arange(nx)
+    # distance (cells) to the previous and next valid cell in the row
+    last = np.where(valid, cols[None, :], -1)
+    last = np.maximum.accumulate(last, axis=1)
+    nxt = np.where(valid, cols[None, :], nx)
+    nxt = np.minimum.accumulate(nxt[:, ::-1], axis=1)[:, ::-1]
+    gap = nxt - last - 1
+    near = np.abs(cols[None, :] - centre[:, None]) <= reach
+    inner = (~valid) & (last >= 0) & (nxt < nx) & (gap <= longest) & near
+    return valid | inner
 
 
 def _main_rows(rows: np.ndarray) -> np.ndarray:

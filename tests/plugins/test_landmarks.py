@@ -96,3 +96,14 @@ def test_flat_noisy_wall_has_no_landmarks() -> None:
     found = _landmarks(Surface(x0=-285.0, y0=-300.0, spacing=3.0, z=z))
     assert not any(lm.found for lm in found.values())
     assert all(lm.reason for lm in found.values())
+
+
+def test_a_hole_beside_a_landmark_refuses_it() -> None:
+    # Raster line pieces lost right beside VP: its curvature extreme cannot be trusted.
+    surface, truth = back("normal")
+    xs, ys = surface.coordinates()
+    vp = truth["landmarks"]["VP"]
+    hole = (np.abs(xs[None, :] - vp[0] - 5.0) < 4.0) & (np.abs(ys[:, None] - vp[1]) < 5.0)
+    found = _landmarks(_cut(surface, ~hole))
+    assert not found["VP"].found and "hole" in found["VP"].reason
+    assert found["DL"].found and found["DR"].found

@@ -46,3 +46,14 @@ def test_too_little_surface() -> None:
     trunk = find_trunk(z, SPACING)
     assert not trunk.found and "cm²" in trunk.reason
     assert not find_trunk(np.full((10, 10), np.nan), SPACING).found
+
+
+def test_holes_inside_the_back_do_not_cut_it() -> None:
+    # Two strips of lost cells along the lumbar furrow, 12 mm apart, over 60 mm of height.
+    x, y, z = _body()
+    for centre in (6.0, 18.0):
+        z[(np.abs(x - centre) < 4.0) & (y > 100.0) & (y < 160.0)] = np.nan
+    trunk = find_trunk(z, SPACING)
+    assert trunk.top == 0 and trunk.bottom == z.shape[0] - 1
+    rows = (y[:, 0] > 100.0) & (y[:, 0] < 160.0)
+    assert (trunk.half_width[rows] > 100.0).all()
