@@ -274,6 +274,18 @@ def _balance(trunk: Trunk, peak: _Peak, rows: float) -> float:
     return float(np.median(np.minimum(a[ok], b[ok]) / np.maximum(np.maximum(a[ok], b[ok]), 1)))
 
 
+def _vertex(values: np.ndarray, index: int) -> float:
+    """Sub-cell position of the maximum ``values[index]``: vertex of the parabola through it
+    and its neighbours (the index itself at an end or when not a proper maximum)."""
+    if index <= 0 or index >= values.size - 1:
+        return float(index)
+    a, b, c = values[index - 1], values[index], values[index + 1]
+    denom = a - 2.0 * b + c
+    if not (np.isfinite(denom) and denom < 0):
+        return float(index)
+    return float(index + np.clip(0.5 * (a - c) / denom, -0.5, 0.5))
+
+
 def _runner_up(
     peaks: list[_Peak], best: _Peak, *, min_distance: float, supported: np.ndarray
 ) -> float:
@@ -521,7 +533,9 @@ def find_sacrum_point(
         c_prev, c_here = conc[k - 1], conc[k]
         frac = (CLEFT_CONCAVITY - c_prev) / (c_here - c_prev) if c_here > c_prev else 1.0
         row = r0 + k - 1 + float(np.clip(frac, 0.0, 1.0))
-        col = float(np.mean(cols[k : k + 1 + CLEFT_ROWS]))
+        col = float(
+            np.mean([_vertex(band[j], cols[j] - j0) + j0 for j in range(k, k + 1 + CLEFT_ROWS)])
+        )
         point = _surface_point(grid, curv, row, col)
         visible = int(np.argmin(np.append(above[k:], False)))
         return Landmark("SP", point, float(min(1.0, visible / (2.0 * (CLEFT_ROWS + 1)))))
