@@ -256,7 +256,8 @@ class RequestMiddleware:
             if message["type"] == "http.response.start":
                 route = scope.get("route")
                 name = getattr(route, "name", "") or ""
-                template = getattr(route, "path", "") or "(unrouted)"
+                # without converters: /patients/{patient}, not /patients/{patient:path}
+                template = getattr(route, "path_format", "") or "(unrouted)"
                 status = int(message["status"])
                 elapsed = time.perf_counter() - started
                 self.services.metrics.observe(scope["method"], template, status, elapsed)

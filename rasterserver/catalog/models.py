@@ -27,6 +27,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from rasterserver.catalog.utc_datetime import UtcDateTime
+from rasterserver.identifiers import lookup_key
 
 # Explicit constraint names keep migrations identical on SQLite and PostgreSQL and let
 # Alembic's batch mode (SQLite) find constraints it has to rebuild.
@@ -58,14 +59,28 @@ class Base(DeclarativeBase):
     }
 
 
+def _identifier_key(context: Any) -> str:
+    return lookup_key(context.get_current_parameters()["identifier"])
+
+
 class Patient(Base):
-    """A patient, identified by the site's own identifier (unique within the site)."""
+    """A patient, identified by the site's own identifier (unique within the site).
+
+    ``identifier_key`` is the identifier's comparison key
+    (:func:`~rasterserver.identifiers.lookup_key`: case and look-alike characters folded),
+    unique, so ``p-1`` cannot be registered beside ``P-1``. It is NULL only for a patient
+    registered before revision 0009 whose key another, older patient already had (see there).
+    """
 
     __tablename__ = "patient"
-    __table_args__ = (CheckConstraint(f"sex IN {SEXES!r}", name="sex"),)
+    __table_args__ = (
+        CheckConstraint(f"sex IN {SEXES!r}", name="sex"),
+        Index("ix_patient_identifier_key", "identifier_key", unique=True),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     identifier: Mapped[str] = mapped_column(String(64), unique=True)
+    identifier_key: Mapped[str | None] = mapped_column(String(255), default=_identifier_key)
     name: Mapped[str] = mapped_column(String(200), default="")
     birth_date: Mapped[dt.date | None] = mapped_column(Date)
     sex: Mapped[str] = mapped_column(String(8), default="unknown")

@@ -14,7 +14,10 @@ patient_app = typer.Typer(help="Register and list patients.", no_args_is_help=Tr
 @patient_app.command("add")
 def add(
     ctx: typer.Context,
-    identifier: Annotated[str, typer.Argument(help="The site's unique patient identifier.")],
+    identifier: Annotated[str, typer.Argument(
+        help="The site's unique patient identifier: printable, no '/', at most 64 characters; "
+             "case is kept, but one differing only in case or look-alike characters from a "
+             "registered one is refused (README, 'Names and identifiers').")],
     name: Annotated[str, typer.Option(help="Full name.")] = "",
     birth_date: Annotated[
         str | None, typer.Option(help="Birth date, YYYY-MM-DD.", show_default=False)
@@ -23,10 +26,10 @@ def add(
 ) -> None:
     """Register a patient so that acquisitions can be ingested for it."""
     with open_archive(ctx) as archive:
-        archive.add_patient(
+        patient = archive.add_patient(
             identifier, name=name, birth_date=parse_date(birth_date, "--birth-date"), sex=sex
         )
-    typer.echo(f"patient {identifier} registered")
+    typer.echo(f"patient {patient.identifier} registered")
 
 
 @patient_app.command("list")

@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.identifiers import lookup_key
 from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
 
@@ -72,8 +73,10 @@ def token_create(
 ) -> None:
     """Create a token and print it ONCE: only its SHA-256 is kept."""
     with open_archive(ctx) as archive:
+        # the same account if the names differ only in case or look-alike characters
         if service_account and not any(
-            p.name == account for p in _auth().accounts(archive, limit=1_000_000)
+            lookup_key(p.name) == lookup_key(account)
+            for p in _auth().accounts(archive, limit=1_000_000)
         ):
             _auth().add_account(archive, account, role=role or "station", kind="service")
         token = _auth().create_token(archive, account, label=label)

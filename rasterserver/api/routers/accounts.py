@@ -8,6 +8,7 @@ from fastapi import Query
 
 from rasterserver.api import auth
 from rasterserver.api.deps import PageDep, ServicesDep, protected_router
+from rasterserver.api.fields import Role
 from rasterserver.api.schemas import AccountIn, AccountOut
 
 router = protected_router("accounts")
@@ -16,7 +17,7 @@ router = protected_router("accounts")
 @router.get("/accounts", name="list_accounts", response_model=list[AccountOut])
 def list_accounts(
     svc: ServicesDep, page: PageDep,
-    role: Annotated[str | None, Query(max_length=16)] = None,
+    role: Annotated[Role | None, Query()] = None,
 ) -> list[AccountOut]:
     """Accounts by name, optionally of one role."""
     found = auth.accounts(svc.archive, limit=page.limit, offset=page.offset, role=role)

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-import datetime as dt
 from typing import Annotated, Any, Literal
 
 from fastapi import Query
 
 from rasterserver.api.audit import audit_events, event_dict, fhir_bundle
 from rasterserver.api.deps import PageDep, ServicesDep, protected_router, utc
+from rasterserver.api.fields import Instant
 from rasterserver.api.schemas import AuditOut
+from rasterserver.times import TIME_RULE
 
 router = protected_router("audit")
 
@@ -21,8 +22,8 @@ def get_audit(
                                                      "Bundle of AuditEvent resources")] = "json",
     patient: Annotated[str | None, Query(max_length=64)] = None,
     actor: Annotated[str | None, Query(max_length=100)] = None,
-    since: dt.datetime | None = None,
-    until: dt.datetime | None = None,
+    since: Annotated[Instant | None, Query(description=f"At or after: {TIME_RULE}.")] = None,
+    until: Annotated[Instant | None, Query(description="Before (as since).")] = None,
 ) -> list[AuditOut] | dict[str, Any]:
     """Audit events, oldest first, by patient, actor and time."""
     events = audit_events(svc.archive, patient=patient, actor=actor, since=utc(since),

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import datetime as dt
 from typing import Annotated
 
 from fastapi import Path, Query
-from sqlalchemy import select
+from sqlalchemy import or_, select
 
 from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router
+from rasterserver.api.fields import Day, Sex
 from rasterserver.api.schemas import PatientIn, PatientOut, VisitOut
 from rasterserver.api.views import (
     patient_out,
@@ -19,11 +19,14 @@ from rasterserver.api.views import (
 )
 from rasterserver.catalog.models import Patient, Visit
 from rasterserver.errors import InputError
+from rasterserver.identifiers import lookup_key
 
 router = protected_router("patients")
 
-PatientRef = Annotated[str, Path(max_length=64,
-                                 description="Site identifier (researchers: pseudonym).")]
+PatientRef = Annotated[str, Path(
+    min_length=1, max_length=64,
+    description="Site identifier (researchers: pseudonym), percent-encoded; differences of "
+    "case or look-alike characters are ignored.")]
 
 
 @router.get("/patients", name="list_patients", response_model=list[PatientOut])
@@ -32,7 +35,7 @@ def list_patients(
     identifier_prefix: Annotated[str | None, Query(
         max_length=64, description="Identifiers starting with this (not for researchers).")]
     = None,
-    sex: Annotated[str | None, Query(max_length=8)] = None,
+    sex: Annotated[Sex | None, Query()] = None,
 ) -> list[PatientOut]:
     """Patients by identifier, optionally filtered by identifier prefix and sex."""
     if identifier_prefix is None and sex is None:
@@ -43,8 +46,11 @@ def list_patients(
         # the archive service lists without filters; this query is the API's own
         query = select(Patient).order_by(Patient.identifier)
         if identifier_prefix is not None:
-            query = query.where(Patient.identifier.startswith(identifier_prefix,
-                                                              autoescape=True))
+            # as look-ups do: ignoring case and look-alike characters
+            query = query.where(or_(
+                Patient.identifier_key.startswith(lookup_key(identifier_prefix),
+                                                  autoescape=True),
+                Patient.identifier.startswith(identifier_prefix, autoescape=True)))
         if sex is not None:
             query = query.where(Patient.sex == sex)
         with svc.archive.session() as s:
@@ -64,23 +70,15 @@ def add_patient(body: PatientIn, svc: ServicesDep, caller: CallerDep,
     return patient_out(row, caller, svc.pseudonyms)
 
 
-@router.get("/patients/{patient}", name="get_patient", response_model=PatientOut)
-async def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
-                note: NoteDep) -> PatientOut:
-    """One patient."""
-    # async, like the acquisitions' metadata reads (see there)
-    row = await svc.read(svc.archive.patient_info,
-                         resolve_patient(caller, patient, svc.pseudonyms))
-    note.touch(row.id)
-    return patient_out(row, caller, svc.pseudonyms)
-
-
-@router.get("/patients/{patient}/visits", name="list_visits", response_model=list[VisitOut])
+# ``:path`` so that identifiers registered before '/' was refused (rasterserver.identifiers)
+# stay reachable, as /patients/SL%2F01 (the server decodes %2F before routing). The visits
+# route comes first: it is the one /patients/A/visits means.
+@router.get("/patients/{patient:path}/visits", name="list_visits", response_model=list[VisitOut])
 def list_visits(
     patient: PatientRef, svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
-    since: Annotated[dt.date | None, Query(description="On or after (not for researchers).")]
-    = None,
-    until: Annotated[dt.date | None, Query(description="Before (not for researchers).")]
+    since: Annotated[Day | None, Query(description="On or after, YYYY-MM-DD (not for "
+                                             "researchers).")] = None,
+    until: Annotated[Day | None, Query(description="Before, YYYY-MM-DD (not for researchers).")]
     = None,
 ) -> list[VisitOut]:
     """The patient's visits, oldest first, optionally in a date range."""
@@ -97,4 +95,15 @@ def list_visits(
     with svc.archive.session() as s:
         visits = list(s.scalars(query.order_by(Visit.visit_date)
                                 .limit(page.limit).offset(page.offset)))
-    return [visit_out(v, identifier, caller, svc.pseudonyms) for v in visits]
+    return [visit_out(v, row.identifier, caller, svc.pseudonyms) for v in visits]
+
+
+@router.get("/patients/{patient:path}", name="get_patient", response_model=PatientOut)
+async def get_patient(patient: PatientRef, svc: ServicesDep, caller: CallerDep,
+                note: NoteDep) -> PatientOut:
+    """One patient."""
+    # async, like the acquisitions' metadata reads (see there)
+    row = await svc.read(svc.archive.patient_info,
+                         resolve_patient(caller, patient, svc.pseudonyms))
+    note.touch(row.id)
+    return patient_out(row, caller, svc.pseudonyms)
