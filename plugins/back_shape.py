@@ -41,7 +41,7 @@ from rasterserver_plugins.landmarks import (
     midpoint,
 )
 from rasterserver_plugins.level_frame import LevelFrame
-from rasterserver_plugins.spinal_midline import spinal_midline, surface_rotation
+from rasterserver_plugins.spinal_midline import line_normals, spinal_midline
 from rasterserver_plugins.symmetry_line import find_symmetry_line
 from rasterserver_plugins.trunk import find_trunk
 
@@ -122,8 +122,8 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
     else:
         reasons["symmetry_line"] = "needs VP and DM"
     if line is not None:
-        rotation = surface_rotation(grid, line)
-        midline = spinal_midline(line, rotation, vp.point, dm.point)
+        normals = line_normals(grid, line, vp.point, dm.point)
+        midline = spinal_midline(line, normals, vp.point, dm.point)
     else:
         reasons["midline"] = "needs the symmetry line"
 

@@ -307,6 +307,7 @@ def fit_quadric_at(
     *,
     min_cells: int = 12,
     cubic: bool = False,
+    angle: float = 0.0,
 ) -> np.ndarray:
     """Local quadric fits of the height field at arbitrary points.
 
@@ -333,6 +334,10 @@ def fit_quadric_at(
         where the surface is a turned, curved cross-section (a rounded back turned about the
         vertical is no longer even about the turning point, and a quadric's slope would take
         up the odd part over a wide window).
+    angle : float, optional
+        Turn the window's axes by this angle (radians, from ``+x`` towards ``+y``): the
+        Gaussian scales and the cubic terms then apply along the turned axes (a window
+        aligned with a leaning trunk). The coefficients are returned in ``u, v`` all the same.
 
     Returns
     -------
@@ -343,16 +348,20 @@ def fit_quadric_at(
     cols = np.atleast_1d(np.asarray(cols, dtype=float))
     rows = np.atleast_1d(np.asarray(rows, dtype=float))
     ny, nx = z.shape
-    kx = max(1, int(np.ceil(3.0 * sigma[0] / spacing)))
-    ky = max(1, int(np.ceil(3.0 * sigma[1] / spacing)))
+    ca, sa = float(np.cos(angle)), float(np.sin(angle))
+    # the bounding box of the turned 3-sigma window
+    kx = max(1, int(np.ceil(3.0 * (sigma[0] * abs(ca) + sigma[1] * abs(sa)) / spacing)))
+    ky = max(1, int(np.ceil(3.0 * (sigma[0] * abs(sa) + sigma[1] * abs(ca)) / spacing)))
     dj = np.arange(-kx, kx + 2)
     di = np.arange(-ky, ky + 2)
     j = np.floor(cols).astype(np.intp)[:, None, None] + dj[None, None, :]
     i = np.floor(rows).astype(np.intp)[:, None, None] + di[None, :, None]
     inside = (j >= 0) & (j < nx) & (i >= 0) & (i < ny)
     values = z[np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1)]
-    u = (j - cols[:, None, None]) * spacing
-    v = (i - rows[:, None, None]) * spacing
+    du = (j - cols[:, None, None]) * spacing
+    dv = (i - rows[:, None, None]) * spacing
+    u = ca * du + sa * dv  # offsets along the (turned) window axes
+    v = -sa * du + ca * dv
     w = np.exp(-0.5 * ((u / sigma[0]) ** 2 + (v / sigma[1]) ** 2))
     ok = inside & np.isfinite(values)
     w = np.where(ok, w, 0.0).reshape(cols.size, -1)
@@ -372,5 +381,20 @@ def fit_quadric_at(
     coef = _solve_spd(normal, rhs).T[:, :6]
     scale = np.array([1.0, sigma[0], sigma[1], sigma[0] ** 2, sigma[0] * sigma[1], sigma[1] ** 2])
     coef = coef / scale
+    if angle:
+        # back from the turned axes: gradient R^T g', Hessian R^T H' R
+        rot = np.array([[ca, sa], [-sa, ca]])
+        grad = coef[:, 1:3] @ rot
+        hess = np.stack(
+            [
+                np.stack([2 * coef[:, 3], coef[:, 4]], -1),
+                np.stack([coef[:, 4], 2 * coef[:, 5]], -1),
+            ],
+            axis=1,
+        )
+        hess = rot.T @ hess @ rot
+        coef = np.column_stack(
+            [coef[:, 0], grad, hess[:, 0, 0] / 2, hess[:, 0, 1], hess[:, 1, 1] / 2]
+        )
     coef[~enough] = np.nan
     return coef

@@ -11,7 +11,7 @@ derived from the measured trunk:
 * **DL, DR**, the lumbar dimples over the posterior superior iliac spines: the pair of concave
   maxima (most negative H) in the lower trunk, one each side of the centre line, at about the
   same height — the patient's left dimple DL at ``-x``, the right one DR at ``+x``;
-* **DM**, the midpoint of DL and DR;
+* **DM**, the skin point midway between DL and DR;
 * **SP**, the sacrum point at the top of the rima ani (gluteal cleft): where, going down the
   midline from DM, the cleft's lateral concavity appears (see :func:`find_sacrum_point`).
 

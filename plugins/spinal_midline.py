@@ -27,8 +27,10 @@ Definitions used here (level frame, :mod:`rasterserver_plugins.level_frame`):
   bodies (``docs/simulator_truth.md``), so the benchmark measures what the surface tells,
   not a disagreement about anatomy.
 * **sagittal direction** at a height: the horizontal camera axis ``z'`` tilted with the
-  trunk (perpendicular to the line DM → VP in the sagittal plane), then turned by ``φ``
-  about that line.
+  trunk (perpendicular to the line DM → VP in the sagittal plane), then turned about that
+  line by the surface's rotation about the same line (:func:`axial_rotation`: the surface
+  rotation measured perpendicular to the trunk's axis rather than horizontally, which differs
+  only when the trunk leans sideways).
 """
 
 from __future__ import annotations
@@ -40,10 +42,21 @@ from rasterserver_plugins.curvature import fit_quadric_at
 from rasterserver_plugins.level_frame import LevelGrid
 from rasterserver_plugins.symmetry_line import SymmetryLine
 
-__all__ = ["ROTATION_SCALE", "SpinalMidline", "body_depth", "spinal_midline", "surface_rotation"]
+__all__ = [
+    "ROTATION_SCALE",
+    "SpinalMidline",
+    "axial_rotation",
+    "body_depth",
+    "line_normals",
+    "spinal_midline",
+    "surface_rotation",
+]
 
-#: Gaussian scales (mm) across and along the height of the fit giving the normal.
+#: Gaussian scales (mm) across and along the height of the fit giving the normal's
+#: sideways component (the rotation).
 ROTATION_SCALE = (25.0, 6.0)
+#: Gaussian scales (mm) of the fit giving the normal's tilt along the trunk's axis.
+TILT_SCALE = (6.0, 6.0)
 #: Reference trunk length (mm) and depths (mm) of the vertebral-body centres at VP and DM.
 REFERENCE_TRUNK_LENGTH = 440.0
 BODY_DEPTH_AT_VP = 45.0
@@ -65,16 +78,35 @@ class SpinalMidline:
     lateral_deviation : numpy.ndarray
         ``(M,)`` horizontal distance (mm) of each centre from the line VP–DM at its height,
         in the frontal plane; + to the patient's right.
+    axial_rotation : numpy.ndarray
+        ``(M,)`` rotation (degrees) about the trunk's axis (:func:`axial_rotation`), which
+        turns the bodies' depth direction.
     """
 
     rotation: np.ndarray
     points: np.ndarray
     depth: np.ndarray
     lateral_deviation: np.ndarray
+    axial_rotation: np.ndarray
 
 
-def surface_rotation(grid: LevelGrid, line: SymmetryLine) -> np.ndarray:
-    """Surface rotation (degrees) at every point of the symmetry line.
+def _normals(coef: np.ndarray) -> np.ndarray:
+    zx, zy = coef[:, 1], coef[:, 2]
+    w = np.sqrt(1.0 + zx * zx + zy * zy)
+    return np.column_stack([zx / w, zy / w, -1.0 / w])
+
+
+def line_normals(grid: LevelGrid, line: SymmetryLine, vp: np.ndarray, dm: np.ndarray) -> np.ndarray:
+    """Outward unit surface normals (level frame) at the points of the symmetry line.
+
+    In the trunk's frame (:func:`_trunk_axes`), the normal's sideways component comes from the
+    wide fit of :data:`ROTATION_SCALE` (which averages the midline furrow out), its component
+    along the trunk's axis from a narrow fit (:data:`TILT_SCALE`): the furrow runs along the
+    axis and does not disturb that slope, while the vertebra prominens' bump, narrower than
+    the wide window, would have its tilt averaged away, and a trunk leaning sideways turns
+    that tilt partly into the horizontal rotation of the skin's normal. Both windows lean with
+    the trunk (their axes across and along its axis VP–DM in the frontal plane), so they hold
+    the same anatomy on both sides (the dimples, for one, at the same height).
 
     Parameters
     ----------
@@ -82,19 +114,57 @@ def surface_rotation(grid: LevelGrid, line: SymmetryLine) -> np.ndarray:
         The surface in the level frame.
     line : SymmetryLine
         The symmetry line.
+    vp, dm : numpy.ndarray
+        ``(3,)`` level points of VP and DM (the trunk's axis).
 
     Returns
     -------
     numpy.ndarray
-        ``(M,)`` degrees; NaN where the fit had too few measured cells.
+        ``(M, 3)`` normals facing the camera; NaN rows where a fit had too few cells.
     """
-    coef = fit_quadric_at(
-        grid.z, grid.spacing, grid.col_of(line.x), grid.row_of(line.y), ROTATION_SCALE, cubic=True
+    cols, rows = grid.col_of(line.x), grid.row_of(line.y)
+    v, a0, side = _trunk_axes(vp, dm)
+    # The windows lean with the trunk, so that they hold the same anatomy on both sides.
+    lean = float(np.arctan2(v[0], -v[1]))
+    wide = _normals(
+        fit_quadric_at(grid.z, grid.spacing, cols, rows, ROTATION_SCALE, cubic=True, angle=lean)
     )
-    zx, zy = coef[:, 1], coef[:, 2]
-    w = np.sqrt(1.0 + zx * zx + zy * zy)
-    nx, nz = zx / w, -1.0 / w
-    return np.degrees(np.arctan2(-nx, -nz))
+    narrow = _normals(fit_quadric_at(grid.z, grid.spacing, cols, rows, TILT_SCALE, angle=lean))
+    c_side = wide @ side
+    c_axis = np.where(np.isfinite(narrow[:, 0]), narrow @ v, wide @ v)
+    c_front = -np.sqrt(np.clip(1.0 - c_side**2 - c_axis**2, 0.0, None))
+    return c_side[:, None] * side + c_axis[:, None] * v + c_front[:, None] * a0
+
+
+def surface_rotation(normals: np.ndarray) -> np.ndarray:
+    """Surface rotation (degrees): the horizontal part of each normal against the sagittal
+    direction, ``atan2(-n_x, -n_z)``; + turns the patient's right side backwards."""
+    n = np.asarray(normals, dtype=float)
+    return np.degrees(np.arctan2(-n[:, 0], -n[:, 2]))
+
+
+def _trunk_axes(vp: np.ndarray, dm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trunk's axis ``v`` (DM → VP), the sagittal direction ``a0`` (the camera axis made
+    perpendicular to ``v``, anterior) and ``side = v × a0`` (towards −x when upright)."""
+    v = (vp - dm) / float(np.linalg.norm(vp - dm))
+    a0 = np.array([0.0, 0.0, 1.0]) - v[2] * v
+    a0 /= np.linalg.norm(a0)
+    return v, a0, np.cross(v, a0)
+
+
+def axial_rotation(normals: np.ndarray, vp: np.ndarray, dm: np.ndarray) -> np.ndarray:
+    """Rotation (degrees) of the surface about the trunk's own axis VP–DM.
+
+    The surface rotation is measured in the horizontal plane; when the trunk leans sideways,
+    the normal's upward or downward tilt (steep at VP and at the sacrum) leans with it and
+    shows there as a rotation that no vertebra has. Measured in the plane perpendicular to
+    the trunk's axis instead, ``atan2(n · side, −n · a0)`` (see :func:`_trunk_axes`), the
+    lean drops out; for an upright trunk both are the same. This is the rotation that turns
+    the vertebral bodies' depth direction.
+    """
+    n = np.asarray(normals, dtype=float)
+    _, a0, side = _trunk_axes(vp, dm)
+    return np.degrees(np.arctan2(n @ side, -(n @ a0)))
 
 
 def body_depth(t: np.ndarray, trunk_length: float) -> np.ndarray:
@@ -103,17 +173,25 @@ def body_depth(t: np.ndarray, trunk_length: float) -> np.ndarray:
     return scale * (BODY_DEPTH_AT_VP + (BODY_DEPTH_AT_DM - BODY_DEPTH_AT_VP) * np.asarray(t))
 
 
+def _bridged(values: np.ndarray, y: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(values)
+    if ok.any() and not ok.all():
+        return np.interp(y, y[ok], values[ok])
+    return values
+
+
 def spinal_midline(
-    line: SymmetryLine, rotation: np.ndarray, vp: np.ndarray, dm: np.ndarray
+    line: SymmetryLine, normals: np.ndarray, vp: np.ndarray, dm: np.ndarray
 ) -> SpinalMidline:
-    """Vertebral-body centres behind the symmetry line.
+    """Surface rotation and vertebral-body centres along the symmetry line.
 
     Parameters
     ----------
     line : SymmetryLine
         The symmetry line from VP to DM.
-    rotation : numpy.ndarray
-        ``(M,)`` surface rotation along it (degrees); NaN values are bridged.
+    normals : numpy.ndarray
+        ``(M, 3)`` outward surface normals at its points (:func:`line_normals`); NaN rows are
+        bridged.
     vp, dm : numpy.ndarray
         ``(3,)`` level points of VP and DM.
 
@@ -121,24 +199,21 @@ def spinal_midline(
     -------
     SpinalMidline
     """
-    rot = np.asarray(rotation, dtype=float)
-    ok = np.isfinite(rot)
-    if ok.any() and not ok.all():
-        rot = np.interp(line.y, line.y[ok], rot[ok])
-    up = vp - dm
-    length = float(np.linalg.norm(up))
-    v = up / length
-    # The sagittal direction: the camera axis made perpendicular to the trunk's axis.
-    a0 = np.array([0.0, 0.0, 1.0]) - v[2] * v
-    a0 /= np.linalg.norm(a0)
-    side = np.cross(v, a0)  # points to -x for an upright trunk
+    rot = _bridged(surface_rotation(normals), line.y)
+    axial = _bridged(axial_rotation(normals, vp, dm), line.y)
+    length = float(np.linalg.norm(vp - dm))
+    _, a0, side = _trunk_axes(vp, dm)
     t = (line.y - vp[1]) / (dm[1] - vp[1])
     depth = body_depth(t, length)
-    phi = np.radians(rot)
+    phi = np.radians(axial)
     direction = np.cos(phi)[:, None] * a0[None, :] - np.sin(phi)[:, None] * side[None, :]
     points = line.points() + depth[:, None] * direction
     frac = (points[:, 1] - vp[1]) / (dm[1] - vp[1])
     line_x = vp[0] + frac * (dm[0] - vp[0])
     return SpinalMidline(
-        rotation=rot, points=points, depth=depth, lateral_deviation=points[:, 0] - line_x
+        rotation=rot,
+        points=points,
+        depth=depth,
+        lateral_deviation=points[:, 0] - line_x,
+        axial_rotation=axial,
     )

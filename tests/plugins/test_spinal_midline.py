@@ -9,7 +9,13 @@ import pytest
 from back_surfaces import GRAVITY, back, mirrored
 from rasterserver_plugins.back_shape import analyse_back
 from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.spinal_midline import body_depth, spinal_midline, surface_rotation
+from rasterserver_plugins.spinal_midline import (
+    axial_rotation,
+    body_depth,
+    line_normals,
+    spinal_midline,
+    surface_rotation,
+)
 from rasterserver_plugins.symmetry_line import SymmetryLine
 
 SPACING = 3.0
@@ -40,18 +46,42 @@ def _straight_line(grid: LevelGrid) -> SymmetryLine:
 def test_rotation_of_a_turned_cross_section(phi: float) -> None:
     grid = _rotated_back(phi)
     line = _straight_line(grid)
-    rotation = surface_rotation(grid, line)
-    # a turned furrow and rounded back bias the smoothed normal by a few per cent
-    np.testing.assert_allclose(rotation, phi, atol=0.1 + 0.04 * abs(phi))
     vp = np.array([0.0, line.y[0], line.z[0]])
     dm = np.array([0.0, line.y[-1], line.z[-1]])
-    mid = spinal_midline(line, rotation, vp, dm)
+    normals = line_normals(grid, line, vp, dm)
+    rotation = surface_rotation(normals)
+    # a turned furrow and rounded back bias the smoothed normal by a few per cent
+    np.testing.assert_allclose(rotation, phi, atol=0.1 + 0.04 * abs(phi))
+    np.testing.assert_allclose(axial_rotation(normals, vp, dm), rotation, atol=1e-9)
+    mid = spinal_midline(line, normals, vp, dm)
     # the body centres lie d·sin(φ) beside the spinous processes, on the turned side
     expected = mid.depth * np.sin(np.radians(rotation))
     np.testing.assert_allclose(mid.lateral_deviation, expected, atol=0.05)
     np.testing.assert_allclose(
         mid.points[:, 2] - line.z, mid.depth * np.cos(np.radians(rotation)), atol=0.5
     )
+
+
+def test_a_leaning_trunk_turns_the_normal_but_not_the_bodies() -> None:
+    # A straight back whose skin slopes backwards going down (0.3), leaning 5° sideways: the
+    # horizontal part of the normal turns by about -0.3·sin(5°), the vertebrae do not.
+    lean = math.radians(5.0)
+    y, x = np.mgrid[-300:300:SPACING, -200:200:SPACING]
+    xb = x * math.cos(lean) + y * math.sin(lean)
+    yb = -x * math.sin(lean) + y * math.cos(lean)
+    z = 100.0 + xb * xb / 400.0 - 4.0 * np.exp(-0.5 * (xb / 9.0) ** 2) - 0.3 * yb
+    grid = LevelGrid(-200.0, -300.0, SPACING, z)
+    ys = grid.y_of(np.arange(30, 170))
+    xs = -ys * math.tan(lean)  # the spine leans with the trunk
+    line = SymmetryLine(x=xs, y=ys, z=grid.depth(xs, ys), asymmetry=0 * ys, raw_x=xs)
+    vp = np.array([xs[0], ys[0], line.z[0]])
+    dm = np.array([xs[-1], ys[-1], line.z[-1]])
+    normals = line_normals(grid, line, vp, dm)
+    expected = -math.degrees(math.atan(0.3 * math.sin(lean)))  # z_x = 0.3·sin(lean)
+    np.testing.assert_allclose(surface_rotation(normals), expected, atol=0.05)
+    np.testing.assert_allclose(axial_rotation(normals, vp, dm), 0.0, atol=0.05)
+    mid = spinal_midline(line, normals, vp, dm)
+    np.testing.assert_allclose(mid.lateral_deviation, 0.0, atol=0.1)
 
 
 def test_body_depth_model() -> None:
