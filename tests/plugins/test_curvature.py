@@ -127,5 +127,9 @@ def test_fit_quadric_at_arbitrary_points() -> None:
     np.testing.assert_allclose(coef[:, 1], 0.2 + 0.02 * px + 0.002 * py, rtol=1e-9)
     np.testing.assert_allclose(coef[:, 2], -0.1 + 0.002 * px - 0.006 * py, rtol=1e-9)
     np.testing.assert_allclose(coef[:, 3], 0.01, rtol=1e-9)
+    # a window turned with a leaning trunk fits the same quadric, in the same axes
+    for angle in (0.1, -0.4):
+        turned = fit_quadric_at(z, SPACING, cols, rows, (20.0, 8.0), angle=angle)
+        np.testing.assert_allclose(turned, coef, rtol=1e-7, atol=1e-9)
     # far outside the grid there is nothing to fit
     assert np.isnan(fit_quadric_at(z, SPACING, np.array([-100.0]), np.array([5.0]), (9, 9))).all()
