@@ -41,7 +41,7 @@ from rasterserver.catalog.auth_models import (
     AuditIndexMark,
     AuditPatientIndex,
 )
-from rasterserver.catalog.models import Patient
+from rasterserver.catalog.lookup import patient_id_of
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def indexed_through() -> Select[tuple[int]]:
 def patient_events(patient: str) -> Select[tuple[int]]:
     """The ids of the audit events that touched the patient with site identifier ``patient``:
     those in the index, and those after its mark still only in the links."""
-    pid = select(Patient.id).where(Patient.identifier == patient).scalar_subquery()
+    pid = patient_id_of(patient)
     return union(
         select(_INDEX.c.event_id).where(_INDEX.c.patient_id == pid),
         select(_LINKS.c.event_id).where(_LINKS.c.event_id > indexed_through().scalar_subquery(),

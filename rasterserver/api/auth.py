@@ -28,7 +28,9 @@ from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import ACCOUNT_KINDS, ROLES, ApiAccount, ApiToken
+from rasterserver.catalog.lookup import stored_name
 from rasterserver.errors import ConflictError, InputError, NotFoundError
+from rasterserver.identifiers import check_name
 
 if TYPE_CHECKING:
     from rasterserver.api.token_cache import TokenCache
@@ -97,13 +99,12 @@ def add_account(archive: Archive, name: str, *, role: str, kind: str = "user") -
     Raises
     ------
     InputError
-        Empty name, unknown role or kind.
+        A name that breaks the rules of :mod:`rasterserver.identifiers`, an unknown role or
+        kind.
     ConflictError
-        The name is taken.
+        The name, or one that differs only in case or look-alike characters, is taken.
     """
-    name = name.strip()
-    if not name or len(name) > 100:
-        raise InputError("an account name must have 1 to 100 characters")
+    name = check_name(name, "an account name")
     if role not in ROLES:
         raise InputError(f"role must be one of {', '.join(ROLES)}")
     if kind not in ACCOUNT_KINDS:
@@ -111,6 +112,8 @@ def add_account(archive: Archive, name: str, *, role: str, kind: str = "user") -
     account = ApiAccount(name=name, role=role, kind=kind)
     try:
         with archive.session() as s:
+            if other := stored_name(s, ApiAccount.name, name, exact=False):
+                raise ConflictError(f"an account called {other!r} exists already")
             s.add(account)
     except SQLIntegrityError:
         raise ConflictError(f"an account called {name!r} exists already") from None
@@ -138,7 +141,9 @@ def create_token(archive: Archive, account: str, *, label: str = "") -> str:
     """
     token = TOKEN_PREFIX + secrets.token_urlsafe(32)
     with archive.session() as s:
-        row = s.scalar(select(ApiAccount).where(ApiAccount.name == account))
+        named = stored_name(s, ApiAccount.name, account)
+        row = None if named is None else s.scalar(select(ApiAccount)
+                                                  .where(ApiAccount.name == named))
         if row is None:
             raise NotFoundError(f"unknown account {account!r}: add it with `rasterserver user add`")
         s.add(ApiToken(account_id=row.id, token_sha256=token_digest(token),
@@ -149,9 +154,9 @@ def create_token(archive: Archive, account: str, *, label: str = "") -> str:
 def tokens(archive: Archive, *, account: str | None = None) -> list[TokenInfo]:
     """List tokens (prefix, owner, state), oldest first."""
     query = select(ApiToken, ApiAccount).join(ApiAccount).order_by(ApiToken.id)
-    if account is not None:
-        query = query.where(ApiAccount.name == account)
     with archive.session() as s:
+        if account is not None:
+            query = query.where(ApiAccount.name == stored_name(s, ApiAccount.name, account))
         return [
             TokenInfo(t.id, a.name, a.role, t.prefix, t.label, t.created_at, t.revoked_at)
             for t, a in s.execute(query)
