@@ -1,0 +1,185 @@
+"""Comparison of two visits against the simulator's truth: registration, distance and
+asymmetry maps, refusals, and the files (PLY read back by pymeshlab, PNG)."""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from rasterserver.comparison import (
+    ComparisonRefusedError,
+    Visit,
+    asymmetry_change,
+    asymmetry_map,
+    distance_map,
+    landmark_transform,
+    register,
+    trunk_mask,
+)
+from rasterserver.comparison_files import colour_limit, write_distance_ply, write_distance_png
+from rasterserver.records_analysis import BackShape
+from rasterserver.records_surface import MeshRecord, Surface
+from rasterserver.simulated_visits import progressed
+from rasterserver.simulator.back import BackParameters, make_back, posture_sway, preset
+
+BASE = preset("moderate")  # main curve: apex t = 0.35, 15 mm to the right, rotated 8°
+
+
+@lru_cache(maxsize=4)
+def visit(params: BackParameters, seed: int, label: str) -> Visit:
+    """Render, reconstruct and analyse a back (a few seconds; once per test process)."""
+    from rasterserver.optics import default_station
+    from rasterserver.pipeline import run_chain
+    from rasterserver.simulator.render import RenderSettings, render
+    from rasterserver.stage import StageContext
+
+    station = default_station()
+    image = render(make_back(params), station, settings=RenderSettings(supersampling=1), seed=seed)
+    context = StageContext(calibration=station, raster=station.raster_definition)
+    records = run_chain(image.image, context=context, until="analysis")
+    surface, shape = records["surface"], records["analysis"]
+    mesh = run_chain(surface, context=context, until="mesh")["mesh"]
+    assert isinstance(surface, Surface) and isinstance(shape, BackShape)
+    assert isinstance(mesh, MeshRecord) and not shape.reason
+    return Visit(surface, mesh, shape, label=label)
+
+
+def first() -> Visit:
+    return visit(BASE, 1, "first")
+
+
+def apex_band(v: Visit, vertices: np.ndarray, half: float = 40.0) -> np.ndarray:
+    vp, dm = v.shape.landmark("VP"), v.shape.landmark("DM")
+    assert vp is not None and dm is not None
+    apex_y = vp[1] + BASE.curves[0].apex * (dm[1] - vp[1])
+    return np.abs(vertices[:, 1] - apex_y) < half
+
+
+def test_landmark_transform_maps_frames_onto_each_other() -> None:
+    a = first().shape
+    angle = np.radians(4.0)
+    turn = np.array(
+        [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    )
+    shift = np.array([12.0, -7.0, 30.0])
+    b = dataclasses.replace(
+        a, frame_origin=turn @ a.frame_origin + shift, frame_axes=a.frame_axes @ turn.T
+    )
+    t = landmark_transform(a, b)
+    np.testing.assert_allclose(t[:3, :3], turn.T, atol=1e-9)
+    np.testing.assert_allclose(t[:3, :3] @ b.frame_origin + t[:3, 3], a.frame_origin, atol=1e-9)
+    np.testing.assert_allclose(landmark_transform(a, a), np.eye(4), atol=1e-12)
+
+
+def test_posture_change_registers_to_no_change() -> None:
+    a = first()
+    b = visit(posture_sway(BASE, 3, translation=5.0, rotation=1.0), 2, "swayed")
+    reg = register(a, b)
+    assert reg.fitness > 0.95 and reg.rmse < 2.0
+    stats = distance_map(a, b, reg).statistics()
+    assert stats["rms_mm"] < 0.5
+    assert abs(stats["mean_mm"]) < 0.2
+    assert stats["overlap"] > 0.98
+    assert stats["area_above_2mm_mm2"] == 0.0 and stats["area_below_minus_2mm_mm2"] == 0.0
+
+
+def test_progression_shows_at_the_apex_with_the_right_sign() -> None:
+    a = first()
+    b = visit(progressed(BASE, 1, 0.5), 3, "progressed")  # rotation 8° -> 12°, hump right
+    dmap = distance_map(a, b, register(a, b))
+    stats = dmap.statistics()
+    assert stats["max_abs_mm"] is not None and abs(stats["max_abs_mm"]) > 4.0
+    at = np.array(stats["max_abs_at"])
+    assert apex_band(a, at[None, :], half=60.0)[0]
+    # the right (+X) side turned further back (+), the left side forward (-)
+    assert np.sign(at[0]) == np.sign(stats["max_abs_mm"])
+    band = apex_band(a, dmap.vertices) & np.isfinite(dmap.distance)
+    right = band & (dmap.vertices[:, 0] > 40)
+    left = band & (dmap.vertices[:, 0] < -40)
+    assert np.mean(dmap.distance[right]) > 1.5
+    assert np.mean(dmap.distance[left]) < -1.5
+
+
+def test_asymmetry_map_shows_the_hump_side_and_its_growth() -> None:
+    a, b = first(), visit(progressed(BASE, 1, 0.5), 3, "progressed")
+    sym_a, sym_b = asymmetry_map(a), asymmetry_map(b)
+    band = apex_band(a, sym_a.vertices) & np.isfinite(sym_a.distance)
+    right = band & (sym_a.vertices[:, 0] > 40)
+    left = band & (sym_a.vertices[:, 0] < -40)
+    assert np.mean(sym_a.distance[right]) > 3.0  # the rib hump on the right
+    assert np.mean(sym_a.distance[left]) < -3.0
+    change = asymmetry_change(sym_a, sym_b, register(a, b))
+    grown = right & np.isfinite(change.distance)
+    assert grown.sum() > 100
+    assert np.mean(change.distance[grown]) > 1.0
+
+
+def test_trunk_leaves_out_head_buttocks_and_edges() -> None:
+    a = first()
+    keep = trunk_mask(a, a.mesh.vertices)
+    vp, dm = a.shape.landmark("VP"), a.shape.landmark("DM")
+    assert 0 < keep.sum() < len(keep)
+    y = a.mesh.vertices[keep, 1]
+    assert y.min() >= vp[1] - 5.0 and y.max() <= dm[1] + 5.0
+    assert not trunk_mask(a, np.array([[0.0, vp[1] - 60.0, 0.0]]))[0]  # the neck
+
+
+def test_missing_landmarks_are_refused_with_the_reason() -> None:
+    a = first()
+    shape = dataclasses.replace(
+        a.shape,
+        landmarks=np.vstack([np.full(3, np.nan), a.shape.landmarks[1:]]),
+        frame_origin=np.full(3, np.nan),
+        frame_axes=np.full((3, 3), np.nan),
+        reasons='{"VP": "no neck in view"}',
+    )
+    b = dataclasses.replace(a, shape=shape, label="cropped")
+    with pytest.raises(ComparisonRefusedError, match=r"cropped has no body-fixed frame.*VP"):
+        register(a, b)
+    with pytest.raises(ComparisonRefusedError, match="no neck in view"):
+        asymmetry_map(b)
+
+
+def test_empty_surface_is_refused() -> None:
+    a = first()
+    b = Visit(Surface.empty("no raster lines"), MeshRecord.empty("no surface"), a.shape, "empty")
+    with pytest.raises(ComparisonRefusedError, match="too little measured trunk"):
+        register(a, b)
+
+
+def test_surfaces_that_do_not_overlap_are_refused() -> None:
+    a = first()
+    away = np.array([0.0, 0.0, -80.0])  # the surface 80 mm off where the landmarks say
+    mesh = dataclasses.replace(a.mesh, vertices=a.mesh.vertices + away)
+    b = dataclasses.replace(a, mesh=mesh, label="elsewhere")
+    with pytest.raises(ComparisonRefusedError, match=r"could not be registered.*overlaps"):
+        register(a, b)
+
+
+def test_files_load_in_meshlab_with_the_values(tmp_path) -> None:
+    pymeshlab = pytest.importorskip("pymeshlab")
+    a = first()
+    b = visit(progressed(BASE, 1, 0.5), 3, "progressed")
+    dmap = distance_map(a, b, register(a, b))
+    path = write_distance_ply(dmap, tmp_path / "map.ply", comments=["visits first -> progressed"])
+    ms = pymeshlab.MeshSet()
+    ms.load_new_mesh(str(path))
+    mesh = ms.current_mesh()
+    values = dmap.distance[np.isfinite(dmap.distance)]
+    assert mesh.vertex_number() == values.size
+    assert mesh.face_number() > 0
+    np.testing.assert_allclose(mesh.vertex_scalar_array(), values, atol=1e-5)
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    assert "property float scalar_distance" in header and "comment unit mm" in header
+    png = write_distance_png(dmap, tmp_path / "map.png", title="first -> progressed")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert {p.name for p in tmp_path.iterdir()} == {"map.ply", "map.png"}  # no temporary left
+
+
+def test_colour_limit_is_symmetric_whole_and_has_a_floor() -> None:
+    assert colour_limit(np.array([np.nan, 0.1, -0.2])) == 2.0
+    assert colour_limit(np.linspace(-7.2, 3.0, 1000)) == 8.0
+    assert colour_limit(np.array([])) == 2.0
