@@ -1,0 +1,218 @@
+"""Parameter trends of a patient over visits, with the smallest detectable change.
+
+Every parameter of the back-shape analysis (the ``parameters`` of
+:meth:`rasterserver.analysis.Analysis.document`) over all visits of one patient, as a table
+(one row per parameter and visit), CSV and JSON. A change between two visits is *flagged*
+only when it exceeds the parameter's smallest detectable change
+
+    SDC = 1.96 · √2 · SD
+
+(the 95 % limit of the difference of two measurements each with repeatability SD), where SD
+is the one place the comparison takes measurement noise from: :data:`REPEATABILITY_SD`.
+A parameter without an SD there is reported but never flagged.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import io
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rasterserver.output_files import output_file
+
+__all__ = [
+    "REPEATABILITY_SD",
+    "REPEATABILITY_SOURCE",
+    "TrendVisit",
+    "sdc",
+    "trends",
+    "trends_csv",
+    "write_trends",
+]
+
+#: Where :data:`REPEATABILITY_SD` comes from.
+REPEATABILITY_SOURCE = (
+    "benchmarks/analysis.py, repeatability set of benchmarks/out/analysis.jsonl (analysis code "
+    "'analysis.back-shape 1 89fd6b4e3fd6'): 3 tuning backs (the presets) x 10 acquisitions, "
+    "independent noise and posture sway up to +-5 mm and +-1 deg; the largest SD over the "
+    "backs, rounded up to 0.01. Simulated acquisitions: a clinic's own repeatability (patients "
+    "re-positioned, breathing) is larger and should replace these values when measured."
+)
+
+#: Repeatability standard deviation of every parameter (its unit: mm or deg), from
+#: :data:`REPEATABILITY_SOURCE`. The one place the comparison takes measurement noise from.
+REPEATABILITY_SD: dict[str, float] = {
+    "trunk_length": 0.31,
+    "trunk_inclination_mm": 4.56,
+    "trunk_inclination_deg": 0.63,
+    "trunk_imbalance_mm": 5.10,
+    "trunk_imbalance_deg": 0.67,
+    "pelvic_tilt_mm": 1.28,
+    "pelvic_tilt_deg": 0.70,
+    "pelvic_torsion_deg": 0.41,
+    "pelvic_rotation_deg": 0.67,
+    "kyphotic_angle_deg": 0.75,
+    "lordotic_angle_deg": 0.64,
+    "fleche_cervicale_mm": 1.93,
+    "fleche_lombaire_mm": 2.15,
+    "surface_rotation_rms_deg": 0.33,
+    "surface_rotation_max_deg": 0.85,
+    "surface_rotation_pos_max_deg": 0.51,
+    "surface_rotation_neg_max_deg": 0.49,
+    "lateral_deviation_rms_mm": 0.32,
+    "lateral_deviation_max_mm": 1.07,
+    "lateral_deviation_pos_max_mm": 0.65,
+    "lateral_deviation_neg_max_mm": 0.69,
+    "scoliosis_angle_deg": 1.28,
+}
+
+_SDC_FACTOR = 1.96 * math.sqrt(2.0)
+
+
+def sdc(name: str, sd: Mapping[str, float] = REPEATABILITY_SD) -> float | None:
+    """The smallest detectable change of parameter ``name`` (its unit), None if unknown."""
+    value = sd.get(name)
+    return None if value is None else _SDC_FACTOR * float(value)
+
+
+@dataclass(frozen=True)
+class TrendVisit:
+    """One visit's parameters.
+
+    Attributes
+    ----------
+    label : str
+        The acquisition (uid) or another name of the visit.
+    when : datetime.datetime or None
+        When it was acquired.
+    parameters : mapping or None
+        ``{name: {"value", "unit", "spread"}}`` of its analysis document; None when it could
+        not be analysed.
+    """
+
+    label: str
+    when: dt.datetime | None
+    parameters: Mapping[str, Mapping[str, Any]] | None
+
+
+def _value(visit: TrendVisit, name: str) -> float | None:
+    entry = (visit.parameters or {}).get(name)
+    value = entry.get("value") if entry else None
+    if not isinstance(value, int | float) or not math.isfinite(float(value)):
+        return None
+    return float(value)
+
+
+def trends(
+    visits: Sequence[TrendVisit], *, sd: Mapping[str, float] = REPEATABILITY_SD
+) -> list[dict[str, Any]]:
+    """Every parameter over the visits, with changes and flags.
+
+    Parameters
+    ----------
+    visits : sequence of TrendVisit
+        The patient's visits, in time order.
+    sd : mapping, optional
+        Repeatability SD per parameter (:data:`REPEATABILITY_SD`).
+
+    Returns
+    -------
+    list of dict
+        One per parameter (clinical order): ``parameter``, ``unit``, ``sd``, ``sdc``,
+        ``visits`` (per visit: ``label``, ``date``, ``value``, ``change`` from the previous
+        visit with a value, ``flagged``: ``|change| > sdc``), ``first_to_last`` (``change``,
+        ``flagged``) and ``flagged`` (any).
+    """
+    from rasterserver.analysis import ordered_parameters
+
+    names: dict[str, str] = {}
+    for v in visits:
+        for name, entry in (v.parameters or {}).items():
+            names.setdefault(name, str(entry.get("unit", "")))
+    out = []
+    for name in ordered_parameters(names):
+        limit = sdc(name, sd)
+        rows, previous, first = [], None, None
+        for v in visits:
+            value = _value(v, name)
+            change = None if value is None or previous is None else value - previous
+            rows.append(
+                {
+                    "label": v.label,
+                    "date": None if v.when is None else v.when.isoformat(),
+                    "value": value,
+                    "change": change,
+                    "flagged": bool(
+                        limit is not None and change is not None and abs(change) > limit
+                    ),
+                }
+            )
+            if value is not None:
+                previous = value
+                first = value if first is None else first
+        total = None if first is None or previous is None or len(visits) < 2 else previous - first
+        overall = {
+            "change": total,
+            "flagged": bool(limit is not None and total is not None and abs(total) > limit),
+        }
+        out.append(
+            {
+                "parameter": name,
+                "unit": names[name],
+                "sd": sd.get(name),
+                "sdc": limit,
+                "visits": rows,
+                "first_to_last": overall,
+                "flagged": overall["flagged"] or any(r["flagged"] for r in rows),
+            }
+        )
+    return out
+
+
+def trends_csv(table: Sequence[Mapping[str, Any]]) -> str:
+    """The trends as CSV: one row per parameter and visit (``parameter, unit, visit, date,
+    value, change, sdc, flagged``); empty cells for missing values."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["parameter", "unit", "visit", "date", "value", "change", "sdc", "flagged"])
+
+    def cell(value: float | None) -> str:
+        return "" if value is None else f"{value:.4g}"
+
+    for row in table:
+        for v in row["visits"]:
+            writer.writerow(
+                [
+                    row["parameter"],
+                    row["unit"],
+                    v["label"],
+                    v["date"] or "",
+                    cell(v["value"]),
+                    cell(v["change"]),
+                    cell(row["sdc"]),
+                    "yes" if v["flagged"] else "",
+                ]
+            )
+    return buffer.getvalue()
+
+
+def write_trends(table: Sequence[Mapping[str, Any]], folder: Path) -> tuple[Path, Path]:
+    """Write ``trends.csv`` and ``trends.json`` (with the SD source) into ``folder``."""
+    csv_path, json_path = folder / "trends.csv", folder / "trends.json"
+    with output_file(csv_path, what="trends table") as temp:
+        temp.write_text(trends_csv(table), encoding="utf-8")
+    document = {
+        "format": "rasterserver.trends/1",
+        "sdc": "1.96 * sqrt(2) * SD",
+        "sd_source": REPEATABILITY_SOURCE,
+        "parameters": list(table),
+    }
+    with output_file(json_path, what="trends document") as temp:
+        temp.write_text(json.dumps(document, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return csv_path, json_path
