@@ -10,6 +10,7 @@ from types import ModuleType
 from rasterserver.commands import (
     analyse,
     calibrate,
+    compare,
     db,
     demo,
     export,
@@ -39,6 +40,7 @@ COMMAND_MODULES: list[ModuleType] = [
     simulate,
     reconstruct,
     analyse,
+    compare,
     process,
     runs,
     export,

@@ -1,0 +1,87 @@
+"""``rasterserver compare``: two acquisitions, or all visits of a patient, compared."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from rasterserver.commands.common import open_archive
+
+
+def compare(
+    ctx: typer.Context,
+    uids: Annotated[
+        list[str] | None,
+        typer.Argument(
+            help="Two (or more) acquisition uids of one patient (see `rasterserver list`).",
+            show_default=False,
+        ),
+    ] = None,
+    out: Annotated[
+        Path,
+        typer.Option(
+            "-o",
+            "--out",
+            help="Folder to create for the files (must not exist or be empty).",
+            show_default=False,
+        ),
+    ] = Path("comparison"),
+    patient: Annotated[
+        str | None,
+        typer.Option(help="Compare every acquisition of this patient instead.", show_default=False),
+    ] = None,
+    process: Annotated[
+        bool,
+        typer.Option(
+            "--process/--no-process",
+            help="Process acquisitions that have no stored analysis first.",
+        ),
+    ] = False,
+) -> None:
+    """Compare visits of one patient: registration, distance maps, trends, a report.
+
+    Visit B is registered onto visit A (body-fixed landmark frames, then point-to-plane ICP on
+    the trunk); the signed distance along A's normals (positive: B posterior of A) is written
+    as a PLY mesh with a per-vertex scalar (MeshLab's quality, CloudCompare's scalar field) and
+    a PNG; each visit's asymmetry map, the statistics (comparison.json), every parameter's
+    trend (trends.csv, trends.json, trends.png; a change is flagged only beyond the smallest
+    detectable change) and report.html go into the same folder, which is written whole or not
+    at all. With --patient, consecutive visits and the first with the last are compared.
+    Details: docs/comparison.md.
+
+    Exits 2 when the visits cannot be compared (a landmark frame missing, no overlap, ICP not
+    converging: the reason is given) or the folder cannot be written, 3 for an unknown or
+    unprocessed acquisition or patient.
+    """
+    from rasterserver.errors import InputError
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.visit_comparison import compare_visits, patient_visits
+
+    if (patient is None) == (not uids):
+        raise InputError("give two acquisition uids or --patient ID (not both)")
+    with open_archive(ctx) as archive:
+        pipeline = Pipeline(archive)
+        chosen = patient_visits(pipeline, patient) if patient is not None else list(uids or [])
+        if len(chosen) < 2:
+            raise InputError("a comparison needs two acquisitions")
+        document = compare_visits(
+            pipeline, chosen, out, process=process, log=lambda line: typer.echo(line, err=True)
+        )
+    for pair in document["pairs"]:
+        if "refused" in pair:
+            typer.echo(f"{pair['a']} -> {pair['b']}: not compared: {pair['refused']}")
+            continue
+        s, r = pair["distance"], pair["registration"]
+        typer.echo(
+            f"{pair['a']} -> {pair['b']}: registered (fitness {r['fitness']:.2f}, residual "
+            f"{r['rmse_mm']:.2f} mm); distance rms {s['rms_mm']:.2f} mm, largest "
+            f"{s['max_abs_mm']:+.1f} mm"
+        )
+    typer.echo(f"written to {out} (report.html)")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``compare`` command to ``app``."""
+    app.command("compare")(compare)

@@ -1,0 +1,349 @@
+"""Comparing archived visits: the service behind ``rasterserver compare``.
+
+Reads each acquisition's stored analysis, surface and mesh (processing them when asked),
+compares consecutive visits and the first with the last (:mod:`rasterserver.comparison`),
+computes the parameter trends (:mod:`rasterserver.trends`) and writes everything into one
+folder: built in a temporary folder beside it and renamed into place at the end, so the
+folder is whole or absent.
+
+Files (``A-B`` are the two acquisitions' uids):
+
+* ``distance_A-B.ply`` / ``.png``: the distance map of B registered onto A;
+* ``asymmetry_UID.png``: each visit's asymmetry map;
+* ``comparison.json`` (``rasterserver.comparison/1``): per pair the registration
+  (transform, fitness, rmse) and the distance-map and asymmetry-change statistics, or the
+  reason it was refused; per visit the asymmetry statistics;
+* ``trends.csv``, ``trends.json``, ``trends.png``;
+* ``report.html``: timeline of the visits, parameter trends, the maps.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import html
+import json
+import os
+import secrets
+import shutil
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from rasterserver.analysis import KEY_PARAMETERS, acquisition_analysis, parameter_label
+from rasterserver.comparison import (
+    ComparisonRefusedError,
+    DistanceMap,
+    Visit,
+    asymmetry_change,
+    asymmetry_map,
+    distance_map,
+    register,
+)
+from rasterserver.errors import InputError
+from rasterserver.records_surface import MeshRecord
+from rasterserver.trends import REPEATABILITY_SOURCE, TrendVisit, trends, write_trends
+
+if TYPE_CHECKING:
+    from rasterserver.pipeline import Pipeline
+
+__all__ = ["ArchivedVisit", "compare_visits", "load_visit", "patient_visits"]
+
+#: ``format`` of ``comparison.json``.
+COMPARISON_FORMAT = "rasterserver.comparison/1"
+
+
+@dataclass(frozen=True)
+class ArchivedVisit:
+    """One archived acquisition ready to compare."""
+
+    uid: str
+    acquired_at: dt.datetime
+    visit: Visit | None
+    parameters: dict[str, Any] | None
+    reason: str = ""
+
+
+def load_visit(pipeline: Pipeline, uid: str, *, process: bool = False) -> ArchivedVisit:
+    """Read the stored analysis, surface and mesh of acquisition ``uid``.
+
+    An analysis that found nothing gives a visit without geometry (``visit`` None) and its
+    reason: the trends show it as a gap, comparisons with it are refused.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown acquisition, or not processed (and ``process`` false).
+    """
+    from rasterserver.analysis import AnalysisRefusedError
+
+    info = pipeline.archive.info(uid)
+    analysis = acquisition_analysis(pipeline, uid, process=process, surfaces=True)
+    try:
+        analysis.check()
+    except AnalysisRefusedError as exc:
+        return ArchivedVisit(uid, info.acquired_at, None, None, str(exc))
+    frame = analysis.shown_frame()
+    if process:
+        pipeline.process(uid, until="mesh", frame_index=frame.index or 0)
+    _row, mesh = pipeline.result(uid, "mesh")
+    if frame.surface is None or not isinstance(mesh, MeshRecord):
+        return ArchivedVisit(uid, info.acquired_at, None, None, "no stored surface or mesh")
+    visit = Visit(frame.surface, mesh, analysis.combined, label=uid)
+    return ArchivedVisit(uid, info.acquired_at, visit, analysis.document()["parameters"])
+
+
+def patient_visits(pipeline: Pipeline, patient: str) -> list[str]:
+    """The uids of ``patient``'s acquisitions, oldest first.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown patient.
+    InputError
+        Fewer than two acquisitions.
+    """
+    pipeline.archive.patient(patient)
+    found = sorted(pipeline.archive.find(patient=patient), key=lambda i: i.acquired_at)
+    if len(found) < 2:
+        raise InputError(
+            f"the patient has {len(found)} acquisition(s): a comparison needs at least two"
+        )
+    return [i.uid for i in found]
+
+
+def _pair(a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
+    from rasterserver.comparison_files import write_distance_ply, write_distance_png
+
+    entry: dict[str, Any] = {"a": a.uid, "b": b.uid}
+    if a.visit is None or b.visit is None:
+        bad = a if a.visit is None else b
+        return entry | {"refused": f"acquisition {bad.uid}: {bad.reason}"}
+    try:
+        reg = register(a.visit, b.visit)
+    except ComparisonRefusedError as exc:
+        return entry | {"refused": str(exc)}
+    dmap = distance_map(a.visit, b.visit, reg)
+    stem = f"distance_{a.uid}-{b.uid}"
+    comments = [f"visit A {a.uid} ({a.acquired_at:%Y-%m-%d}), visit B {b.uid} registered onto A"]
+    write_distance_ply(dmap, folder / f"{stem}.ply", comments=comments)
+    landmarks = {n: a.visit.shape.landmark(n) for n in ("VP", "DL", "DR", "DM")}
+    title = f"{a.acquired_at:%Y-%m-%d} → {b.acquired_at:%Y-%m-%d}: B − A (mm)"
+    write_distance_png(dmap, folder / f"{stem}.png", title=title, landmarks=landmarks)
+    entry |= {
+        "registration": reg.summary(),
+        "distance": dmap.statistics(),
+        "files": [f"{stem}.ply", f"{stem}.png"],
+    }
+    entry["_maps"] = (reg, dmap)
+    return entry
+
+
+def _trends_plot(table: list[dict[str, Any]], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from rasterserver.output_files import output_file
+
+    rows = [r for r in table if r["parameter"] in KEY_PARAMETERS]
+    n = max(len(rows), 1)
+    fig = Figure(figsize=(9.0, 2.0 * ((n + 1) // 2)), dpi=100)
+    FigureCanvasAgg(fig)
+    for k, row in enumerate(rows):
+        ax = fig.add_subplot((n + 1) // 2, 2, k + 1)
+        dates = [dt.datetime.fromisoformat(v["date"]) for v in row["visits"]]
+        values = [np.nan if v["value"] is None else v["value"] for v in row["visits"]]
+        ax.plot(dates, values, "o-", color="#1f4e79")
+        for d, v, visit in zip(dates, values, row["visits"], strict=True):
+            if visit["flagged"]:
+                ax.plot(d, v, "o", color="#c00000", markersize=9, fillstyle="none")
+        ax.set_title(f"{parameter_label(row['parameter'])} ({row['unit']})", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    with output_file(path, what="trends plot") as temp:
+        fig.savefig(temp, format="png")
+
+
+def _report(
+    folder: Path,
+    visits: Sequence[ArchivedVisit],
+    pairs: list[dict[str, Any]],
+    table: list[dict[str, Any]],
+    asymmetry: dict[str, Any],
+) -> None:
+    e = html.escape
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>Comparison of visits</title>",
+        "<style>body{font-family:sans-serif;margin:2em}td,th{padding:2px 8px;text-align:right}"
+        ".flag{color:#c00000;font-weight:bold}img{max-width:48%;margin:4px}</style></head><body>",
+        "<h1>Comparison of visits</h1>",
+        "<p>Positions in the world frame of the first visit's calibration (mm, X to the "
+        "patient's right, Y down, Z anterior). Distance maps: later visit minus earlier, "
+        "positive = posterior (towards the camera).</p>",
+        "<h2>Timeline</h2><table><tr><th>visit</th><th>date</th><th>acquisition</th>"
+        "<th>analysis</th></tr>",
+    ]
+    for k, v in enumerate(visits):
+        state = "analysed" if v.visit is not None else e(v.reason)
+        parts.append(
+            f"<tr><td>{k + 1}</td><td>{v.acquired_at:%Y-%m-%d}</td><td>{e(v.uid)}</td>"
+            f"<td>{state}</td></tr>"
+        )
+    parts.append("</table><h2>Parameter trends</h2><img src='trends.png' alt='trends'>")
+    parts.append(
+        "<p>Flagged (red) only when a change exceeds the smallest detectable change "
+        "SDC = 1.96·√2·SD; SD source: " + e(REPEATABILITY_SOURCE) + "</p>"
+    )
+    head = "".join(f"<th>{v.acquired_at:%Y-%m-%d}</th>" for v in visits)
+    parts.append(f"<table><tr><th>parameter</th>{head}<th>SDC</th><th>unit</th></tr>")
+    for row in table:
+        cells = "".join(
+            f"<td class='{'flag' if c['flagged'] else ''}'>"
+            + ("–" if c["value"] is None else f"{c['value']:.1f}")
+            + "</td>"
+            for c in row["visits"]
+        )
+        limit = "–" if row["sdc"] is None else f"{row['sdc']:.1f}"
+        parts.append(
+            f"<tr><td style='text-align:left'>{e(parameter_label(row['parameter']))}</td>"
+            f"{cells}<td>{limit}</td><td>{e(row['unit'])}</td></tr>"
+        )
+    parts.append("</table><h2>Distance maps</h2>")
+    for p in pairs:
+        label = f"{e(p['a'])} → {e(p['b'])}"
+        if "refused" in p:
+            parts.append(f"<p>{label}: not compared: {e(p['refused'])}</p>")
+            continue
+        s, r = p["distance"], p["registration"]
+        parts.append(
+            f"<h3>{label}</h3><p>registration: fitness {r['fitness']:.2f}, residual "
+            f"{r['rmse_mm']:.2f} mm; distance rms {s['rms_mm']:.2f} mm, largest "
+            f"{s['max_abs_mm']:.1f} mm; area beyond ±2 mm "
+            f"{(s['area_above_2mm_mm2'] + s['area_below_minus_2mm_mm2']) / 100:.0f} cm²</p>"
+            f"<img src='{e(p['files'][1])}' alt='distance map'>"
+        )
+    parts.append("<h2>Asymmetry maps (Komeili et al. 2015)</h2>")
+    for uid, entry in asymmetry.items():
+        if "file" in entry:
+            parts.append(f"<img src='{e(entry['file'])}' alt='asymmetry {e(uid)}'>")
+        else:
+            parts.append(f"<p>{e(uid)}: {e(entry.get('refused', ''))}</p>")
+    parts.append("</body></html>")
+    (folder / "report.html").write_text("\n".join(parts), encoding="utf-8")
+
+
+def compare_visits(
+    pipeline: Pipeline,
+    uids: Sequence[str],
+    out: Path,
+    *,
+    process: bool = False,
+    log: Callable[[str], None] = lambda _line: None,
+) -> dict[str, Any]:
+    """Compare archived acquisitions of one patient and write the files into ``out``.
+
+    Parameters
+    ----------
+    pipeline : Pipeline
+        The archive's pipeline.
+    uids : sequence of str
+        Two or more acquisitions (put in time order here).
+    out : Path
+        The folder to create (it must not exist, or be empty).
+    process : bool, optional
+        Process acquisitions that have no stored analysis first.
+    log : callable, optional
+        Progress lines (no patient data).
+
+    Returns
+    -------
+    dict
+        The ``comparison.json`` document.
+
+    Raises
+    ------
+    InputError
+        Fewer than two acquisitions, acquisitions of different patients, an unusable output
+        folder, or the only pair refused (the reason).
+    NotFoundError
+        Unknown or unprocessed acquisitions.
+    """
+    from rasterserver.comparison_files import write_distance_png
+    from rasterserver.output_files import check_output_folder
+    from rasterserver.store.durable import fsync_dir, fsync_file
+
+    if len(set(uids)) < 2:
+        raise InputError("a comparison needs two different acquisitions")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"output folder {out}: exists and is not an empty folder")
+    check_output_folder(out, what="output folder")
+    infos = [pipeline.archive.info(uid) for uid in uids]
+    if len({i.patient_id for i in infos}) > 1:
+        raise InputError("the acquisitions belong to different patients")
+    order = sorted(range(len(uids)), key=lambda k: infos[k].acquired_at)
+    visits = []
+    for k in order:
+        visits.append(load_visit(pipeline, uids[k], process=process))
+        log(f"read acquisition {uids[k]}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    temp = out.with_name(f".{out.name}.partial-{secrets.token_hex(4)}")
+    temp.mkdir()
+    try:
+        pairs = [(visits[k], visits[k + 1]) for k in range(len(visits) - 1)]
+        if len(visits) > 2:
+            pairs.append((visits[0], visits[-1]))
+        entries = [_pair(a, b, temp) for a, b in pairs]
+        if len(entries) == 1 and "refused" in entries[0]:
+            raise ComparisonRefusedError(entries[0]["refused"])
+        asymmetry: dict[str, Any] = {}
+        maps: dict[str, DistanceMap] = {}
+        for v in visits:
+            if v.visit is None:
+                asymmetry[v.uid] = {"refused": v.reason}
+                continue
+            try:
+                amap = asymmetry_map(v.visit)
+            except ComparisonRefusedError as exc:
+                asymmetry[v.uid] = {"refused": str(exc)}
+                continue
+            maps[v.uid] = amap
+            name = f"asymmetry_{v.uid}.png"
+            write_distance_png(amap, temp / name, title=f"asymmetry {v.acquired_at:%Y-%m-%d}")
+            asymmetry[v.uid] = {"statistics": amap.statistics(), "file": name}
+        for entry in entries:
+            reg_map = entry.pop("_maps", None)
+            if reg_map is not None and entry["a"] in maps and entry["b"] in maps:
+                change = asymmetry_change(maps[entry["a"]], maps[entry["b"]], reg_map[0])
+                entry["asymmetry_change"] = change.statistics()
+        table = trends([TrendVisit(v.uid, v.acquired_at, v.parameters) for v in visits])
+        write_trends(table, temp)
+        _trends_plot(table, temp / "trends.png")
+        document = {
+            "format": COMPARISON_FORMAT,
+            "frame": "world frame of each pair's first visit's calibration (mm)",
+            "visits": [
+                {"uid": v.uid, "acquired_at": v.acquired_at.isoformat(), "reason": v.reason}
+                for v in visits
+            ],
+            "pairs": entries,
+            "asymmetry": asymmetry,
+        }
+        (temp / "comparison.json").write_text(
+            json.dumps(document, indent=2, allow_nan=False) + "\n", encoding="utf-8"
+        )
+        _report(temp, visits, entries, table, asymmetry)
+        for path in temp.iterdir():
+            fsync_file(path)
+        if out.exists():
+            out.rmdir()  # empty, checked above
+        os.replace(temp, out)
+        fsync_dir(out.parent)
+    except OSError as exc:
+        raise InputError(f"cannot write {out}: {exc.strerror or exc}") from None
+    finally:
+        if temp.exists():
+            shutil.rmtree(temp, ignore_errors=True)
+    return document

@@ -1,0 +1,98 @@
+"""``rasterserver compare``: the installed command in fresh processes on a small simulated
+patient (two visits of a progressing scoliosis, SQLite archive)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from installed_cli import TRACEBACK, describe, run_installed
+
+from rasterserver.archive import Archive
+from rasterserver.config import Settings, sqlite_url
+
+PATIENT = "P-CMP"
+
+
+@pytest.fixture(scope="module")
+def patient(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]:
+    """An archive with two processed visits of one patient and one unprocessed visit of
+    another; returns the archive and the uids (patient's first, second, other)."""
+    from rasterserver.demo import simulate_visits
+    from rasterserver.optics import default_station
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.simulated_visits import archive_visits
+
+    root = tmp_path_factory.mktemp("compare") / "archive"
+    assert run_installed("db", "upgrade", archive=root).returncode == 0
+    with Archive(Settings(archive=root, database_url=sqlite_url(root))) as archive:
+        visits = simulate_visits(2, supersample=1, progression=0.5)
+        rows = archive_visits(archive, visits, station=default_station(), patient=PATIENT)
+        for row in rows:
+            for target in ("mesh", "analysis"):
+                Pipeline(archive).process(row.uid, until=target)
+        (other,) = archive_visits(archive, visits[:1], station=default_station(), patient="P-2")
+    return root, [rows[0].uid, rows[1].uid, other.uid]
+
+
+def test_two_acquisitions(patient, tmp_path: Path) -> None:
+    root, (first, second, _other) = patient
+    out = tmp_path / "out"
+    done = run_installed("compare", second, first, "-o", str(out), archive=root)
+    assert done.returncode == 0, describe(done)
+    assert f"{first} -> {second}: registered" in done.stdout
+    names = {p.name for p in out.iterdir()}
+    stem = f"distance_{first}-{second}"
+    assert {f"{stem}.ply", f"{stem}.png", "comparison.json", "trends.csv", "trends.json"} <= names
+    assert {"trends.png", "report.html", f"asymmetry_{first}.png"} <= names
+    assert not [n for n in names if n.startswith(".")]
+    document = json.loads((out / "comparison.json").read_text())
+    (pair,) = document["pairs"]
+    assert pair["a"] == first and pair["registration"]["fitness"] > 0.9
+    assert pair["distance"]["rms_mm"] > 0.5  # the scoliosis progressed
+    assert (out / f"{stem}.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
+    trends = (out / "trends.csv").read_text().splitlines()
+    assert trends[0].startswith("parameter,unit,visit,date,value,change,sdc,flagged")
+    assert any(line.startswith("surface_rotation_rms_deg,deg,") for line in trends)
+    assert "Timeline" in (out / "report.html").read_text()
+
+
+def test_patient(patient, tmp_path: Path) -> None:
+    root, (first, second, _other) = patient
+    out = tmp_path / "p"
+    done = run_installed("compare", "--patient", PATIENT, "-o", str(out), archive=root)
+    assert done.returncode == 0, describe(done)
+    assert f"{first} -> {second}" in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["--patient", "NOBODY"], 3, "unknown patient"),
+        (["--patient", "P-2"], 2, "a comparison needs at least two"),
+        (["f" * 32, "e" * 32], 3, "unknown acquisition"),
+        ([], 2, "give two acquisition uids or --patient"),
+    ],
+)
+def test_refusals(patient, tmp_path: Path, args: list[str], code: int, message: str) -> None:
+    root, _uids = patient
+    out = tmp_path / "out"
+    done = run_installed("compare", *args, "-o", str(out), archive=root)
+    assert done.returncode == code, describe(done)
+    assert message in done.stderr and TRACEBACK not in done.stderr
+    assert not out.exists()
+
+
+def test_different_patients_and_unprocessed(patient, tmp_path: Path) -> None:
+    root, (first, _second, other) = patient
+    out = tmp_path / "out"
+    done = run_installed("compare", first, other, "-o", str(out), archive=root)
+    assert done.returncode == 2, describe(done)
+    assert "different patients" in done.stderr and not out.exists()
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "x").write_text("keep")
+    done = run_installed("compare", first, _second, "-o", str(busy), archive=root)
+    assert done.returncode == 2 and "not an empty folder" in done.stderr
+    assert [p.name for p in busy.iterdir()] == ["x"]
