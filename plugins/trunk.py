@@ -218,7 +218,7 @@ def _bridge_inner_gaps(
 ) -> np.ndarray:
     """``valid`` with gaps of at most ``longest`` cells bridged where they lie within
     ``reach`` columns of ``centre`` (for finding runs only; depths are not invented)."""
-    ny, nx = valid.shape
+    _, nx = valid.shape
     cols = np.arange(nx)
     # distance (cells) to the previous and next valid cell in the row
     last = np.where(valid, cols[None, :], -1)
