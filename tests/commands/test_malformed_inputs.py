@@ -378,6 +378,7 @@ def _run(
         *args,
         archive=Path(workspace["archive"]) if archive else None,
         database_url=workspace["database_url"] if archive else None,
+        timeout=120,  # every case is refused before the work: a case still running failed
     )
     output = done.stdout + done.stderr
     assert TRACEBACK not in output, describe(done)
