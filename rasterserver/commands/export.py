@@ -44,8 +44,10 @@ def export(
         chosen.write(out)
     record = chosen.record
     if isinstance(record, MeshRecord):
-        typer.echo(f"mesh of {len(record.vertices)} vertices, {len(record.triangles)} "
-                   f"triangles written to {out}")
+        typer.echo(
+            f"mesh of {len(record.vertices)} vertices, {len(record.triangles)} "
+            f"triangles written to {out}"
+        )
     else:
         typer.echo(f"{len(record)} points written to {out}")
 

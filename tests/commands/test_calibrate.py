@@ -36,8 +36,19 @@ def setup(settings: Settings):
 def test_dry_run_reports_and_stores_nothing(tmp_path: Path, capsys) -> None:
     frames = rendered_dir()
     report = tmp_path / "report.png"
-    code = main(["calibrate", str(frames), "--station", "sim", "--dry-run",
-                 "--report", str(report), "--output", str(tmp_path / "cal.json")])
+    code = main(
+        [
+            "calibrate",
+            str(frames),
+            "--station",
+            "sim",
+            "--dry-run",
+            "--report",
+            str(report),
+            "--output",
+            str(tmp_path / "cal.json"),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "c0-high-6" in out and "verdict: PASS" in out and "dry run: nothing stored" in out

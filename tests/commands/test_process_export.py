@@ -37,8 +37,12 @@ def test_process_then_reuse_then_export(setup, tmp_path: Path, capsys) -> None:
     assert cli("process", back, "--json") == 0
     (line,) = capsys.readouterr().out.splitlines()
     assert json.loads(line) | {"uid": back} == {
-        "uid": back, "status": "done", "computed": 0, "reused": 8,
-        "reason": json.loads(line)["reason"], "error": "",
+        "uid": back,
+        "status": "done",
+        "computed": 0,
+        "reused": 8,
+        "reason": json.loads(line)["reason"],
+        "error": "",
     }
     for fmt in ("ply", "obj", "stl"):
         path = tmp_path / f"back.{fmt}"
