@@ -14,12 +14,16 @@ from rasterserver.jobs import JobOutcome, process_many
 
 @pytest.fixture
 def three(settings: Settings):
-    frames = {
-        "back": gt.rendering("back").image,
-        "black": np.zeros((604, 576), np.uint8),
-        "small": np.zeros((302, 288), np.uint8),  # not what the camera delivers
-    }
+    frames = {"back": gt.rendering("back").image, "black": np.zeros((604, 576), np.uint8)}
     archive, uids = gt.archive_with_frames(settings, frames)
+    # taken without a station, so no calibration applies: its processing must fail, recorded
+    # (a frame of the wrong size is refused at ingest now, so it cannot serve here)
+    from rasterserver.archive import FrameSource
+
+    uids["uncalibrated"] = archive.ingest(
+        [FrameSource(np.zeros((604, 576), np.uint8), role="raster", name="u.npy")],
+        patient="P1",
+    ).uid
     yield archive, uids
     archive.close()
 
@@ -31,10 +35,10 @@ def _rows(archive, model) -> int:
 
 def _check(outcomes: list[JobOutcome], uids: dict[str, str]) -> None:
     assert [o.uid for o in outcomes] == list(uids.values())
-    back, black, small = outcomes
+    back, black, uncalibrated = outcomes
     assert back.status == "done" and back.computed == 7 and back.error == ""
     assert black.status == "done" and black.reason  # empty result, with the reason
-    assert small.status == "failed" and "302x288" in small.error
+    assert uncalibrated.status == "failed" and "calibration" in uncalibrated.error
 
 
 def test_in_process_with_progress_and_failures(three) -> None:
@@ -96,7 +100,7 @@ def test_several_targets_share_their_stages(three, on_dask: bool) -> None:
     # `process` computes the mesh and the analysis: one surface, counted once
     archive, uids = three
     targets = ("mesh", "analysis")
-    wanted = [uids["back"], uids["small"]]
+    wanted = [uids["back"], uids["uncalibrated"]]
     if not on_dask:
         outcomes = process_many(archive, wanted, until=targets)
     else:
@@ -108,9 +112,9 @@ def test_several_targets_share_their_stages(three, on_dask: bool) -> None:
             distributed.Client(cluster) as client,
         ):
             outcomes = process_many(archive, wanted, until=targets, client=client)
-    back, small = outcomes
+    back, uncalibrated = outcomes
     assert back.status == "done" and (back.computed, back.reused) == (8, 0)
-    assert small.status == "failed" and "302x288" in small.error
+    assert uncalibrated.status == "failed" and "calibration" in uncalibrated.error
     assert _rows(archive, StageResult) == 8
     again = process_many(archive, [uids["back"]], until=targets)
     assert (again[0].computed, again[0].reused) == (0, 8)
