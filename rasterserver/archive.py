@@ -35,6 +35,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from rasterserver.catalog import migrate
 from rasterserver.catalog.database import WriteLock, make_engine, session_factory
+from rasterserver.catalog.lookup import patient_id_of, stored_name
 from rasterserver.catalog.models import (
     ACQUISITION_KINDS,
     FRAME_ROLES,
@@ -49,7 +50,10 @@ from rasterserver.catalog.models import (
     Visit,
 )
 from rasterserver.config import Settings
+from rasterserver.documents import calibration_from_document, raster_from_document
 from rasterserver.errors import ConflictError, InputError, NotFoundError
+from rasterserver.frame_fit import check_frames_fit
+from rasterserver.identifiers import PATIENT_MAX, check_name, lookup_key
 from rasterserver.imageio import decode_frame_bytes, read_frame
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
 from rasterserver.times import require_zone
@@ -196,10 +200,17 @@ _INFO_COLUMNS = (
     Acquisition.acquired_at, Acquisition.operator, Acquisition.notes,
 )
 _FRAME_COLUMNS = (Frame.index, Frame.role, Frame.height, Frame.width, Frame.dtype, Frame.sha256)
-_PATIENT_ID = select(Patient.id).where(Patient.identifier == bindparam("identifier"))
+
+
+def _patient_params(identifier: str) -> dict[str, str]:
+    """The bound values of :data:`_PATIENT_OF`."""
+    return {"identifier": identifier, "identifier_key": lookup_key(identifier)}
+
+
+_PATIENT_OF = patient_id_of(bindparam("identifier"), bindparam("identifier_key"))
+_PATIENT_ID = select(Patient.id).where(Patient.id == _PATIENT_OF)
 _PATIENT_INFO = select(Patient.id, Patient.identifier, Patient.name, Patient.birth_date,
-                       Patient.sex, Patient.created_at).where(
-    Patient.identifier == bindparam("identifier"))
+                       Patient.sex, Patient.created_at).where(Patient.id == _PATIENT_OF)
 
 
 def _with_frames(page: Select[Any]) -> Select[Any]:
@@ -215,7 +226,7 @@ def _find_statement(patient: bool, since: bool, until: bool, kind: bool) -> Sele
     """The statement of :meth:`Archive.find` for one combination of filters."""
     page = select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
     if patient:  # by identifier, in the same query: no round trip to look up the id first
-        page = page.where(Patient.identifier == bindparam("identifier"))
+        page = page.where(Acquisition.patient_id == _PATIENT_OF)
     if since:
         page = page.where(Acquisition.acquired_at >= bindparam("since"))
     if until:
@@ -374,30 +385,39 @@ class Archive:
     ) -> Patient:
         """Register a patient under the site's identifier.
 
+        The identifier follows :mod:`rasterserver.identifiers` (stored NFC; printable, no
+        ``/``, at most 64 characters) and must differ from every registered one by more than
+        case or look-alike characters.
+
         Raises
         ------
         InputError
-            Empty identifier or unknown sex.
+            An identifier that breaks the rules, or an unknown sex.
         ConflictError
-            The identifier is already taken.
+            The identifier, or a look-alike of it, is already taken.
         """
-        identifier = identifier.strip()
-        if not identifier or len(identifier) > 64:
-            raise InputError("a patient identifier must have 1 to 64 characters")
+        identifier = check_name(identifier, "a patient identifier", max_length=PATIENT_MAX)
         if sex not in SEXES:
             raise InputError(f"sex must be one of {', '.join(SEXES)}")
-        patient = Patient(identifier=identifier, name=name, birth_date=birth_date, sex=sex)
+        patient = Patient(identifier=identifier, identifier_key=lookup_key(identifier),
+                          name=name, birth_date=birth_date, sex=sex)
         try:
             with self.session() as session:
                 session.add(patient)
         except SQLIntegrityError:
-            raise ConflictError("a patient with this identifier exists already") from None
+            raise ConflictError("a patient with this identifier, or one that differs only in "
+                                "case or look-alike characters, exists already") from None
         return patient
 
     def patient(self, identifier: str, session: Session | None = None) -> Patient:
-        """Return the patient with ``identifier`` or raise :class:`NotFoundError`."""
+        """Return the patient with ``identifier`` or raise :class:`NotFoundError`.
+
+        The identifier as registered, or failing that one that differs from it only in case
+        or look-alike characters (:func:`~rasterserver.catalog.lookup.patient_id_of`).
+        """
         with self._maybe_session(session) as s:
-            found = s.scalar(select(Patient).where(Patient.identifier == identifier))
+            found = s.scalar(select(Patient).where(Patient.id == _PATIENT_OF),
+                             _patient_params(identifier))
         if found is None:
             raise NotFoundError(
                 "unknown patient: register it first with `rasterserver patient add`"
@@ -415,7 +435,7 @@ class Archive:
             No such patient.
         """
         with self.reading() as conn:
-            row = conn.execute(_PATIENT_INFO, {"identifier": identifier}).first()
+            row = conn.execute(_PATIENT_INFO, _patient_params(identifier)).first()
         if row is None:
             raise NotFoundError(
                 "unknown patient: register it first with `rasterserver patient add`"
@@ -430,21 +450,29 @@ class Archive:
             )
 
     def add_station(self, name: str, *, description: str = "") -> Station:
-        """Register an acquisition station (a camera and projector set-up)."""
-        if not name.strip():
-            raise InputError("a station needs a name")
-        station = Station(name=name.strip(), description=description)
+        """Register an acquisition station (a camera and projector set-up).
+
+        The name follows :mod:`rasterserver.identifiers` and must differ from every other
+        station's by more than case or look-alike characters.
+        """
+        name = check_name(name, "a station name")
+        station = Station(name=name, description=description)
         try:
             with self.session() as session:
+                if (other := stored_name(session, Station.name, name, exact=False)):
+                    raise ConflictError(f"station {other!r} exists already")
                 session.add(station)
         except SQLIntegrityError:
             raise ConflictError(f"station {name!r} exists already") from None
         return station
 
     def station(self, name: str, session: Session | None = None) -> Station:
-        """Return the station called ``name`` or raise :class:`NotFoundError`."""
+        """Return the station called ``name`` (or, failing that, a name that differs only in
+        case or look-alike characters) or raise :class:`NotFoundError`."""
         with self._maybe_session(session) as s:
-            found = s.scalar(select(Station).where(Station.name == name))
+            named = stored_name(s, Station.name, name)
+            found = None if named is None else s.scalar(select(Station)
+                                                        .where(Station.name == named))
         if found is None:
             raise NotFoundError(f"unknown station {name!r}")
         return found
@@ -454,11 +482,17 @@ class Archive:
         with self.session() as s:
             return list(s.scalars(select(Station).order_by(Station.name)))
 
-    def add_raster(self, name: str, definition: dict[str, Any]) -> Raster:
+    def add_raster(
+        self, name: str, definition: dict[str, Any], *, source: str = "raster definition"
+    ) -> Raster:
         """Store a raster diapositive definition; the same definition is stored once.
 
         Returns the existing row when an identical definition is stored under the same name.
+        The definition is checked first (:func:`rasterserver.documents.raster_from_document`;
+        ``source`` names it in the message).
         """
+        name = check_name(name, "a raster name")
+        raster_from_document(definition, source=source)
         digest = canonical_json_sha256(definition)
         with self.session() as s:
             same = s.scalar(select(Raster).where(Raster.sha256 == digest))
@@ -468,6 +502,8 @@ class Archive:
                         f"this raster definition is stored already as {same.name!r}"
                     )
                 return same
+            if (other := stored_name(s, Raster.name, name, exact=False)):
+                raise ConflictError(f"another raster is called {other!r}")
             raster = Raster(name=name, definition=definition, sha256=digest)
             s.add(raster)
             try:
@@ -477,9 +513,12 @@ class Archive:
         return raster
 
     def raster(self, name: str) -> Raster:
-        """Return the raster called ``name`` or raise :class:`NotFoundError`."""
+        """Return the raster called ``name`` (as :meth:`station`) or raise
+        :class:`NotFoundError`."""
         with self.session() as s:
-            found = s.scalar(select(Raster).where(Raster.name == name))
+            named = stored_name(s, Raster.name, name)
+            found = None if named is None else s.scalar(select(Raster)
+                                                        .where(Raster.name == named))
         if found is None:
             raise NotFoundError(f"unknown raster {name!r}")
         return found
@@ -494,6 +533,7 @@ class Archive:
         valid_from: dt.datetime | None = None,
         source_acquisition: str | None = None,
         notes: str = "",
+        source: str = "calibration",
     ) -> Calibration:
         """Store a new calibration version of ``station``.
 
@@ -515,20 +555,28 @@ class Archive:
             uid of the acquisition holding the control-point frames.
         notes : str
             Free text.
+        source : str
+            How a refusal names the document (a file name).
 
         Returns
         -------
         Calibration
+
+        Raises
+        ------
+        InputError
+            The document is refused (:func:`rasterserver.documents.calibration_from_document`).
         """
-        if not isinstance(parameters, dict) or not parameters:
-            raise InputError("calibration parameters must be a non-empty JSON object")
+        calibration_from_document(parameters, source=source)
         if valid_from is not None:
             require_zone(valid_from, "valid from")
         with self.session() as s:
             st = self.station(station, s)
             raster_row = None
             if raster is not None:
-                raster_row = s.scalar(select(Raster).where(Raster.name == raster))
+                named = stored_name(s, Raster.name, raster)
+                raster_row = None if named is None else s.scalar(select(Raster)
+                                                                 .where(Raster.name == named))
                 if raster_row is None:
                     raise NotFoundError(f"unknown raster {raster!r}")
             source_id = None
@@ -787,6 +835,7 @@ class Archive:
              for src in spec.frames]
             for spec in specs
         ]
+        check_frames_fit(self, specs, [ref.calibration_id for ref in refs], decoded)
         uids = [uuid.uuid4().hex for _ in specs]
 
         def write(i: int) -> list[StoredFrame]:
@@ -1004,13 +1053,15 @@ class Archive:
         _check_range(since, until)
         params: dict[str, Any] = {"identifier": patient, "since": since, "until": until,
                                   "kind": kind, "limit": limit, "offset": offset}
+        if patient is not None:
+            params["identifier_key"] = lookup_key(patient)
         query = _find_statement(*(params[k] is not None
                                   for k in ("identifier", "since", "until", "kind")))
         with self.reading() as conn:
             found = _infos(conn.execute(query, params))
             # an empty page of an unknown patient is an error; one more query tells which
             if not found and patient is not None and conn.execute(
-                    _PATIENT_ID, {"identifier": patient}).first() is None:
+                    _PATIENT_ID, _patient_params(patient)).first() is None:
                 raise NotFoundError(
                     "unknown patient: register it first with `rasterserver patient add`")
         return found

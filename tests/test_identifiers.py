@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from rasterserver.errors import InputError
+from rasterserver.config import Settings
+from rasterserver.errors import ConflictError, InputError
 from rasterserver.identifiers import NAME_MAX, PATIENT_MAX, check_name, lookup_key
 
 
@@ -82,3 +83,34 @@ def test_different_names_have_different_keys() -> None:
     keys = {lookup_key(n) for n in ("P-1", "P-2", "P1", "P 1", "P_1", "e", "é")}
     assert len(keys) == 7
 
+
+def test_the_archive_and_the_accounts_apply_the_rules(settings: Settings) -> None:
+    from rasterserver.api import auth
+    from rasterserver.archive import Archive
+    from rasterserver.optics import default_station
+
+    with Archive.create(settings) as archive:
+        patient = archive.add_patient("e\u0301-P1")
+        assert patient.identifier == "\u00e9-P1"
+        for make in (
+            lambda n: archive.add_patient(n),
+            lambda n: archive.add_station(n),
+            lambda n: archive.add_raster(n, default_station().raster_definition.to_dict()),
+            lambda n: auth.add_account(archive, n, role="admin"),
+        ):
+            for bad in ("SL/01", "a\x00b", "a\nb", " x", ""):
+                with pytest.raises(InputError):
+                    make(bad)
+        # case and look-alikes: one name, found whichever way it is typed
+        with pytest.raises(ConflictError):
+            archive.add_patient("\u00c9-p1")
+        assert archive.patient("\u00c9-p1").identifier == "\u00e9-P1"
+        archive.add_station("Clinic-1")
+        with pytest.raises(ConflictError, match="Clinic-1"):
+            archive.add_station("clinic-1")
+        assert archive.station("CLINIC-1").name == "Clinic-1"
+        auth.add_account(archive, "Alice", role="admin")
+        with pytest.raises(ConflictError):
+            auth.add_account(archive, "alice", role="clinician")
+        assert auth.create_token(archive, "ALICE").startswith(auth.TOKEN_PREFIX)
+        assert [p.name for p in auth.accounts(archive)] == ["Alice"]

@@ -22,7 +22,7 @@ from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import ApiJob
 from rasterserver.errors import NotFoundError
 from rasterserver.jobs import process_many
-from rasterserver.pipeline import DEFAULT_TARGET
+from rasterserver.pipeline import DEFAULT_TARGETS
 from rasterserver.runner import current_runner, runner_gone
 
 
@@ -50,7 +50,7 @@ class JobRunner:
         chain: Mapping[str, str] | None = None,
         params: Mapping[str, Mapping[str, Any]] | None = None,
         calibration: tuple[str, int | None] | None = None,
-        until: str = DEFAULT_TARGET,
+        until: str | Sequence[str] = DEFAULT_TARGETS,
     ) -> ApiJob:
         """Queue a job over ``uids`` and return its row (status ``queued``)."""
         job = ApiJob(id=uuid.uuid4().hex, owner=owner, uids=list(uids), status="queued",

@@ -6,7 +6,11 @@ import datetime as dt
 import json
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field, PlainValidator
+
+from rasterserver.api.fields import AccountKind, AcquisitionKind, Day, FrameRole, Instant, Role, Sex
+from rasterserver.documents import CalibrationDocument, RasterDocument
+from rasterserver.times import TIME_RULE
 
 
 def _finite_json(document: dict[str, Any]) -> dict[str, Any]:
@@ -22,6 +26,23 @@ def _finite_json(document: dict[str, Any]) -> dict[str, Any]:
 JsonObject = Annotated[dict[str, Any], AfterValidator(_finite_json)]
 
 
+def _json_object(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ValueError("must be a JSON object")
+    return value
+
+
+# The documents are checked where they are stored (rasterserver.documents, through the
+# archive), the same for the CLI and HTTP, with messages naming the field; here they are only
+# objects, published in OpenAPI with the documents' schema.
+CalibrationJson = Annotated[
+    dict[str, Any], PlainValidator(_json_object, json_schema_input_type=CalibrationDocument)
+]
+RasterJson = Annotated[
+    dict[str, Any], PlainValidator(_json_object, json_schema_input_type=RasterDocument)
+]
+
+
 class Health(BaseModel):
     status: str
     version: str
@@ -30,14 +51,14 @@ class Health(BaseModel):
 
 class AccountIn(BaseModel):
     name: str = Field(min_length=1, max_length=100)
-    role: str = Field(description="admin, clinician, station or researcher")
-    kind: str = Field("user", description="user or service")
+    role: Role
+    kind: AccountKind = Field("user", description="A person (user) or a machine (service).")
 
 
 class AccountOut(BaseModel):
     name: str
-    role: str
-    kind: str
+    role: Role
+    kind: AccountKind
 
 
 class StationIn(BaseModel):
@@ -53,7 +74,7 @@ class StationOut(BaseModel):
 
 class RasterIn(BaseModel):
     name: str = Field(min_length=1, max_length=100)
-    definition: JsonObject
+    definition: RasterJson = Field(description="A rasterserver.raster/1 document (checked).")
 
 
 class RasterOut(BaseModel):
@@ -64,10 +85,11 @@ class RasterOut(BaseModel):
 
 
 class CalibrationIn(BaseModel):
-    parameters: JsonObject
+    parameters: CalibrationJson = Field(
+        description="A rasterserver.calibration/1 document (checked).")
     residuals: JsonObject | None = None
     raster: str | None = None
-    valid_from: dt.datetime | None = None
+    valid_from: Instant | None = Field(None, description=f"From when it applies: {TIME_RULE}.")
     source_acquisition: str | None = None
     notes: str = ""
 
@@ -87,8 +109,8 @@ class CalibrationOut(BaseModel):
 class PatientIn(BaseModel):
     identifier: str = Field(min_length=1, max_length=64)
     name: str = Field("", max_length=200)
-    birth_date: dt.date | None = None
-    sex: str = "unknown"
+    birth_date: Day | None = Field(None, description="YYYY-MM-DD.")
+    sex: Sex = "unknown"
 
 
 class PatientOut(BaseModel):
@@ -96,7 +118,7 @@ class PatientOut(BaseModel):
     pseudonymised: bool
     name: str | None = Field(None, description="Absent for researchers.")
     birth_date: dt.date | None = Field(None, description="Absent for researchers.")
-    sex: str
+    sex: Sex
     created_at: dt.datetime
 
 
@@ -107,7 +129,7 @@ class VisitOut(BaseModel):
 
 class FrameOut(BaseModel):
     index: int
-    role: str
+    role: FrameRole
     height: int
     width: int
     dtype: str
@@ -116,7 +138,7 @@ class FrameOut(BaseModel):
 
 class AcquisitionOut(BaseModel):
     uid: str
-    kind: str
+    kind: AcquisitionKind
     patient: str | None = Field(description="Identifier, or pseudonym for researchers.")
     station_id: int | None
     calibration_id: int | None
@@ -124,6 +146,13 @@ class AcquisitionOut(BaseModel):
     operator: str | None
     notes: str | None
     frames: list[FrameOut]
+
+
+class UploadOut(AcquisitionOut):
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="Stored, but: e.g. no calibration applies yet, so the frame size was not "
+        "checked against a camera (which case, and why).")
 
 
 class ResultOut(BaseModel):
@@ -163,7 +192,11 @@ class JobIn(BaseModel):
     params: dict[str, JsonObject] = Field(default_factory=dict)
     calibration_station: str | None = None
     calibration_version: int | None = Field(None, ge=1, le=2**31)
-    until: str = "mesh"
+    until: str | list[Annotated[str, Field(max_length=64)]] = Field(
+        default_factory=lambda: ["mesh", "analysis"],
+        description="Last stage kind, or several (each its own chain; shared stages run once). "
+        "Default: the mesh and the back-shape analysis, as `rasterserver process`.",
+    )
 
 
 class JobOutcomeOut(BaseModel):

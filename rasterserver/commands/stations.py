@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
-from rasterserver.errors import InputError
 
 station_app = typer.Typer(
     help="Register stations (camera + projector set-ups), rasters and calibrations.",
@@ -17,16 +15,11 @@ station_app = typer.Typer(
 )
 
 
-def _load_json(path: Path, what: str) -> dict[str, Any]:
-    try:
-        document = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path.name}: no such {what} file") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path.name}: not a JSON {what} ({exc})") from None
-    if not isinstance(document, dict):
-        raise InputError(f"{path.name}: a {what} must be a JSON object")
-    return document
+def _read(path: Path, what: str) -> Any:
+    """The parsed JSON of ``path``; what it must be is checked when it is stored."""
+    from rasterserver.documents import read_document
+
+    return read_document(path, what=what)
 
 
 @station_app.command("add")
@@ -57,10 +50,13 @@ def add_raster(
     name: Annotated[str, typer.Argument(help="Raster name.")],
     definition: Annotated[Path, typer.Argument(help="Raster definition JSON file.")],
 ) -> None:
-    """Store a raster diapositive definition (rasterserver.raster/1 JSON)."""
-    document = _load_json(definition, "raster definition")
+    """Store a raster diapositive definition (rasterserver.raster/1 JSON).
+
+    The definition is checked first (docs/formats.md); a refused one stores nothing (exit 2).
+    """
+    document = _read(definition, "raster definition")
     with open_archive(ctx) as archive:
-        archive.add_raster(name, document)
+        archive.add_raster(name, document, source=definition.name)
     typer.echo(f"raster {name} stored")
 
 
@@ -81,12 +77,15 @@ def add_calibration(
     ] = None,
     notes: Annotated[str, typer.Option(help="Free text.")] = "",
 ) -> None:
-    """Import a calibration as the station's next version (calibrations are immutable)."""
-    document = _load_json(calibration, "calibration")
+    """Import a calibration as the station's next version (calibrations are immutable).
+
+    The calibration is checked first (docs/formats.md); a refused one stores nothing (exit 2).
+    """
+    document = _read(calibration, "calibration")
     with open_archive(ctx) as archive:
         row = archive.add_calibration(
             station, document, raster=raster, notes=notes,
-            valid_from=parse_datetime(valid_from, "--valid-from"),
+            valid_from=parse_datetime(valid_from, "--valid-from"), source=calibration.name,
         )
     typer.echo(f"station {station}: calibration version {row.version} stored")
 

@@ -39,13 +39,14 @@ def test_process_job_results_and_exports(live_sqlite: LiveServer, tmp_path) -> N
             time.sleep(0.5)
         assert state["status"] == "done", state
         assert state["done"] == state["total"] == 1
-        assert state["outcomes"][0]["computed"] == 7
+        # by default a job computes the mesh and the back-shape analysis, as `process` does
+        assert state["outcomes"][0]["computed"] == 8
         assert c.get("/jobs", params={"status": "done"}).json()[0]["id"] == job_id
         results = c.get(f"/acquisitions/{uid}/results").json()
         assert [r["stage"] for r in results] == ["peaks", "lines", "order", "numbers", "points",
-                                                 "surface", "mesh"]
+                                                 "surface", "mesh", "analysis"]
         mesh_row = c.get(f"/acquisitions/{uid}/results/mesh")
-        assert mesh_row.headers["etag"].strip('"') == results[-1]["output_checksum"]
+        assert mesh_row.headers["etag"].strip('"') == results[-2]["output_checksum"]
         assert c.get(f"/acquisitions/{uid}/results/mesh",
                      headers={"If-None-Match": mesh_row.headers["etag"]}).status_code == 304
         assert c.get(f"/acquisitions/{uid}/runs").json()[0]["status"] == "done"
@@ -65,7 +66,7 @@ def test_process_job_results_and_exports(live_sqlite: LiveServer, tmp_path) -> N
         again = c.post("/jobs", json={"uids": [uid]}).json()["id"]
         while (state := c.get(f"/jobs/{again}").json())["status"] in ("queued", "running"):
             time.sleep(0.2)
-        assert state["outcomes"][0]["reused"] == 7
+        assert state["outcomes"][0]["reused"] == 8
         assert c.post("/jobs", json={"uids": ["f" * 32]}).status_code == 404
     with live.client("researcher") as r:
         points = r.get(f"/acquisitions/{uid}/export", params={"format": "ply",

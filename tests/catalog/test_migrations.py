@@ -176,3 +176,50 @@ def test_0008_names_the_runner_of_pipeline_runs_and_goes_back(database_url: str)
     migrate.upgrade(engine)
     assert migrate.current_revision(engine) == migrate.head_revision(engine)
     engine.dispose()
+
+
+def test_0009_keys_patients_and_keeps_earlier_look_alikes_apart(
+    database_url: str, tmp_path: Path,
+) -> None:
+    import numpy as np
+    from sqlalchemy import text
+
+    from rasterserver.archive import Archive, FrameSource
+    from rasterserver.config import Settings
+    from rasterserver.errors import ConflictError
+
+    engine = make_engine(database_url)
+    migrate.upgrade(engine, "0008")
+    # registered before the rules: look-alikes of each other, a '/', a newline
+    legacy = ["\u00e9", "e\u0301", "P-1", "p-1", "SL/01", "a\nb"]
+    with engine.begin() as conn:
+        for identifier in legacy:
+            conn.execute(text("INSERT INTO patient (identifier, name, sex, created_at) VALUES "
+                              "(:i, '', 'unknown', '2026-01-01')"), {"i": identifier})
+    migrate.upgrade(engine)
+    with engine.connect() as conn:
+        keys = dict(conn.execute(text("SELECT identifier, identifier_key FROM patient")).all())
+    # the oldest of each group has the key, the later look-alike none
+    assert keys == {"\u00e9": "\u00e9", "e\u0301": None, "P-1": "p-1", "p-1": None,
+                    "SL/01": "sl/01", "a\nb": "a\nb"}
+    archive = Archive(Settings(archive=tmp_path / "archive", database_url=database_url))
+    try:
+        # every stored patient is still found under its exact identifier, and only it
+        for identifier in legacy:
+            assert archive.patient(identifier).identifier == identifier
+            assert archive.patient_info(identifier).identifier == identifier
+        frame = np.zeros((4, 4), np.uint8)
+        uid = archive.ingest([FrameSource(frame)], patient="e\u0301").uid
+        assert [a.uid for a in archive.find(patient="e\u0301")] == [uid]
+        assert archive.find(patient="\u00e9") == []
+        # a look-up that is neither exact goes by the key: to the oldest
+        assert archive.patient("E\u0301").identifier == "\u00e9"
+        with pytest.raises(ConflictError):
+            archive.add_patient("\uff30-1")
+    finally:
+        archive.close()
+    migrate.downgrade(engine, "0008")
+    assert "identifier_key" not in {c["name"] for c in inspect(engine).get_columns("patient")}
+    migrate.upgrade(engine)
+    assert migrate.current_revision(engine) == migrate.head_revision(engine)
+    engine.dispose()

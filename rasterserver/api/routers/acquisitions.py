@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import io
 from typing import Annotated
 
@@ -22,7 +21,8 @@ from rasterserver.api.deps import (
     protected_router,
     utc,
 )
-from rasterserver.api.schemas import AcquisitionOut
+from rasterserver.api.fields import AcquisitionKind, Day, FrameRole, Instant
+from rasterserver.api.schemas import AcquisitionOut, UploadOut
 from rasterserver.api.views import (
     acquisition_body,
     json_response,
@@ -32,6 +32,8 @@ from rasterserver.api.views import (
 from rasterserver.archive import FrameSource
 from rasterserver.catalog.models import ACQUISITION_KINDS
 from rasterserver.errors import InputError, NotFoundError
+from rasterserver.frame_fit import calibration_notice
+from rasterserver.times import TIME_RULE
 
 router = protected_router("acquisitions")
 
@@ -60,9 +62,10 @@ async def list_acquisitions(
     patient: Annotated[str | None, Query(max_length=64,
                                          description="Identifier (researchers: pseudonym).")]
     = None,
-    since: Annotated[dt.datetime | None, Query(description="Acquired at or after.")] = None,
-    until: Annotated[dt.datetime | None, Query(description="Acquired before.")] = None,
-    kind: Annotated[str | None, Query(max_length=16)] = None,
+    since: Annotated[Instant | None, Query(description=f"Acquired at or after: {TIME_RULE}.")]
+    = None,
+    until: Annotated[Instant | None, Query(description="Acquired before (as since).")] = None,
+    kind: Annotated[AcquisitionKind | None, Query()] = None,
 ) -> Response:
     """Acquisitions, newest first, by patient, time range and kind."""
     refuse_date_filters_for(caller, since, until)
@@ -75,9 +78,9 @@ async def list_acquisitions(
     return json_response([acquisition_body(a, caller, svc.pseudonyms) for a in rows])
 
 
-@router.post("/acquisitions", name="upload_acquisition", response_model=AcquisitionOut,
+@router.post("/acquisitions", name="upload_acquisition", response_model=UploadOut,
              status_code=201, responses={
-                 200: {"model": AcquisitionOut,
+                 200: {"model": UploadOut,
                        "description": "Stored before under this Idempotency-Key (a retry): "
                                       "the acquisition that was stored then"},
                  409: {"description": "The Idempotency-Key was used for a different upload"},
@@ -86,14 +89,16 @@ async def list_acquisitions(
 def upload_acquisition(
     svc: ServicesDep, caller: CallerDep, note: NoteDep,
     files: Annotated[list[UploadFile], File(description="Frames: PNG, TIFF, NPY or raw.")],
-    roles: Annotated[list[str] | None, Form(description="Role per frame, or one for all.")]
-    = None,
+    roles: Annotated[list[FrameRole] | None, Form(description="Role per frame, or one for "
+                                                   "all.")] = None,
     patient: Annotated[str | None, Form(max_length=64)] = None,
-    kind: Annotated[str, Form(max_length=16)] = "patient",
+    kind: Annotated[AcquisitionKind, Form()] = "patient",
     station: Annotated[str | None, Form(max_length=100)] = None,
     calibration_version: Annotated[int | None, Form(ge=1, le=2**31)] = None,
-    visit_date: Annotated[dt.date | None, Form()] = None,
-    acquired_at: Annotated[dt.datetime | None, Form()] = None,
+    visit_date: Annotated[Day | None, Form(description="YYYY-MM-DD; default: the day of "
+                                                  "acquired_at at its offset.")] = None,
+    acquired_at: Annotated[Instant | None, Form(description=f"{TIME_RULE}; default: now.")]
+    = None,
     operator: Annotated[str, Form(max_length=100)] = "",
     notes: Annotated[str, Form(max_length=10_000)] = "",
     shape: Annotated[str | None, Form(max_length=32, description="ROWSxCOLS of raw frames.")]
@@ -109,7 +114,9 @@ def upload_acquisition(
     """Store one acquisition of one or several frames, validated like ``rasterserver ingest``.
 
     Every frame is decoded and checked before anything is written: one refused frame and
-    nothing is stored. With an ``Idempotency-Key`` a retried upload is stored once.
+    nothing is stored. With an ``Idempotency-Key`` a retried upload is stored once. A frame
+    whose size differs from the camera of the calibration that applies is refused (422);
+    when no calibration applies yet, ``warnings`` says so and why.
     """
     if kind not in ACQUISITION_KINDS:
         raise InputError(f"kind must be one of {', '.join(ACQUISITION_KINDS)}")
@@ -132,9 +139,11 @@ def upload_acquisition(
                                                 key=idempotency_key, **options)
     note.touch(acq.patient_id, acq.uid)
     # read back as a reader would see it
-    response = json_response(acquisition_body(svc.archive.info(acq.uid), caller,
-                                              svc.pseudonyms),
-                             status_code=200 if replayed else 201)
+    info = svc.archive.info(acq.uid)
+    notice = calibration_notice(svc.archive, info)
+    body = acquisition_body(info, caller, svc.pseudonyms)
+    body["warnings"] = [notice] if notice else []
+    response = json_response(body, status_code=200 if replayed else 201)
     if replayed:
         response.headers["Idempotent-Replayed"] = "true"
     return response

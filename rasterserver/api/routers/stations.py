@@ -88,7 +88,7 @@ def add_calibration(station: StationName, body: CalibrationIn,
     row = svc.archive.add_calibration(
         station, body.parameters, residuals=body.residuals, raster=body.raster,
         valid_from=utc(body.valid_from), source_acquisition=body.source_acquisition,
-        notes=body.notes)
+        notes=body.notes, source="parameters")
     return _calibration(row, station)
 
 
@@ -112,7 +112,7 @@ def get_calibration(
 @router.post("/rasters", name="add_raster", response_model=RasterOut, status_code=201)
 def add_raster(body: RasterIn, svc: ServicesDep) -> RasterOut:
     """Store a raster diapositive definition (the same definition is stored once)."""
-    return _raster(svc.archive.add_raster(body.name, body.definition))
+    return _raster(svc.archive.add_raster(body.name, body.definition, source="definition"))
 
 
 @router.get("/rasters/{name}", name="get_raster", response_model=RasterOut)
