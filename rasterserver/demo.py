@@ -3,8 +3,9 @@
 ``rasterserver demo`` renders a progressing scoliosis (one rasterstereograph per visit, six
 months apart) with the project's simulator, ingests the frames into the archive (SQLite and a
 local folder by default), processes every acquisition through the registered stage plugins
-(mesh and back-shape analysis), exports a mesh and a one-page report per visit, verifies the
-archive and ends with the key clinical parameters of every visit side by side — the whole
+(mesh and back-shape analysis), exports a mesh and a one-page report per visit, compares the
+visits (registration, distance maps, trends: ``rasterserver compare``), verifies the archive
+and ends with the key clinical parameters of every visit side by side — the whole
 path a clinic's data takes, on a fresh machine, with one command.
 """
 
@@ -42,6 +43,8 @@ class DemoResult:
     #: each visit's ``parameters`` (:meth:`rasterserver.analysis.Analysis.document`), or None
     #: when its analysis found nothing
     parameters: list[dict | None] = field(default_factory=list)
+    #: the folder of the visits' comparison report, None when it could not be made
+    comparison: Path | None = None
     verified_frames: int = 0
     problems: int = 0
 
@@ -131,6 +134,9 @@ def run_demo(
                 f"{outcome.reused} reused); mesh of {len(mesh.vertices)} vertices -> {path}"
             )
             result.parameters.append(_report(pipeline, outcome.uid, i, export_dir, result, log))
+        done = [o.uid for o in outcomes if o.status == "done"]
+        if len(done) >= 2:
+            result.comparison = _compare(pipeline, done, export_dir, log)
         report = archive.verify()
         derived = pipeline.verify()
         result.verified_frames = report.frames_checked
@@ -145,6 +151,42 @@ def run_demo(
         for line in parameter_columns(columns):
             log("  " + line)
     return result
+
+
+def _compare(
+    pipeline: Pipeline, uids: list[str], export_dir: Path, log: Callable[[str], None]
+) -> Path | None:
+    """Compare the visits (consecutive ones and first with last) into ``export_dir``.
+
+    A rerun replaces the demo's earlier comparison folder whole: the new one is written beside
+    it first, so an interrupted demo leaves the old one in place.
+    """
+    import shutil
+
+    from rasterserver.errors import InputError
+    from rasterserver.visit_comparison import compare_visits
+
+    final = export_dir / f"{DEMO_PATIENT}-comparison"
+    fresh = export_dir / f".{DEMO_PATIENT}-comparison-new"
+    shutil.rmtree(fresh, ignore_errors=True)
+    try:
+        document = compare_visits(pipeline, uids, fresh)
+    except InputError as exc:
+        log(f"comparison of the visits not made: {exc}")
+        return None
+    shutil.rmtree(final, ignore_errors=True)
+    fresh.rename(final)
+    for pair in document["pairs"]:
+        if "refused" in pair:
+            log(f"comparison {pair['a'][:8]} -> {pair['b'][:8]}: refused: {pair['refused']}")
+            continue
+        stats = pair["distance"]
+        log(
+            f"comparison {pair['a'][:8]} -> {pair['b'][:8]}: distance rms "
+            f"{stats['rms_mm']:.1f} mm, largest {stats['max_abs_mm']:+.1f} mm"
+        )
+    log(f"comparison of the visits (report.html, distance maps, trends) -> {final}")
+    return final
 
 
 def _report(

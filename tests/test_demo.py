@@ -39,6 +39,12 @@ def test_demo_simulates_ingests_processes_exports_and_verifies(
     assert table[0].split() == ["parameter", "visit", "1", "visit", "2", "unit"]
     assert any(line.split()[:2] == ["Scoliosis", "angle"] for line in table)
     assert len(table) == 1 + len(KEY_PARAMETERS) and table == lines[-len(table) :]
+    # the visits compared: registered, distance map and trends in one folder
+    assert result.comparison is not None and result.comparison.parent == tmp_path / "out"
+    assert {"report.html", "comparison.json", "trends.csv"} <= {
+        p.name for p in result.comparison.iterdir()
+    }
+    assert any(line.startswith("comparison ") and "distance rms" in line for line in lines)
     with Archive(settings) as archive:
         assert len(archive.acquisitions(patient=DEMO_PATIENT)) == 2
     assert not any(DEMO_PATIENT in line for line in lines if "ingested" in line)
