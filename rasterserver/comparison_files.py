@@ -155,5 +155,5 @@ def write_distance_png(
     if title:
         ax.set_title(title, fontsize=10)
     with output_file(path, what="distance map picture") as temp:
-        fig.savefig(temp, format="png")
+        fig.savefig(temp, format="png", bbox_inches="tight")
     return Path(path)

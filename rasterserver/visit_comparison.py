@@ -163,7 +163,7 @@ def _trends_plot(table: list[dict[str, Any]], path: Path) -> None:
         ax.tick_params(labelsize=7)
     fig.tight_layout()
     with output_file(path, what="trends plot") as temp:
-        fig.savefig(temp, format="png")
+        fig.savefig(temp, format="png", bbox_inches="tight")
 
 
 def _report(
