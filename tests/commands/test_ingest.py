@@ -4,27 +4,20 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
+from installed_cli import run_installed
 
 from rasterserver.config import Settings
 
+
 #: the installed console script, beside the interpreter running the tests
-RASTERSERVER = str(Path(sys.executable).with_name("rasterserver"))
-
-
 def run(settings: Settings, *args: str) -> subprocess.CompletedProcess[str]:
     """Run the installed ``rasterserver`` on the test archive and catalogue."""
-    base = [
-        RASTERSERVER,
-        "--archive",
-        str(settings.archive),
-        "--database-url",
-        settings.database_url,
-    ]
-    return subprocess.run([*base, *args], capture_output=True, text=True, timeout=120, check=False)
+    return run_installed(
+        *args, archive=settings.archive, database_url=settings.database_url, timeout=120
+    )
 
 
 def test_an_offset_given_at_ingest_is_the_instant_listed(

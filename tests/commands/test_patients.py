@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import subprocess
-import sys
-from pathlib import Path
+
+from installed_cli import run_installed
 
 from rasterserver.config import Settings
-
-RASTERSERVER = str(Path(sys.executable).with_name("rasterserver"))
 
 
 def run(settings: Settings, *args: str) -> subprocess.CompletedProcess[str]:
     """Run the installed ``rasterserver`` on the test archive and catalogue."""
-    base = [
-        RASTERSERVER,
-        "--archive",
-        str(settings.archive),
-        "--database-url",
-        settings.database_url,
-    ]
-    return subprocess.run([*base, *args], capture_output=True, text=True, timeout=120, check=False)
+    return run_installed(
+        *args, archive=settings.archive, database_url=settings.database_url, timeout=120
+    )
 
 
 def test_identifiers_are_checked_and_look_alikes_refused(settings: Settings) -> None:
