@@ -34,7 +34,7 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 from pydantic import (
@@ -645,13 +645,7 @@ def validate_calibration(document: Any, *, source: str = "calibration") -> Calib
     InputError
         Naming ``source`` and every refused field (at most five).
     """
-    checked = _check_kind(document, CALIBRATION_FORMAT, "calibration", source)
-    try:
-        return CalibrationDocument.model_validate(checked)
-    except ValidationError as exc:
-        raise _refusal(source, exc) from None
-    except RecursionError:
-        raise InputError(f"{source}: nested too deeply to be a calibration") from None
+    return _validate(CalibrationDocument, document, CALIBRATION_FORMAT, "calibration", source)
 
 
 def validate_raster(document: Any, *, source: str = "raster definition") -> RasterDocument:
@@ -662,13 +656,20 @@ def validate_raster(document: Any, *, source: str = "raster definition") -> Rast
     InputError
         Naming ``source`` and every refused field (at most five).
     """
-    checked = _check_kind(document, RASTER_FORMAT, "raster definition", source)
+    return _validate(RasterDocument, document, RASTER_FORMAT, "raster definition", source)
+
+
+_Model = TypeVar("_Model", bound=BaseModel)
+
+
+def _validate(model: type[_Model], document: Any, fmt: str, what: str, source: str) -> _Model:
+    checked = _check_kind(document, fmt, what, source)
     try:
-        return RasterDocument.model_validate(checked)
+        return model.model_validate(checked)
     except ValidationError as exc:
         raise _refusal(source, exc) from None
     except RecursionError:
-        raise InputError(f"{source}: nested too deeply to be a raster definition") from None
+        raise InputError(f"{source}: nested too deeply to be a {what}") from None
 
 
 def _device(cls: type[PinholeDevice], doc: _DeviceDocument) -> PinholeDevice:
