@@ -9,12 +9,24 @@
 * The overlay: the raw frame with every peak coloured by its line number and the numbers
   written at the ends of each line, what a clinician looks at to trust the numbering.
 
-Coordinates are millimetres in the world frame of the calibration used.
+Coordinates are millimetres, in one of two frames (:class:`ExportFrame`):
+
+* ``station`` (default): the world frame of the calibration used — X to the patient's right,
+  Y down (gravity), Z away from the camera (anterior);
+* ``patient``: the body-fixed frame of the acquisition's back-shape analysis (origin DM, the
+  midpoint of the lumbar dimples; X transverse towards the patient's right along DL→DR, Y up
+  along DM→VP, Z posterior, right-handed; ``docs/analysis.md``), the frame in which visits are
+  compared. It needs VP, DL and DR; an acquisition without them is refused with the reason.
+
+Every file written by ``rasterserver export`` gets a sidecar ``<file>.json`` naming the
+acquisition, the stored result, the frame with its origin and axes, and the units.
 """
 
 from __future__ import annotations
 
 import colorsys
+import dataclasses
+import json
 from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
@@ -36,6 +48,7 @@ __all__ = [
     "MESH_FORMATS",
     "POINT_FORMATS",
     "ExportFormat",
+    "ExportFrame",
     "ExportWhat",
     "StoredExport",
     "line_colours",
@@ -70,6 +83,23 @@ class ExportWhat(StrEnum):
 
 _STAGE_OF = {ExportWhat.mesh: "mesh", ExportWhat.points: "points", ExportWhat.smoothed: "surface"}
 
+SIDECAR_FORMAT = "rasterserver.export/1"
+
+
+class ExportFrame(StrEnum):
+    """Coordinate frame of an export (see the module docstring)."""
+
+    station = "station"
+    patient = "patient"
+
+
+_FRAME_AXES = {
+    ExportFrame.station: "X to the patient's right, Y down (gravity), Z anterior (away from "
+    "the camera): the calibration's world frame",
+    ExportFrame.patient: "origin DM; X to the patient's right (DL->DR), Y up (DM->VP), Z "
+    "posterior; right-handed body-fixed frame of the back-shape analysis",
+}
+
 
 @dataclass(frozen=True)
 class StoredExport:
@@ -79,12 +109,58 @@ class StoredExport:
     record: MeshRecord | Points
     fmt: ExportFormat
     what: ExportWhat
+    uid: str = ""
+    frame: ExportFrame = ExportFrame.station
+    #: world → frame: ``p_frame = axes @ (p_world - origin)``; identity for the station frame
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    axes: tuple[tuple[float, float, float], ...] = (
+        (1.0, 0.0, 0.0),
+        (0.0, 1.0, 0.0),
+        (0.0, 0.0, 1.0),
+    )
+    frame_source: int | None = None
 
-    def write(self, path: Path) -> Path:
-        """Write the record to ``path`` in the chosen format."""
+    def write(self, path: Path, *, sidecar: bool = False) -> Path:
+        """Write the record to ``path`` in the chosen format, and ``<path>.json`` if asked."""
+        if sidecar:
+            check_output(sidecar_path(path))
         if isinstance(self.record, MeshRecord):
-            return write_mesh(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
-        return write_points(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
+            write_mesh(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
+        else:
+            write_points(self.record, path, fmt=self.fmt.value)  # type: ignore[arg-type]
+        if sidecar:
+            with output_file(sidecar_path(path)) as temp:
+                temp.write_text(json.dumps(self.describe(), indent=2) + "\n", encoding="utf-8")
+        return path
+
+    def describe(self) -> dict[str, Any]:
+        """What the file holds: acquisition, stored result, frame, units (the sidecar)."""
+        return {
+            "format": SIDECAR_FORMAT,
+            "acquisition": self.uid,
+            "result": {
+                "id": self.row.id,
+                "stage": self.row.stage,
+                "plugin": self.row.plugin,
+                "plugin_version": self.row.plugin_version,
+                "output_checksum": self.row.output_checksum,
+                "frame_index": self.row.frame_index,
+            },
+            "what": self.what.value,
+            "units": "mm",
+            "frame": {
+                "name": self.frame.value,
+                "axes": _FRAME_AXES[self.frame],
+                "origin_world_mm": list(self.origin),
+                "axes_in_world": [list(a) for a in self.axes],
+                "from_analysis_result": self.frame_source,
+            },
+        }
+
+
+def sidecar_path(path: Path) -> Path:
+    """The sidecar of an export file: ``back.ply`` → ``back.ply.json``."""
+    return Path(path).with_name(Path(path).name + ".json")
 
 
 def select_export(
@@ -94,6 +170,7 @@ def select_export(
     fmt: ExportFormat,
     what: ExportWhat | None = None,
     plugin: str | None = None,
+    frame: ExportFrame = ExportFrame.station,
 ) -> StoredExport:
     """Choose the newest stored mesh or point cloud of ``uid`` for export as ``fmt``.
 
@@ -111,6 +188,9 @@ def select_export(
         ``mesh`` (default), ``points`` (one per peak) or ``smoothed``; ``points`` for csv.
     plugin : str, optional
         Use the newest result of this plugin.
+    frame : ExportFrame, optional
+        ``station`` (the calibration's world frame) or ``patient`` (the body-fixed frame of
+        the acquisition's back-shape analysis of the same frame).
 
     Returns
     -------
@@ -119,9 +199,10 @@ def select_export(
     Raises
     ------
     InputError
-        The format cannot hold what is asked, or the stored result holds nothing to write.
+        The format cannot hold what is asked, the stored result holds nothing to write, or
+        (``patient``) the analysis found no body-fixed frame (the reason is given).
     NotFoundError
-        The acquisition has no such stored result.
+        The acquisition has no such stored result (or, ``patient``, no stored analysis).
     """
     what = what or (ExportWhat.points if fmt is ExportFormat.csv else ExportWhat.mesh)
     if what is ExportWhat.mesh and fmt is ExportFormat.csv:
@@ -130,7 +211,74 @@ def select_export(
         raise InputError(f"{fmt.value} holds meshes: use ply or csv for points")
     stage = _STAGE_OF[what]
     row, record = pipeline.result(uid, stage, plugin=plugin)
-    return StoredExport(row, _exportable(record, uid, stage), fmt, what)
+    chosen = StoredExport(row, _exportable(record, uid, stage), fmt, what, uid=uid)
+    if frame is ExportFrame.station:
+        return chosen
+    return _in_patient_frame(pipeline, chosen)
+
+
+def _in_patient_frame(pipeline: Pipeline, chosen: StoredExport) -> StoredExport:
+    """``chosen`` moved into the body-fixed frame of its frame's newest analysis."""
+    from rasterserver.records_analysis import BackShape
+
+    a_row, shape = pipeline.result(chosen.uid, "analysis")
+    if not isinstance(shape, BackShape):
+        raise InputError(f"the stored analysis of {chosen.uid} is a {shape.kind} record")
+    if a_row.frame_index != chosen.row.frame_index:
+        raise InputError(
+            f"the newest analysis of {chosen.uid} is of frame {a_row.frame_index}, the "
+            f"{chosen.row.stage} of frame {chosen.row.frame_index}: process the acquisition "
+            "again to analyse the same frame"
+        )
+    origin, axes = np.asarray(shape.frame_origin), np.asarray(shape.frame_axes)
+    if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
+        missing = {k: v for k, v in shape.reason_table().items() if k in ("VP", "DL", "DR")}
+        why = "; ".join(f"{k}: {v}" for k, v in missing.items()) or shape.reason or "not found"
+        raise InputError(
+            f"acquisition {chosen.uid} has no body-fixed frame (it needs VP, DL and DR): {why}"
+        )
+    return dataclasses.replace(
+        chosen,
+        record=to_frame(chosen.record, origin, axes),
+        frame=ExportFrame.patient,
+        origin=tuple(float(v) for v in origin),  # type: ignore[arg-type]
+        axes=tuple(tuple(float(v) for v in a) for a in axes),
+        frame_source=a_row.id,
+    )
+
+
+def to_frame(
+    record: MeshRecord | Points, origin: np.ndarray, axes: np.ndarray
+) -> MeshRecord | Points:
+    """Move a mesh or point cloud into a frame: ``p_frame = axes @ (p_world - origin)``.
+
+    Parameters
+    ----------
+    record : MeshRecord or Points
+        In world coordinates (mm).
+    origin : numpy.ndarray
+        ``(3,)`` the frame's origin in world mm.
+    axes : numpy.ndarray
+        ``(3, 3)`` rows are the frame's unit axes in world coordinates (a rotation).
+
+    Returns
+    -------
+    MeshRecord or Points
+        A new record of the same type; normals are rotated, not moved.
+    """
+    if isinstance(record, MeshRecord):
+        return dataclasses.replace(
+            record,
+            vertices=(record.vertices - origin) @ axes.T,
+            normals=record.normals @ axes.T,
+        )
+    moved = (record.xyz - origin) @ axes.T
+    return dataclasses.replace(
+        record,
+        x=np.ascontiguousarray(moved[:, 0]),
+        y=np.ascontiguousarray(moved[:, 1]),
+        z=np.ascontiguousarray(moved[:, 2]),
+    )
 
 
 def _exportable(record: Record, uid: str, stage: str) -> MeshRecord | Points:

@@ -56,6 +56,12 @@ def test_process_job_results_and_exports(live_sqlite: LiveServer, tmp_path) -> N
             path = tmp_path / f"back.{fmt}"
             path.write_bytes(exported.content)
             assert len(o3d.io.read_triangle_mesh(str(path)).triangles) > 30_000
+        body = c.get(f"/acquisitions/{uid}/export", params={"format": "ply",
+                                                            "frame": "patient"})
+        assert body.status_code == 200 and body.headers["x-coordinate-frame"].startswith(
+            "patient")
+        assert body.content != c.get(f"/acquisitions/{uid}/export",
+                                     params={"format": "ply"}).content
         csv = c.get(f"/acquisitions/{uid}/export", params={"format": "csv"})
         header, *rows = csv.text.splitlines()
         assert header.startswith("x_mm,y_mm,z_mm") and len(rows) > 15_000

@@ -110,6 +110,35 @@ def test_export_each_format(processed: Processed, fmt: str) -> None:
     assert [p.name for p in target.parent.iterdir() if ".tmp-" in p.name] == []
 
 
+def test_export_in_the_patient_frame_with_its_sidecar(processed: Processed) -> None:
+    # the body-fixed frame of the analysis: origin DM, X right, Y up (DM -> VP), Z posterior
+    import numpy as np
+    import open3d as o3d
+
+    folder = processed.root / "exports"
+    folder.mkdir(exist_ok=True)
+    station, patient = folder / "station.ply", folder / "patient.ply"
+    processed.run("export", processed.uid, "-f", "ply", "-o", str(station))
+    out = processed.run(
+        "export", processed.uid, "-f", "ply", "-o", str(patient), "--frame", "patient"
+    )
+    assert "(patient frame, mm)" in out
+    sidecar = json.loads((folder / "patient.ply.json").read_text())
+    assert sidecar["acquisition"] == processed.uid and sidecar["units"] == "mm"
+    assert sidecar["frame"]["name"] == "patient" and sidecar["result"]["stage"] == "mesh"
+    assert json.loads((folder / "station.ply.json").read_text())["frame"]["name"] == "station"
+    origin = np.array(sidecar["frame"]["origin_world_mm"])
+    axes = np.array(sidecar["frame"]["axes_in_world"])
+    np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(axes) > 0.999  # right-handed
+    world = np.asarray(o3d.io.read_triangle_mesh(str(station)).vertices)
+    body = np.asarray(o3d.io.read_triangle_mesh(str(patient)).vertices)
+    np.testing.assert_allclose(body, (world - origin) @ axes.T, atol=1e-6)
+    # Y up: the top of the back (small world y) has large patient-frame y
+    assert axes[1] @ np.array([0.0, -1.0, 0.0]) > 0.95
+    assert axes[2] @ np.array([0.0, 0.0, -1.0]) > 0.9  # Z posterior: towards the camera
+
+
 def test_processing_a_processed_acquisition_reuses_everything(processed: Processed) -> None:
     out = processed.run("process", processed.uid)
     assert out.startswith(f"{processed.uid}\tdone\t0 computed, ")

@@ -127,3 +127,21 @@ def test_process_on_a_local_dask_cluster(tmp_path: Path, capsys, monkeypatch) ->
     base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
     assert main([*base, "process", uids["back"], "--dask", "--until", "surface"]) == 0
     assert "6 computed, 0 reused" in capsys.readouterr().out
+
+
+def test_patient_frame_export_is_refused_without_a_body_frame(
+    settings: Settings, tmp_path: Path, capsys
+) -> None:
+    # a sphere has a mesh but no back: the analysis finds no VP, DL, DR, so no patient frame
+    archive, uids = gt.archive_with_frames(settings, {"sphere": gt.rendering("sphere").image})
+    archive.close()
+    base = ["--archive", str(settings.archive), "--database-url", settings.database_url]
+    assert main([*base, "process", uids["sphere"]]) == 0
+    capsys.readouterr()
+    out = tmp_path / "sphere.ply"
+    assert main([*base, "export", uids["sphere"], "-f", "ply", "-o", str(out),
+                 "--frame", "patient"]) == 2  # fmt: skip
+    assert "no body-fixed frame" in capsys.readouterr().err
+    assert not out.exists() and not out.with_name("sphere.ply.json").exists()
+    assert main([*base, "export", uids["sphere"], "-f", "ply", "-o", str(out)]) == 0
+    assert json.loads(out.with_name("sphere.ply.json").read_text())["frame"]["name"] == "station"

@@ -21,7 +21,7 @@ from rasterserver.api.deps import (
 from rasterserver.api.schemas import ResultOut, RunOut
 from rasterserver.catalog.models import PipelineRun, StageResult
 from rasterserver.errors import NotFoundError
-from rasterserver.export import ExportFormat, ExportWhat, select_export
+from rasterserver.export import ExportFormat, ExportFrame, ExportWhat, select_export
 
 router = protected_router("results")
 
@@ -103,13 +103,19 @@ def list_runs(uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
                        422: {"description": "The format cannot hold what is asked: csv holds "
                                             "points (what=points or smoothed, not mesh), obj "
                                             "and stl hold meshes (what=mesh); or the stored "
-                                            "result holds nothing to export"}})
+                                            "result holds nothing to export; or, with "
+                                            "frame=patient, the analysis found no "
+                                            "body-fixed frame (the reason is given)"}})
 def export_result(
     uid: Uid, request: Request, svc: ServicesDep, note: NoteDep,
     fmt: Annotated[ExportFormat, Query(alias="format")] = ExportFormat.ply,
     what: Annotated[ExportWhat | None, Query(description="mesh (default), points or smoothed; "
                                              "points for csv")] = None,
     plugin: Plugin = None,
+    frame: Annotated[ExportFrame, Query(
+        description="station: the calibration's world frame (X right, Y down, Z anterior); "
+        "patient: the body-fixed frame of the back-shape analysis (origin DM, X right, Y up, "
+        "Z posterior); named in the X-Coordinate-Frame header")] = ExportFrame.station,
 ) -> Response:
     """The newest stored mesh or point cloud, as ``rasterserver export`` writes it.
 
@@ -118,8 +124,8 @@ def export_result(
     are refused with 422.
     """
     _touch(svc, note, uid)
-    chosen = select_export(svc.pipeline, uid, fmt=fmt, what=what, plugin=plugin)
-    etag = f"{chosen.row.output_checksum}-{chosen.what.value}.{fmt.value}"
+    chosen = select_export(svc.pipeline, uid, fmt=fmt, what=what, plugin=plugin, frame=frame)
+    etag = f"{chosen.row.output_checksum}-{chosen.what.value}-{frame.value}.{fmt.value}"
     if (cached := not_modified(request, etag)) is not None:
         return cached
     with tempfile.TemporaryDirectory(prefix="rasterserver-export-") as tmp:
@@ -127,5 +133,6 @@ def export_result(
         data = path.read_bytes()
     return Response(data, media_type=_MEDIA[fmt.value], headers={
         "ETag": f'"{etag}"',
+        "X-Coordinate-Frame": f"{frame.value}; units=mm",
         "Content-Disposition":
             f'attachment; filename="{uid}-{chosen.what.value}.{fmt.value}"'})
