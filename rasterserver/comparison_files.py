@@ -15,15 +15,20 @@ symmetric about 0 and a scale bar in mm. matplotlib is imported only when a pict
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rasterserver.comparison import DistanceMap
 from rasterserver.output_files import output_file
 
-__all__ = ["colour_limit", "write_distance_ply", "write_distance_png"]
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+__all__ = ["colour_limit", "distance_png", "write_distance_ply", "write_distance_png"]
 
 
 def _measured(dmap: DistanceMap) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -126,6 +131,19 @@ def write_distance_png(
     -------
     Path
     """
+    fig = _draw_distance(dmap, title=title, limit=limit, landmarks=landmarks)
+    with output_file(path, what="distance map picture") as temp:
+        fig.savefig(temp, format="png", bbox_inches="tight")
+    return Path(path)
+
+
+def _draw_distance(
+    dmap: DistanceMap,
+    *,
+    title: str,
+    limit: float | None,
+    landmarks: dict[str, np.ndarray] | None,
+) -> Figure:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.tri import Triangulation
@@ -154,6 +172,27 @@ def write_distance_png(
     ax.set_ylabel("Y (mm, down)")
     if title:
         ax.set_title(title, fontsize=10)
-    with output_file(path, what="distance map picture") as temp:
-        fig.savefig(temp, format="png", bbox_inches="tight")
-    return Path(path)
+    return fig
+
+
+def distance_png(
+    dmap: DistanceMap,
+    *,
+    title: str = "",
+    limit: float | None = None,
+    landmarks: dict[str, np.ndarray] | None = None,
+) -> bytes:
+    """The picture of :func:`write_distance_png` in memory (for the HTTP API).
+
+    Parameters and drawing as :func:`write_distance_png`.
+
+    Returns
+    -------
+    bytes
+        The PNG.
+    """
+    buffer = io.BytesIO()
+    _draw_distance(dmap, title=title, limit=limit, landmarks=landmarks).savefig(
+        buffer, format="png", bbox_inches="tight"
+    )
+    return buffer.getvalue()

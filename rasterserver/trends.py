@@ -33,6 +33,7 @@ __all__ = [
     "sdc",
     "trends",
     "trends_csv",
+    "trends_document",
     "write_trends",
 ]
 
@@ -202,17 +203,22 @@ def trends_csv(table: Sequence[Mapping[str, Any]]) -> str:
     return buffer.getvalue()
 
 
-def write_trends(table: Sequence[Mapping[str, Any]], folder: Path) -> tuple[Path, Path]:
-    """Write ``trends.csv`` and ``trends.json`` (with the SD source) into ``folder``."""
-    csv_path, json_path = folder / "trends.csv", folder / "trends.json"
-    with output_file(csv_path, what="trends table") as temp:
-        temp.write_text(trends_csv(table), encoding="utf-8")
-    document = {
+def trends_document(table: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The ``trends.json`` document (``rasterserver.trends/1``): the table with the SD source."""
+    return {
         "format": "rasterserver.trends/1",
         "sdc": "1.96 * sqrt(2) * SD",
         "sd_source": REPEATABILITY_SOURCE,
         "parameters": list(table),
     }
+
+
+def write_trends(table: Sequence[Mapping[str, Any]], folder: Path) -> tuple[Path, Path]:
+    """Write ``trends.csv`` and ``trends.json`` (with the SD source) into ``folder``."""
+    csv_path, json_path = folder / "trends.csv", folder / "trends.json"
+    with output_file(csv_path, what="trends table") as temp:
+        temp.write_text(trends_csv(table), encoding="utf-8")
+    document = trends_document(table)
     with output_file(json_path, what="trends document") as temp:
         temp.write_text(json.dumps(document, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     return csv_path, json_path

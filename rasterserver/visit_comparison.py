@@ -36,6 +36,7 @@ from rasterserver.analysis import KEY_PARAMETERS, acquisition_analysis, paramete
 from rasterserver.comparison import (
     ComparisonRefusedError,
     DistanceMap,
+    Registration,
     Visit,
     asymmetry_change,
     asymmetry_map,
@@ -49,7 +50,15 @@ from rasterserver.trends import REPEATABILITY_SOURCE, TrendVisit, trends, write_
 if TYPE_CHECKING:
     from rasterserver.pipeline import Pipeline
 
-__all__ = ["ArchivedVisit", "compare_visits", "load_visit", "patient_visits"]
+__all__ = [
+    "ArchivedVisit",
+    "TwoVisits",
+    "compare_two",
+    "compare_visits",
+    "load_visit",
+    "patient_visits",
+    "trend_visits",
+]
 
 #: ``format`` of ``comparison.json``.
 COMPARISON_FORMAT = "rasterserver.comparison/1"
@@ -114,24 +123,52 @@ def patient_visits(pipeline: Pipeline, patient: str) -> list[str]:
     return [i.uid for i in found]
 
 
+def _distance_title(when_a: dt.datetime, when_b: dt.datetime) -> str:
+    return f"{when_a:%Y-%m-%d} → {when_b:%Y-%m-%d}: B − A (mm)"
+
+
+def _landmarks(visit: Visit) -> dict[str, Any]:
+    return {n: visit.shape.landmark(n) for n in ("VP", "DL", "DR", "DM")}
+
+
+def _register(a: ArchivedVisit, b: ArchivedVisit) -> tuple[Registration, DistanceMap]:
+    """Register B onto A and measure the distance map; ComparisonRefusedError with why not."""
+    if a.visit is None or b.visit is None:
+        bad = a if a.visit is None else b
+        raise ComparisonRefusedError(f"acquisition {bad.uid}: {bad.reason}")
+    reg = register(a.visit, b.visit)
+    return reg, distance_map(a.visit, b.visit, reg)
+
+
+def _asymmetry(v: ArchivedVisit) -> tuple[DistanceMap | None, dict[str, Any]]:
+    """A visit's asymmetry map and its entry (statistics, or the reason it was refused)."""
+    if v.visit is None:
+        return None, {"refused": v.reason}
+    try:
+        amap = asymmetry_map(v.visit)
+    except ComparisonRefusedError as exc:
+        return None, {"refused": str(exc)}
+    return amap, {"statistics": amap.statistics()}
+
+
 def _pair(a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
     from rasterserver.comparison_files import write_distance_ply, write_distance_png
 
     entry: dict[str, Any] = {"a": a.uid, "b": b.uid}
-    if a.visit is None or b.visit is None:
-        bad = a if a.visit is None else b
-        return entry | {"refused": f"acquisition {bad.uid}: {bad.reason}"}
     try:
-        reg = register(a.visit, b.visit)
+        reg, dmap = _register(a, b)
     except ComparisonRefusedError as exc:
         return entry | {"refused": str(exc)}
-    dmap = distance_map(a.visit, b.visit, reg)
+    assert a.visit is not None
     stem = f"distance_{a.uid}-{b.uid}"
     comments = [f"visit A {a.uid} ({a.acquired_at:%Y-%m-%d}), visit B {b.uid} registered onto A"]
     write_distance_ply(dmap, folder / f"{stem}.ply", comments=comments)
-    landmarks = {n: a.visit.shape.landmark(n) for n in ("VP", "DL", "DR", "DM")}
-    title = f"{a.acquired_at:%Y-%m-%d} → {b.acquired_at:%Y-%m-%d}: B − A (mm)"
-    write_distance_png(dmap, folder / f"{stem}.png", title=title, landmarks=landmarks)
+    write_distance_png(
+        dmap,
+        folder / f"{stem}.png",
+        title=_distance_title(a.acquired_at, b.acquired_at),
+        landmarks=_landmarks(a.visit),
+    )
     entry |= {
         "registration": reg.summary(),
         "distance": dmap.statistics(),
@@ -139,6 +176,103 @@ def _pair(a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
     }
     entry["_maps"] = (reg, dmap)
     return entry
+
+
+@dataclass(frozen=True)
+class TwoVisits:
+    """The comparison of two acquisitions in memory (what the HTTP API answers).
+
+    Attributes
+    ----------
+    a, b : ArchivedVisit
+        The earlier and the later visit (B is registered onto A).
+    document : dict
+        ``a``, ``b``, ``registration``, ``distance`` (statistics), ``asymmetry`` (per uid:
+        statistics or the reason) and ``asymmetry_change`` (statistics, or null when a
+        visit's asymmetry map was refused); no file names and no times.
+    distance : DistanceMap
+        B − A along A's normals.
+    """
+
+    a: ArchivedVisit
+    b: ArchivedVisit
+    document: dict[str, Any]
+    distance: DistanceMap
+
+    def distance_png(
+        self, when_a: dt.datetime | None = None, when_b: dt.datetime | None = None
+    ) -> bytes:
+        """The colour-mapped distance map (PNG), titled with the visits' dates (or the ones
+        given: shifted dates for pseudonymised readers)."""
+        from rasterserver.comparison_files import distance_png
+
+        assert self.a.visit is not None
+        title = _distance_title(when_a or self.a.acquired_at, when_b or self.b.acquired_at)
+        return distance_png(self.distance, title=title, landmarks=_landmarks(self.a.visit))
+
+
+def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
+    """Compare two stored acquisitions of one patient in memory (nothing processed, nothing
+    written): the earlier is A, the later B.
+
+    Raises
+    ------
+    InputError
+        The same acquisition twice, or acquisitions of different patients.
+    ComparisonRefusedError
+        The visits cannot be compared (the reason).
+    NotFoundError
+        Unknown or unprocessed acquisitions.
+    """
+    if uid_a == uid_b:
+        raise InputError("a comparison needs two different acquisitions")
+    infos = sorted(
+        (pipeline.archive.info(uid_a), pipeline.archive.info(uid_b)), key=lambda i: i.acquired_at
+    )
+    if infos[0].patient_id is None or infos[0].patient_id != infos[1].patient_id:
+        raise InputError("the acquisitions belong to different patients")
+    a, b = (load_visit(pipeline, i.uid) for i in infos)
+    reg, dmap = _register(a, b)
+    (map_a, entry_a), (map_b, entry_b) = _asymmetry(a), _asymmetry(b)
+    change = None
+    if map_a is not None and map_b is not None:
+        change = asymmetry_change(map_a, map_b, reg).statistics()
+    document = {
+        "format": COMPARISON_FORMAT,
+        "frame": "world frame of visit A's calibration (mm)",
+        "a": a.uid,
+        "b": b.uid,
+        "registration": reg.summary(),
+        "distance": dmap.statistics(),
+        "asymmetry": {a.uid: entry_a, b.uid: entry_b},
+        "asymmetry_change": change,
+    }
+    return TwoVisits(a, b, document, dmap)
+
+
+def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetime, Any]]:
+    """Each stored acquisition of ``patient``, oldest first, with its analysis parameters
+    (None when the analysis found nothing): ``(uid, acquired_at, parameters)``, what
+    :class:`~rasterserver.trends.TrendVisit` takes. Nothing is processed.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown patient, or an acquisition without a stored analysis.
+    """
+    from rasterserver.analysis import AnalysisRefusedError
+
+    pipeline.archive.patient(patient)
+    found = sorted(pipeline.archive.find(patient=patient), key=lambda i: i.acquired_at)
+    out: list[tuple[str, dt.datetime, Any]] = []
+    for info in found:
+        analysis = acquisition_analysis(pipeline, info.uid)
+        try:
+            parameters = analysis.check().document()["parameters"]
+        except AnalysisRefusedError:
+            parameters = None
+        out.append((info.uid, info.acquired_at, parameters))
+    return out
 
 
 def _trends_plot(table: list[dict[str, Any]], path: Path) -> None:
@@ -301,18 +435,13 @@ def compare_visits(
         asymmetry: dict[str, Any] = {}
         maps: dict[str, DistanceMap] = {}
         for v in visits:
-            if v.visit is None:
-                asymmetry[v.uid] = {"refused": v.reason}
-                continue
-            try:
-                amap = asymmetry_map(v.visit)
-            except ComparisonRefusedError as exc:
-                asymmetry[v.uid] = {"refused": str(exc)}
+            amap, asymmetry[v.uid] = _asymmetry(v)
+            if amap is None:
                 continue
             maps[v.uid] = amap
             name = f"asymmetry_{v.uid}.png"
             write_distance_png(amap, temp / name, title=f"asymmetry {v.acquired_at:%Y-%m-%d}")
-            asymmetry[v.uid] = {"statistics": amap.statistics(), "file": name}
+            asymmetry[v.uid]["file"] = name
         for entry in entries:
             reg_map = entry.pop("_maps", None)
             if reg_map is not None and entry["a"] in maps and entry["b"] in maps:

@@ -64,7 +64,8 @@ def test_every_route_is_in_openapi(app_routes: list[Any]) -> None:
 
 def _sample_path(path: str, uid: str) -> str:
     values = {"uid": uid, "index": "0", "patient": PATIENT_ID, "station": "clinic-1",
-              "version": "1", "name": "default", "stage": "mesh", "job_id": "0" * 32}
+              "version": "1", "name": "default", "stage": "mesh", "job_id": "0" * 32,
+              "uid_a": uid, "uid_b": uid}
     for key, value in values.items():
         path = path.replace("{" + key + "}", value)
     assert "{" not in path, path

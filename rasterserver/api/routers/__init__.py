@@ -9,6 +9,7 @@ from rasterserver.api.routers import (
     acquisitions,
     analysis,
     audit,
+    comparison,
     health,
     jobs,
     patients,
@@ -20,6 +21,8 @@ from rasterserver.api.routers import (
 # Matched in this order, route by route: the busiest (clinicians' reads) first.
 ROUTERS: list[APIRouter] = [
     acquisitions.router,
+    # before patients: /patients/{patient:path} would take /patients/X/trends
+    comparison.router,
     patients.router,
     health.router,
     plugins.router,
