@@ -231,7 +231,13 @@ def run_task(task: tuple[str, str, str]) -> dict[str, Any]:
         "visit": Visit(records["surface"], mesh, shape, label=f"{back}:{role}"),
         "parameters": shape.parameter_table(),
         "truth": {k: v["value"] for k, v in truth(scene)["parameters"].items()},
-        "landmarks": {k: np.asarray(v) for k, v in scene.landmarks.items() if np.size(v) == 3},
+        # Body-fixed landmarks only: the sagittal points are found against the vertical, so
+        # they slide along the profile when the posture changes.
+        "landmarks": {
+            k: np.asarray(v)
+            for k, v in scene.landmarks.items()
+            if np.size(v) == 3 and not k.startswith("sagittal_")
+        },
     }
     if role in ("A", "C"):
         # The whole scene (trunk and arms): the reconstruction holds the arms by the shoulders.
@@ -590,8 +596,8 @@ def markdown(sets: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
         return get
 
     row("B onto A: refused", "", lambda s: str(len(s["registration"]["refused"])))
-    row("applied motion: shift (mm), median / max", "≤ 30", ms(("registration", "shift_mm"), 1))
-    row("applied motion: turn (°), median / max", "≤ 5", ms(("registration", "turn_deg")))
+    row("applied motion: shift of the world origin (mm)", "", ms(("registration", "shift_mm"), 1))
+    row("applied motion: turn (°), median / max", "", ms(("registration", "turn_deg")))
     row("ICP inlier rmse (mm; see below), median / max", "", ms(("registration", "icp_rmse_mm")))
     row("residual: distance map rms on the trunk (mm)", "≤ 0.3", ms(("registration", "map_rms_mm")))
     row(
@@ -792,8 +798,10 @@ def verdicts(sets: dict[str, dict[str, Any]], rep: dict[str, Any]) -> list[str]:
             "10-visit report",
             rep["seconds"] <= TARGETS["report_s"],
             f"{rep['seconds']:.1f} s",
-            " Not profiled; besides the 10 registrations and maps (about 1 s together) it "
-            "writes 10 PLY and 20 PNG maps, the trends plot and the HTML report.",
+            " A cProfile of one such report (2026-11-23, on the shared machine at load 4, "
+            "14.9 s in all) puts the time in the 10 asymmetry maps (6.9 s: their mirror ICP, "
+            "about 0.6 s each, ten times a visit pair's), the 20 PNG maps (5.0 s of "
+            "matplotlib), the trends plot (1.5 s) and the 10 pair registrations (1.3 s).",
         ),
     ]
     out = ["**Against the targets** (worst back of either set):", ""]
