@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import socket
+import time
 from dataclasses import dataclass, field
 
 import httpx
@@ -55,3 +56,19 @@ def frame(seed: int = 0, dtype: type = np.uint8) -> np.ndarray:
     """A 604x576 test frame."""
     rng = np.random.default_rng(seed)
     return rng.integers(0, 200, (604, 576)).astype(dtype)
+
+
+def run_job(client: httpx.Client, uids: list[str], **body: object) -> dict:
+    """Post a processing job (the default targets unless ``body`` says otherwise) and wait
+    until it is done; return its final state."""
+    job = client.post("/jobs", json={"uids": uids, **body})
+    assert job.status_code == 202, job.text
+    deadline = time.monotonic() + 300
+    while (state := client.get(f"/jobs/{job.json()['id']}").json())["status"] in (
+        "queued",
+        "running",
+    ):
+        assert time.monotonic() < deadline
+        time.sleep(0.3)
+    assert state["status"] == "done", state
+    return state

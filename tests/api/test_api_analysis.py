@@ -5,13 +5,12 @@ answers without an analysis or with an empty one, and the audit trail of every r
 from __future__ import annotations
 
 import datetime as dt
-import time
 
 import cv2
 import httpx
 import numpy as np
 import pytest
-from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes
+from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes, run_job
 from backshape_truth import simulated
 
 from rasterserver.api.audit import audit_events
@@ -64,16 +63,7 @@ def _upload(live: LiveServer, pixels: np.ndarray) -> str:
 
 
 def _process(client: httpx.Client, uids: list[str]) -> None:
-    job = client.post("/jobs", json={"uids": uids, "until": "analysis"})
-    assert job.status_code == 202, job.text
-    deadline = time.monotonic() + 300
-    while (state := client.get(f"/jobs/{job.json()['id']}").json())["status"] in (
-        "queued",
-        "running",
-    ):
-        assert time.monotonic() < deadline
-        time.sleep(0.3)
-    assert state["status"] == "done", state
+    run_job(client, uids, until="analysis")
 
 
 def test_analysis_for_clinicians_and_researchers(live: LiveServer, back_frame) -> None:

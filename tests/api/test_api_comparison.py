@@ -8,13 +8,12 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import io
-import time
 
 import cv2
 import httpx
 import numpy as np
 import pytest
-from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes
+from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes, run_job
 from backshape_truth import simulated
 from test_api_analysis import _calibrate
 
@@ -33,16 +32,7 @@ def two_backs() -> tuple[np.ndarray, np.ndarray]:
 
 def _process(client: httpx.Client, uids: list[str]) -> None:
     """The default job: the mesh and the analysis, as `rasterserver process`."""
-    job = client.post("/jobs", json={"uids": uids})
-    assert job.status_code == 202, job.text
-    deadline = time.monotonic() + 300
-    while (state := client.get(f"/jobs/{job.json()['id']}").json())["status"] in (
-        "queued",
-        "running",
-    ):
-        assert time.monotonic() < deadline
-        time.sleep(0.3)
-    assert state["status"] == "done", state
+    run_job(client, uids)
 
 
 def _upload(live: LiveServer, pixels: np.ndarray, when: str, patient: str = PATIENT_ID) -> str:
