@@ -530,6 +530,9 @@ def summarise_repeats(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 truth_sds.append(float(np.std(truths, ddof=1)))
         out["parameters"][name] = {
             "found": found,
+            # the pooled within-back SD (root mean of the variances): the standard error of
+            # measurement behind a smallest detectable change (Weir, J Strength Cond Res 2005)
+            "sd_pooled": float(np.sqrt(np.mean(np.square(sds)))) if sds else math.nan,
             "sd_median": float(np.median(sds)) if sds else math.nan,
             "sd_max": float(np.max(sds)) if sds else math.nan,
             "truth_sd_median": float(np.median(truth_sds)) if truth_sds else math.nan,

@@ -30,13 +30,14 @@ the world frame of visit A's calibration (mm); visit B is moved onto it.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from rasterserver.errors import InputError
-from rasterserver.records_analysis import BackShape
+from rasterserver.records_analysis import LANDMARKS, BackShape
 from rasterserver.records_surface import MeshRecord, Surface
 
 __all__ = [
@@ -88,6 +89,14 @@ class Thresholds:
         Largest rotation (degrees) ICP may add to the landmark frames' rotation.
     min_points : int
         Fewest trunk points of either visit.
+    robust_scale : float or None
+        Scale (mm) of Tukey's biweight in the fine ICP pass: point-to-plane residuals beyond
+        it do not pull the alignment (a changed region is left out of the fit). Two renders
+        of one back agree to about 0.1 mm along the normal, a change worth mapping is
+        millimetres. None: plain least squares.
+    voxel : float or None
+        Voxel size (mm) the moved visit's trunk is thinned to for ICP (one point per voxel,
+        their mean); None: every point.
     """
 
     coarse_distance: float = 20.0
@@ -97,6 +106,8 @@ class Thresholds:
     max_shift: float = 25.0
     max_turn: float = 8.0
     min_points: int = 500
+    robust_scale: float | None = 1.0
+    voxel: float | None = 4.0
 
 
 #: The thresholds :func:`register` uses unless given others.
@@ -105,6 +116,58 @@ THRESHOLDS = Thresholds()
 
 class ComparisonRefusedError(InputError):
     """Two visits cannot be compared; the message says why (exit 2, HTTP 422)."""
+
+
+@dataclass(frozen=True, eq=False)
+class BodyFrame:
+    """The part of a back-shape analysis a comparison uses: landmarks and body frame.
+
+    Attributes
+    ----------
+    frame_origin : numpy.ndarray
+        ``(3,)`` DM (world mm), NaN without a frame.
+    frame_axes : numpy.ndarray
+        ``(3, 3)`` rows: transverse, vertical, sagittal unit axes.
+    landmarks : numpy.ndarray
+        ``(len(LANDMARKS), 3)`` world mm in the order of
+        :data:`~rasterserver.records_analysis.LANDMARKS`, NaN when not found.
+    reason : str
+        Why the analysis found nothing, if it did not.
+    reasons : str
+        JSON object: what could not be computed, and why.
+    """
+
+    frame_origin: np.ndarray
+    frame_axes: np.ndarray
+    landmarks: np.ndarray
+    reason: str = ""
+    reasons: str = "{}"
+
+    @classmethod
+    def of(cls, shape: BackShape | BodyFrame) -> BodyFrame:
+        """The body frame of an analysis."""
+        if isinstance(shape, BodyFrame):
+            return shape
+        return cls(
+            np.asarray(shape.frame_origin, dtype=float),
+            np.asarray(shape.frame_axes, dtype=float),
+            np.asarray(shape.landmarks, dtype=float),
+            shape.reason,
+            shape.reasons,
+        )
+
+    def landmark(self, name: str) -> np.ndarray | None:
+        """World position of landmark ``name``, None when not found."""
+        try:
+            point = self.landmarks[LANDMARKS.index(name)]
+        except ValueError:
+            raise InputError(f"no landmark {name!r}; landmarks: {', '.join(LANDMARKS)}") from None
+        return None if not np.all(np.isfinite(point)) else np.array(point)
+
+    def reason_table(self) -> dict[str, str]:
+        """What could not be computed, and why."""
+        value = json.loads(self.reasons or "{}")
+        return value if isinstance(value, dict) else {}
 
 
 @dataclass(frozen=True)
@@ -117,7 +180,7 @@ class Visit:
         The smoothed surface (its measured outline bounds the trunk).
     mesh : MeshRecord
         The mesh of that surface (normals facing the camera).
-    shape : BackShape
+    shape : BackShape or BodyFrame
         The back-shape analysis (landmarks, body frame).
     label : str
         How messages name the visit (an acquisition uid, a date).
@@ -125,7 +188,7 @@ class Visit:
 
     surface: Surface
     mesh: MeshRecord
-    shape: BackShape
+    shape: BackShape | BodyFrame
     label: str = ""
 
 
@@ -254,7 +317,7 @@ def vertex_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return area
 
 
-def _frame(shape: BackShape, label: str) -> tuple[np.ndarray, np.ndarray]:
+def _frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray, np.ndarray]:
     origin, axes = shape.frame_origin, shape.frame_axes
     if shape.reason or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
         missing = [n for n in ("VP", "DL", "DR") if shape.landmark(n) is None]
@@ -270,7 +333,7 @@ def _frame(shape: BackShape, label: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def landmark_transform(
-    a: BackShape, b: BackShape, *, labels: tuple[str, str] = ("A", "B")
+    a: BackShape | BodyFrame, b: BackShape | BodyFrame, *, labels: tuple[str, str] = ("A", "B")
 ) -> np.ndarray:
     """The rigid transform putting B's body-fixed frame onto A's.
 
@@ -395,10 +458,24 @@ def _icp(
 
     reg = o3d.pipelines.registration
     src = _cloud(source.vertices)
+    if thresholds.voxel:
+        # tens of thousands of trunk points say no more about six degrees of freedom than a
+        # few thousand; ICP's cost is in the source's nearest-neighbour searches
+        src = src.voxel_down_sample(thresholds.voxel)
     dst = _cloud(target.vertices, target.normals)
-    method = reg.TransformationEstimationPointToPlane()
     transform = np.array(start, dtype=np.float64)
-    for distance in (thresholds.coarse_distance, thresholds.fine_distance):
+    for distance, kernel in (
+        (thresholds.coarse_distance, None),
+        (thresholds.fine_distance, thresholds.robust_scale),
+    ):
+        # The fine pass weighs residuals with Tukey's biweight: a local change between visits
+        # (a rib hump grown by millimetres) is what the map must show, so it must not pull the
+        # alignment; plain least squares spreads it over the whole trunk.
+        method = (
+            reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel))
+            if kernel
+            else reg.TransformationEstimationPointToPlane()
+        )
         criteria = reg.ICPConvergenceCriteria(
             relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=60
         )

@@ -39,12 +39,11 @@ from rasterserver.comparison import (
     Registration,
     Visit,
     asymmetry_change,
-    asymmetry_map,
-    distance_map,
-    register,
 )
 from rasterserver.errors import InputError
+from rasterserver.pair_comparison import asymmetry_of, distance_of, registration_of
 from rasterserver.records_surface import MeshRecord
+from rasterserver.stored_comparison import StoredComparison, stored_comparison
 from rasterserver.trends import REPEATABILITY_SOURCE, TrendVisit, trends, write_trends
 
 if TYPE_CHECKING:
@@ -66,13 +65,37 @@ COMPARISON_FORMAT = "rasterserver.comparison/1"
 
 @dataclass(frozen=True)
 class ArchivedVisit:
-    """One archived acquisition ready to compare."""
+    """One archived acquisition ready to compare.
+
+    Attributes
+    ----------
+    uid : str
+        The acquisition.
+    acquired_at : datetime
+        When it was acquired.
+    visit : Visit or None
+        Its geometry and analysis; None when the analysis found nothing (``reason``).
+    parameters : dict or None
+        The analysis's parameters.
+    reason : str
+        Why there is no visit geometry.
+    acquisition_id : int
+        Its catalogue row.
+    frame_index : int
+        The raster frame whose surface and mesh are compared.
+    inputs : tuple
+        ``(role, result id, checksum)`` of the stored results the geometry comes from
+        (``analysis`` rows of every frame, then the ``mesh``): a comparison's provenance.
+    """
 
     uid: str
     acquired_at: dt.datetime
     visit: Visit | None
     parameters: dict[str, Any] | None
     reason: str = ""
+    acquisition_id: int = 0
+    frame_index: int = 0
+    inputs: tuple[tuple[str, int, str], ...] = ()
 
 
 def load_visit(pipeline: Pipeline, uid: str, *, process: bool = False) -> ArchivedVisit:
@@ -89,19 +112,64 @@ def load_visit(pipeline: Pipeline, uid: str, *, process: bool = False) -> Archiv
     from rasterserver.analysis import AnalysisRefusedError
 
     info = pipeline.archive.info(uid)
+    acquisition_id = pipeline.archive.acquisition(uid).id
     analysis = acquisition_analysis(pipeline, uid, process=process, surfaces=True)
     try:
         analysis.check()
     except AnalysisRefusedError as exc:
-        return ArchivedVisit(uid, info.acquired_at, None, None, str(exc))
+        return ArchivedVisit(uid, info.acquired_at, None, None, str(exc), acquisition_id)
     frame = analysis.shown_frame()
-    if process:
-        pipeline.process(uid, until="mesh", frame_index=frame.index or 0)
-    _row, mesh = pipeline.result(uid, "mesh")
-    if frame.surface is None or not isinstance(mesh, MeshRecord):
-        return ArchivedVisit(uid, info.acquired_at, None, None, "no stored surface or mesh")
+    index = frame.index or 0
+    mesh_row = _mesh_row(pipeline, acquisition_id, frame.result)
+    if mesh_row is None and process:
+        pipeline.process(uid, until="mesh", frame_index=index)
+        mesh_row = _mesh_row(pipeline, acquisition_id, frame.result)
+    if frame.surface is None or mesh_row is None:
+        return ArchivedVisit(
+            uid, info.acquired_at, None, None, "no stored surface or mesh", acquisition_id, index
+        )
+    mesh = pipeline.derived.read(mesh_row.store_path, expected_checksum=mesh_row.output_checksum)
+    if not isinstance(mesh, MeshRecord):
+        raise InputError(
+            f"result {mesh_row.id} of {uid} holds {mesh_row.record_kind!r}, not a mesh"
+        )
+    analyses = [f.result for f in analysis.frames if f.result is not None]
+    inputs = (
+        *(("analysis", r.id, r.output_checksum) for r in analyses),
+        ("mesh", mesh_row.id, mesh_row.output_checksum),
+    )
     visit = Visit(frame.surface, mesh, analysis.combined, label=uid)
-    return ArchivedVisit(uid, info.acquired_at, visit, analysis.document()["parameters"])
+    return ArchivedVisit(
+        uid,
+        info.acquired_at,
+        visit,
+        analysis.document()["parameters"],
+        "",
+        acquisition_id,
+        index,
+        inputs,
+    )
+
+
+def _mesh_row(pipeline: Pipeline, acquisition_id: int, analysis_row: Any) -> Any:
+    """The newest stored mesh made from the surface the analysis ``analysis_row`` was computed
+    from (the same frame, the same smoothing), None when there is none."""
+    from sqlalchemy import select
+
+    from rasterserver.catalog.models import StageResult
+
+    if analysis_row is None or analysis_row.parent_id is None:
+        return None
+    with pipeline.archive.session() as s:
+        return s.scalar(
+            select(StageResult)
+            .where(
+                StageResult.acquisition_id == acquisition_id,
+                StageResult.stage == "mesh",
+                StageResult.parent_id == analysis_row.parent_id,
+            )
+            .order_by(StageResult.id.desc())
+        )
 
 
 def patient_visits(pipeline: Pipeline, patient: str) -> list[str]:
@@ -131,32 +199,40 @@ def _landmarks(visit: Visit) -> dict[str, Any]:
     return {n: visit.shape.landmark(n) for n in ("VP", "DL", "DR", "DM")}
 
 
-def _register(a: ArchivedVisit, b: ArchivedVisit) -> tuple[Registration, DistanceMap]:
-    """Register B onto A and measure the distance map; ComparisonRefusedError with why not."""
+def _compared(
+    pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit
+) -> tuple[StoredComparison, Registration, DistanceMap]:
+    """The stored comparison of B onto A (computed and stored when new), its registration and
+    distance map; ComparisonRefusedError with why not."""
     if a.visit is None or b.visit is None:
         bad = a if a.visit is None else b
         raise ComparisonRefusedError(f"acquisition {bad.uid}: {bad.reason}")
-    reg = register(a.visit, b.visit)
-    return reg, distance_map(a.visit, b.visit, reg)
+    stored = stored_comparison(pipeline, a, b)
+    reg = registration_of(stored.record)
+    return stored, reg, distance_of(stored.record, a.visit.mesh)
 
 
-def _asymmetry(v: ArchivedVisit) -> tuple[DistanceMap | None, dict[str, Any]]:
-    """A visit's asymmetry map and its entry (statistics, or the reason it was refused)."""
+def _asymmetry(
+    v: ArchivedVisit, stored: StoredComparison | None, side: str
+) -> tuple[DistanceMap | None, dict[str, Any]]:
+    """A visit's asymmetry map from a stored comparison it is part of, and its entry
+    (statistics, or the reason it was refused)."""
     if v.visit is None:
         return None, {"refused": v.reason}
-    try:
-        amap = asymmetry_map(v.visit)
-    except ComparisonRefusedError as exc:
-        return None, {"refused": str(exc)}
+    if stored is None:
+        return None, {"refused": "not part of a stored comparison"}
+    amap = asymmetry_of(stored.record, side, v.visit.mesh)
+    if amap is None:
+        return None, {"refused": getattr(stored.record, f"{side}_asymmetry_reason")}
     return amap, {"statistics": amap.statistics()}
 
 
-def _pair(a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
+def _pair(pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
     from rasterserver.comparison_files import write_distance_ply, write_distance_png
 
     entry: dict[str, Any] = {"a": a.uid, "b": b.uid}
     try:
-        reg, dmap = _register(a, b)
+        stored, reg, dmap = _compared(pipeline, a, b)
     except ComparisonRefusedError as exc:
         return entry | {"refused": str(exc)}
     assert a.visit is not None
@@ -172,9 +248,10 @@ def _pair(a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
     entry |= {
         "registration": reg.summary(),
         "distance": dmap.statistics(),
+        "provenance": stored.provenance(),
         "files": [f"{stem}.ply", f"{stem}.png"],
     }
-    entry["_maps"] = (reg, dmap)
+    entry["_stored"] = (stored, reg)
     return entry
 
 
@@ -232,8 +309,8 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
     if infos[0].patient_id is None or infos[0].patient_id != infos[1].patient_id:
         raise InputError("the acquisitions belong to different patients")
     a, b = (load_visit(pipeline, i.uid) for i in infos)
-    reg, dmap = _register(a, b)
-    (map_a, entry_a), (map_b, entry_b) = _asymmetry(a), _asymmetry(b)
+    stored, reg, dmap = _compared(pipeline, a, b)
+    (map_a, entry_a), (map_b, entry_b) = _asymmetry(a, stored, "a"), _asymmetry(b, stored, "b")
     change = None
     if map_a is not None and map_b is not None:
         change = asymmetry_change(map_a, map_b, reg).statistics()
@@ -246,6 +323,7 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
         "distance": dmap.statistics(),
         "asymmetry": {a.uid: entry_a, b.uid: entry_b},
         "asymmetry_change": change,
+        "provenance": stored.provenance(),
     }
     return TwoVisits(a, b, document, dmap)
 
@@ -429,13 +507,23 @@ def compare_visits(
         pairs = [(visits[k], visits[k + 1]) for k in range(len(visits) - 1)]
         if len(visits) > 2:
             pairs.append((visits[0], visits[-1]))
-        entries = [_pair(a, b, temp) for a, b in pairs]
+        entries = []
+        for k, (a, b) in enumerate(pairs, 1):
+            entries.append(_pair(pipeline, a, b, temp))
+            log(f"compared pair {k} of {len(pairs)}")
         if len(entries) == 1 and "refused" in entries[0]:
             raise ComparisonRefusedError(entries[0]["refused"])
+        # each visit's asymmetry map comes from a stored comparison it is part of
+        holder: dict[str, tuple[StoredComparison, str]] = {}
+        for entry in entries:
+            if "_stored" in entry:
+                holder.setdefault(entry["a"], (entry["_stored"][0], "a"))
+                holder.setdefault(entry["b"], (entry["_stored"][0], "b"))
         asymmetry: dict[str, Any] = {}
         maps: dict[str, DistanceMap] = {}
         for v in visits:
-            amap, asymmetry[v.uid] = _asymmetry(v)
+            stored, side = holder.get(v.uid, (None, "a"))
+            amap, asymmetry[v.uid] = _asymmetry(v, stored, side)
             if amap is None:
                 continue
             maps[v.uid] = amap
@@ -443,9 +531,9 @@ def compare_visits(
             write_distance_png(amap, temp / name, title=f"asymmetry {v.acquired_at:%Y-%m-%d}")
             asymmetry[v.uid]["file"] = name
         for entry in entries:
-            reg_map = entry.pop("_maps", None)
-            if reg_map is not None and entry["a"] in maps and entry["b"] in maps:
-                change = asymmetry_change(maps[entry["a"]], maps[entry["b"]], reg_map[0])
+            kept = entry.pop("_stored", None)
+            if kept is not None and entry["a"] in maps and entry["b"] in maps:
+                change = asymmetry_change(maps[entry["a"]], maps[entry["b"]], kept[1])
                 entry["asymmetry_change"] = change.statistics()
         table = trends([TrendVisit(v.uid, v.acquired_at, v.parameters) for v in visits])
         write_trends(table, temp)

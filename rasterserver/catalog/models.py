@@ -347,3 +347,24 @@ class StageResult(Base):
     acquisition: Mapped[Acquisition] = relationship()
     calibration: Mapped[Calibration | None] = relationship()
     run: Mapped[PipelineRun | None] = relationship()
+
+
+class StageResultInput(Base):
+    """One input of a result computed from several acquisitions (a comparison of visits).
+
+    A single-acquisition result names its input by ``parent_id``; a result of a stage whose
+    input comes from several acquisitions has one row here per input result (``role`` says
+    which: ``a.mesh``, ``b.analysis``, ...). Deleting an input result is refused while a
+    result computed from it exists.
+    """
+
+    __tablename__ = "stage_result_input"
+    __table_args__ = (Index("ix_stage_result_input_input", "input_id"),)
+
+    result_id: Mapped[int] = mapped_column(
+        ForeignKey("stage_result.id", ondelete="RESTRICT"), primary_key=True
+    )
+    position: Mapped[int] = mapped_column(Integer, primary_key=True)
+    role: Mapped[str] = mapped_column(String(32))
+    input_id: Mapped[int] = mapped_column(ForeignKey("stage_result.id", ondelete="RESTRICT"))
+    acquisition_id: Mapped[int] = mapped_column(ForeignKey("acquisition.id", ondelete="RESTRICT"))

@@ -1,0 +1,221 @@
+"""Comparisons of two visits as stored stage results: computed once, reused after.
+
+The comparison stage (kind ``comparison``, default ``comparison.landmark-icp``) takes its
+input from two acquisitions. Its result is stored like every stage result (a derived file
+under visit A's acquisition and a ``stage_result`` row), with provenance keyed by what it was
+computed from: the plugin, its version and parameters, and the ids and checksums of the four
+input results (each visit's mesh and analysis; the surface is the analysis's parent). The
+inputs are also rows of ``stage_result_input``, so an input cannot be deleted from under a
+comparison. Asking again for the same comparison of the same results finds the row; a new
+analysis of either visit, another plugin version or other parameters computes a new one
+beside the old.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import socket
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+
+from rasterserver import __version__
+from rasterserver.catalog.models import StageResult, StageResultInput, utcnow
+from rasterserver.errors import InputError
+from rasterserver.pair_comparison import pack
+from rasterserver.records_comparison import ComparisonRecord
+from rasterserver.stage import coerce_params, params_hash, run_stage
+
+if TYPE_CHECKING:
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.visit_comparison import ArchivedVisit
+
+__all__ = ["COMPARISON_STAGE", "StoredComparison", "comparison_key", "stored_comparison"]
+
+#: The stage kind of comparisons.
+COMPARISON_STAGE = "comparison"
+_KEY_TAG = "rasterserver.comparison-key/1"
+
+
+@dataclass(frozen=True)
+class StoredComparison:
+    """A comparison of two visits as stored.
+
+    Attributes
+    ----------
+    result_id : int
+        Its ``stage_result`` row.
+    record : ComparisonRecord
+        The registration and maps (``reason`` set when refused).
+    reused : bool
+        True when it was found stored, False when computed now.
+    plugin, version : str
+        The comparison plugin and its algorithm version.
+    """
+
+    result_id: int
+    record: ComparisonRecord
+    reused: bool
+    plugin: str
+    version: str
+
+    def provenance(self) -> dict[str, Any]:
+        """JSON-ready: the result id, plugin, version and whether it was reused."""
+        return {
+            "result_id": self.result_id,
+            "plugin": self.plugin,
+            "version": self.version,
+            "reused": self.reused,
+        }
+
+
+def comparison_key(
+    plugin: str, version: str, params_digest: str, inputs: list[tuple[str, int, str]]
+) -> str:
+    """The provenance key of a comparison: SHA-256 over the plugin, its version, the
+    parameters' hash and each input's role, result id and checksum (in order)."""
+    text = json.dumps(
+        [_KEY_TAG, plugin, version, params_digest, [list(i) for i in inputs]],
+        separators=(",", ":"),
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _inputs(a: ArchivedVisit, b: ArchivedVisit) -> list[tuple[str, int, str, int]]:
+    """``(role, result id, checksum, acquisition id)`` of every input, A's first."""
+    out = []
+    for side, visit in (("a", a), ("b", b)):
+        if not visit.inputs:
+            raise InputError(f"acquisition {visit.uid}: no stored results to compare")
+        out += [
+            (f"{side}.{role}", rid, checksum, visit.acquisition_id)
+            for role, rid, checksum in visit.inputs
+        ]
+    return out
+
+
+def stored_comparison(
+    pipeline: Pipeline,
+    a: ArchivedVisit,
+    b: ArchivedVisit,
+    *,
+    plugin: str | None = None,
+    params: Mapping[str, Any] | None = None,
+) -> StoredComparison:
+    """The comparison of visits A and B (B registered onto A): the stored one, or computed
+    now and stored.
+
+    Parameters
+    ----------
+    pipeline : Pipeline
+        The archive's pipeline.
+    a, b : ArchivedVisit
+        Two analysed visits of one patient with geometry (``visit`` not None).
+    plugin : str, optional
+        The comparison plugin; the registry's default for ``comparison`` when omitted.
+    params : Mapping, optional
+        Its parameters (validated).
+
+    Returns
+    -------
+    StoredComparison
+
+    Raises
+    ------
+    InputError
+        A visit without geometry, a plugin of another kind, invalid parameters.
+    """
+    registry = pipeline.registry
+    stage = registry.get(plugin) if plugin else registry.default_for(COMPARISON_STAGE)
+    if stage.stage != COMPARISON_STAGE:
+        raise InputError(f"plugin {stage.name!r} implements {stage.stage!r}, not a comparison")
+    validated = coerce_params(stage, params)
+    digest = params_hash(validated)
+    if a.visit is None or b.visit is None:
+        bad = a if a.visit is None else b
+        raise InputError(f"acquisition {bad.uid} cannot be compared: {bad.reason}")
+    inputs = _inputs(a, b)
+    key = comparison_key(stage.name, stage.version, digest, [i[:3] for i in inputs])
+    with pipeline.archive.session() as s:
+        row = s.scalar(
+            select(StageResult).where(
+                StageResult.acquisition_id == a.acquisition_id, StageResult.chain_key == key
+            )
+        )
+    if row is not None:
+        record = pipeline.derived.read(row.store_path, expected_checksum=row.output_checksum)
+        if not isinstance(record, ComparisonRecord):
+            raise InputError(f"result {row.id} holds {row.record_kind!r}, not a comparison")
+        return StoredComparison(row.id, record, True, stage.name, stage.version)
+    began = time.perf_counter()
+    record = run_stage(stage, pack(a.visit, b.visit), validated)
+    duration = time.perf_counter() - began
+    input_checksum = hashlib.sha256("".join(i[2] for i in inputs).encode()).hexdigest()
+    stored = pipeline.derived.write(
+        a.uid,
+        record,
+        stage=COMPARISON_STAGE,
+        plugin=stage.name,
+        plugin_version=stage.version,
+        params=validated.model_dump(mode="json"),
+        params_hash=digest,
+        chain_key=key,
+        input_checksum=input_checksum,
+    )
+    package = registry.info(stage.name).package or ""
+    with pipeline.archive.session() as s:
+        new = StageResult(
+            acquisition_id=a.acquisition_id,
+            run_id=None,
+            parent_id=None,
+            calibration_id=None,
+            frame_index=a.frame_index,
+            stage=COMPARISON_STAGE,
+            plugin=stage.name,
+            plugin_version=stage.version,
+            plugin_package=package,
+            params=validated.model_dump(mode="json"),
+            params_hash=digest,
+            chain_key=key,
+            input_checksum=input_checksum,
+            output_checksum=stored.output_checksum,
+            record_kind=record.kind,
+            store_path=stored.path,
+            reason=record.reason,
+            package_version=__version__,
+            host=socket.gethostname(),
+            duration_s=duration,
+            created_at=utcnow(),
+        )
+        try:
+            with s.begin_nested():
+                s.add(new)
+                s.flush()
+                for position, (role, rid, _sum, acquisition_id) in enumerate(inputs):
+                    s.add(
+                        StageResultInput(
+                            result_id=new.id,
+                            position=position,
+                            role=role,
+                            input_id=rid,
+                            acquisition_id=acquisition_id,
+                        )
+                    )
+                s.flush()
+        except SQLIntegrityError:
+            # another process stored the same comparison meanwhile: use its row
+            existing = s.scalar(
+                select(StageResult).where(
+                    StageResult.acquisition_id == a.acquisition_id, StageResult.chain_key == key
+                )
+            )
+            if existing is None:
+                raise
+            return StoredComparison(existing.id, record, True, stage.name, stage.version)
+        result_id = new.id
+    return StoredComparison(result_id, record, False, stage.name, stage.version)
