@@ -344,9 +344,11 @@ class Archive:
     @classmethod
     def create(cls, settings: Settings, **kwargs: Any) -> Archive:
         """Open the archive, first migrating its catalogue to the newest schema."""
+        from rasterserver.pseudonym_key import key_file
+
         engine = make_engine(settings.database_url)
         try:
-            migrate.upgrade(engine)
+            migrate.upgrade(engine, key_file=key_file(settings))
         finally:
             engine.dispose()
         return cls(settings, **kwargs)

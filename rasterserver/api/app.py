@@ -16,8 +16,10 @@ Settings (environment, or :class:`ApiSettings` arguments):
 ``RASTERSERVER_KEEPALIVE_SECONDS``
     Seconds a keep-alive connection is used before the server closes it (default 5; 0:
     never), so that long-lived clients spread evenly over the worker processes.
-``RASTERSERVER_PSEUDONYM_KEY``
-    Hex key of the researchers' pseudonyms (default: made once, kept in the catalogue).
+``RASTERSERVER_PSEUDONYM_KEY``, ``RASTERSERVER_PSEUDONYM_KEY_FILE``
+    The key of the researchers' pseudonyms, as hex or in a file (default
+    ``<archive>/config/pseudonym.key``, made once), never in the catalogue: see
+    :mod:`rasterserver.pseudonym_key`.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from rasterserver import __version__
 from rasterserver.api.audit import RequestMiddleware, audit_writer
 from rasterserver.api.audit_index import AuditIndexer
 from rasterserver.api.errors import LimitsMiddleware, install_handlers
+from rasterserver.api.gate import AuthGate
 from rasterserver.api.jobs import JobRunner
 from rasterserver.api.metrics import Metrics
 from rasterserver.api.pseudonym import Pseudonymiser
@@ -217,7 +220,10 @@ def create_app(settings: Settings, api: ApiSettings | None = None) -> FastAPI:
     install_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
-    # outermost first: the limits wrap the audit, so a refused upload is still answered
+    # innermost first: the gate refuses a request without a valid token (or role) before
+    # its body is read, inside the audit middleware, which records the refusal
+    app.add_middleware(AuthGate, services=services, routes=app.router.routes)
+    # the limits wrap the audit, so a refused upload is still answered
     app.add_middleware(RequestMiddleware, services=services)
     app.add_middleware(LimitsMiddleware, max_body_bytes=api.max_upload_bytes,
                        timeout_s=api.request_timeout_s,

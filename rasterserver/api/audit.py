@@ -89,9 +89,14 @@ os.register_at_fork(after_in_child=_new_process)
 
 def note_of(request: Request) -> AuditNote:
     """Return the audit note of ``request`` (made by :class:`RequestMiddleware`)."""
-    note = request.scope.get(NOTE_KEY)
+    return note_of_scope(request.scope)
+
+
+def note_of_scope(scope: Scope) -> AuditNote:
+    """Return the audit note of the request ``scope`` (for middlewares)."""
+    note = scope.get(NOTE_KEY)
     if note is None:  # a route called without the middleware (unit tests of a router)
-        note = request.scope[NOTE_KEY] = AuditNote()
+        note = scope[NOTE_KEY] = AuditNote()
     return note
 
 
@@ -211,6 +216,43 @@ def write_events(archive: Archive, note: AuditNote, *, method: str, route: str, 
     """Record one request in the audit trail now (outside the server's group commit)."""
     insert_records(archive, [audit_record(note, method=method, route=route,
                                           route_name=route_name, status=status, client=client)])
+
+
+def cli_actor() -> str:
+    """Who runs this command, for the audit trail: ``cli:<login>`` (``cli:uid-N`` without
+    a name, e.g. in a container whose user has no passwd entry)."""
+    import getpass
+
+    try:
+        login = getpass.getuser()
+    except (KeyError, OSError):
+        login = f"uid-{os.getuid()}"
+    return f"cli:{login}"[:100]
+
+
+def record_admin_action(archive: Archive, *, action: str, what: str, detail: str) -> None:
+    """Record a change of accounts or tokens made with the CLI in the audit trail.
+
+    Over HTTP every request is audited by :class:`RequestMiddleware`; the CLI's commands
+    that create accounts and tokens, revoke tokens, or disable and enable accounts write
+    their event here, committed before the command reports success.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive whose audit trail records it.
+    action : str
+        FHIR action code: ``C`` create, ``U`` update, ``D`` delete.
+    what : str
+        The command, e.g. ``token create`` (the event's route).
+    detail : str
+        What was done to what: account names, token ids, never a token.
+    """
+    note = AuditNote(principal=Principal(0, cli_actor(), "admin", "user"), detail=detail)
+    record = audit_record(note, method="CLI", route=f"cli: {what}", route_name="",
+                          status=200, client="local")
+    record.event["action"] = action
+    insert_records(archive, [record])
 
 
 def audit_writer(archive: Archive) -> AuditWriter:

@@ -48,6 +48,18 @@ def traceback_without_values(exc: BaseException) -> str:
     return "".join(traceback.format_tb(exc.__traceback__))
 
 
+#: The body of a 500 the service raised on purpose (e.g. a damaged archive file).
+SERVER_FAULT = ("stored data needed for this request is damaged or missing; the server log "
+                "says which (run `rasterserver verify`)")
+
+
+def scrub_paths(text: str, root: object) -> str:
+    """``text`` with the archive folder ``root`` written as ``<archive>``: messages kept for
+    clients (a pipeline run's or job's error) must not show where the archive lives."""
+    where = str(root)
+    return text.replace(where, "<archive>") if where and where != "." else text
+
+
 _HTTP_KINDS = {400: "BadRequest", 401: "Unauthorized", 403: "Forbidden", 404: "NotFound",
                405: "MethodNotAllowed", 413: "PayloadTooLarge"}
 
@@ -148,6 +160,13 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RasterServerError)
     async def _service_error(_request: Request, exc: RasterServerError) -> JSONResponse:
+        if exc.http_status >= 500:
+            # A damaged or missing archive file: its message names the file (the archive's
+            # layout, and in h5py's words its absolute path), which is the operator's
+            # business, not the client's. The log keeps it (uids and paths, no patient data).
+            log.error("%s while handling a request: %s", type(exc).__name__, exc)
+            return JSONResponse(error_body(exc.http_status, SERVER_FAULT, type(exc).__name__),
+                                status_code=exc.http_status)
         return JSONResponse(error_body(exc.http_status, str(exc), type(exc).__name__),
                             status_code=exc.http_status)
 

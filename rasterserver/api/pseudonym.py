@@ -7,8 +7,9 @@ offset, -365 ... +365 days, also derived from the key (HMAC over ``"shift:" + id
 intervals between visits survive exactly while the calendar dates do not. Names, birth dates,
 operators and notes are never shown to researchers.
 
-The key comes from ``RASTERSERVER_PSEUDONYM_KEY`` (hex) if set, else from the catalogue's
-``pseudonym_key`` table, where it is made on first use.
+The key comes from ``RASTERSERVER_PSEUDONYM_KEY`` (hex) if set, else from a key file outside
+the catalogue (:mod:`rasterserver.pseudonym_key`), where it is made on first use: a copy of
+the catalogue does not re-identify anyone.
 """
 
 from __future__ import annotations
@@ -16,44 +17,24 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import hmac
-import os
-import secrets
 import threading
 
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 
+from rasterserver import pseudonym_key
 from rasterserver.archive import Archive
-from rasterserver.catalog.auth_models import PseudonymKey
 from rasterserver.catalog.models import Patient
-from rasterserver.errors import InputError, NotFoundError
+from rasterserver.errors import NotFoundError
 
 PREFIX = "PS-"
 MAX_SHIFT_DAYS = 365
 
 
 def load_key(archive: Archive) -> bytes:
-    """Return the pseudonym key: from the environment, or the catalogue (made once)."""
-    env = os.environ.get("RASTERSERVER_PSEUDONYM_KEY")
-    if env:
-        try:
-            key = bytes.fromhex(env)
-        except ValueError:
-            raise InputError("RASTERSERVER_PSEUDONYM_KEY must be hex") from None
-        if len(key) < 16:
-            raise InputError("RASTERSERVER_PSEUDONYM_KEY must hold at least 16 bytes")
-        return key
-    query = select(PseudonymKey.key_hex).order_by(PseudonymKey.id).limit(1)
-    with archive.session() as s:
-        found = s.scalar(query)
-        if found is None:
-            s.add(PseudonymKey(key_hex=secrets.token_hex(32)))
-    if found is None:
-        # two workers may both have made one: the oldest wins, for everyone
-        with archive.session() as s:
-            found = s.scalar(query)
-    assert found is not None
-    return bytes.fromhex(found)
+    """Return the pseudonym key of ``archive``: from ``RASTERSERVER_PSEUDONYM_KEY``, else the
+    key file (made on first use), never from the catalogue; see
+    :mod:`rasterserver.pseudonym_key`."""
+    return pseudonym_key.load_key(archive.settings)
 
 
 class Pseudonymiser:
@@ -78,10 +59,7 @@ class Pseudonymiser:
     def key(self) -> bytes:
         """The key, loaded on first use."""
         if self._key is None:
-            try:
-                self._key = load_key(self.archive)
-            except SQLIntegrityError:  # pragma: no cover - a concurrent first use
-                self._key = load_key(self.archive)
+            self._key = load_key(self.archive)
         return self._key
 
     def _mac(self, text: str) -> bytes:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import datetime as dt
+from collections.abc import Callable
 from typing import Any
 
 import orjson
@@ -75,6 +77,25 @@ def acquisition_body(info: AcquisitionInfo, caller: Principal,
             "station_id": info.station_id, "calibration_id": info.calibration_id,
             "acquired_at": info.acquired_at, "operator": info.operator, "notes": info.notes,
             "frames": frames}
+
+
+def patient_clock(caller: Principal, identifier: str | None,
+                  pseudonyms: Pseudonymiser) -> Callable[[dt.datetime | None], dt.datetime | None]:
+    """How ``caller`` sees the times of records about the patient ``identifier``.
+
+    Every time a researcher can see that belongs to a patient's data (when an acquisition
+    was made, when its results were computed, when its pipeline runs started and ended) is
+    shifted by that patient's offset: left true, any one of them would give the offset away
+    (an acquisition processed minutes after it was taken dates itself). Others see UTC.
+    Records without a patient (calibration acquisitions) keep their times.
+    """
+    if not pseudonymised(caller) or not identifier:
+        return utc
+
+    def shifted(when: dt.datetime | None) -> dt.datetime | None:
+        return pseudonyms.shift_time(identifier, utc(when))
+
+    return shifted
 
 
 def json_response(content: Any, status_code: int = 200) -> Response:

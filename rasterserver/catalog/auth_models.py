@@ -1,10 +1,12 @@
-"""Catalogue tables of the HTTP API: accounts, API tokens, the audit trail, pseudonym keys.
+"""Catalogue tables of the HTTP API: accounts, API tokens, the audit trail, jobs.
 
 Kept apart from :mod:`rasterserver.catalog.models` because they describe who may see the
 archive, not what it holds. Tokens are stored only as SHA-256 digests: a copied database
-grants no access. Audit events are append-only: the ORM refuses to change or delete one, and
-the migration adds database triggers that refuse it too (so neither a bug nor a hand-typed
-``UPDATE`` rewrites history).
+grants no access. The researchers' pseudonym key is not here at all (migration 0010 moved
+it out, see :mod:`rasterserver.pseudonym_key`): a copied database re-identifies no one.
+Audit events are append-only: the ORM refuses to change or delete one, and the migration
+adds database triggers that refuse it too (so neither a bug nor a hand-typed ``UPDATE``
+rewrites history).
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ class ApiAccount(Base):
     role: Mapped[str] = mapped_column(String(16))
     kind: Mapped[str] = mapped_column(String(8), default="user")
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    #: When the account was disabled (its tokens are refused); None while it is enabled.
+    disabled_at: Mapped[dt.datetime | None] = mapped_column()
 
     tokens: Mapped[list[ApiToken]] = relationship(back_populates="account")
 
@@ -66,6 +70,8 @@ class ApiToken(Base):
     label: Mapped[str] = mapped_column(String(100), default="")
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     revoked_at: Mapped[dt.datetime | None] = mapped_column()
+    #: Refused from this time on. None (only tokens given no end by hand) never expires.
+    expires_at: Mapped[dt.datetime | None] = mapped_column()
 
     account: Mapped[ApiAccount] = relationship(back_populates="tokens")
 
@@ -157,21 +163,6 @@ class AuditIndexMark(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     indexed_through: Mapped[int] = mapped_column(Integer, default=0)
     lease_until: Mapped[dt.datetime | None] = mapped_column()
-
-
-class PseudonymKey(Base):
-    """The secret of the researchers' pseudonyms, made once per archive.
-
-    Without it nobody can map a pseudonym back or undo the date shift; with it the mapping is
-    stable across restarts and workers. ``RASTERSERVER_PSEUDONYM_KEY`` overrides it, so a
-    site can keep the key outside the database.
-    """
-
-    __tablename__ = "pseudonym_key"
-
-    id: Mapped[int] = mapped_column(primary_key=True)
-    key_hex: Mapped[str] = mapped_column(String(128))
-    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
 
 
 JOB_STATUSES = ("queued", "running", "done", "failed")

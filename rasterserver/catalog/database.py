@@ -15,6 +15,8 @@ from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
+from rasterserver.store.modes import file_mode
+
 
 def make_engine(url: str, **kwargs: Any) -> Engine:
     """Create an engine for the catalogue at ``url``.
@@ -40,7 +42,7 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
         parsed = parsed.set(drivername="postgresql+psycopg")
     if parsed.get_backend_name() == "sqlite":
         if parsed.database and parsed.database != ":memory:":
-            Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+            _private_sqlite_file(Path(parsed.database))
         engine = create_engine(parsed, **kwargs)
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
@@ -49,6 +51,21 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
     # metadata on its event loop, which a hanging connect would stall
     kwargs.setdefault("connect_args", {}).setdefault("connect_timeout", 10)
     return create_engine(parsed, **kwargs)
+
+
+def _private_sqlite_file(database: Path) -> None:
+    """Create a new SQLite catalogue's folder and (empty) file owner-only.
+
+    SQLite would create the file with 0644 less the umask: readable by every account on the
+    machine. Made here first with the archive's mode (:mod:`rasterserver.store.modes`), it
+    keeps that mode, and SQLite gives its WAL and shared-memory files the mode of the
+    database file. An existing catalogue is left as it is.
+    """
+    from rasterserver.store.durable import ensure_dir
+    from rasterserver.store.modes import make_private_file
+
+    ensure_dir(database.parent)
+    make_private_file(database)
 
 
 def _sqlite_pragmas(dbapi_conn: sqlite3.Connection, _record: object) -> None:
@@ -95,7 +112,7 @@ class WriteLock:
             return
         with self._threads:
             if self._fd is None:
-                self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o600)
+                self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, file_mode())
             fcntl.flock(self._fd, fcntl.LOCK_EX)
             try:
                 yield

@@ -32,7 +32,7 @@ def alembic_config(engine: Engine) -> Config:
     return cfg
 
 
-def upgrade(engine: Engine, revision: str = "head") -> None:
+def upgrade(engine: Engine, revision: str = "head", *, key_file: Path | None = None) -> None:
     """Migrate the catalogue at ``engine`` up to ``revision`` (creating it if empty).
 
     Parameters
@@ -41,18 +41,27 @@ def upgrade(engine: Engine, revision: str = "head") -> None:
         The catalogue's engine.
     revision : str, optional
         Target revision, ``"head"`` by default.
+    key_file : Path, optional
+        The archive's pseudonym key file (:func:`rasterserver.pseudonym_key.key_file`):
+        where revision 0010 moves a key the catalogue held. Without it that revision
+        refuses to run on a catalogue holding a key.
     """
     cfg = alembic_config(engine)
     with engine.begin() as conn:
         cfg.attributes["connection"] = conn
+        cfg.attributes["pseudonym_key_file"] = key_file
         command.upgrade(cfg, revision)
 
 
-def downgrade(engine: Engine, revision: str) -> None:
-    """Migrate the catalogue at ``engine`` down to ``revision`` (``"base"`` empties it)."""
+def downgrade(engine: Engine, revision: str, *, key_file: Path | None = None) -> None:
+    """Migrate the catalogue at ``engine`` down to ``revision`` (``"base"`` empties it).
+
+    ``key_file`` as for :func:`upgrade`: below 0010 the key goes back into the catalogue.
+    """
     cfg = alembic_config(engine)
     with engine.begin() as conn:
         cfg.attributes["connection"] = conn
+        cfg.attributes["pseudonym_key_file"] = key_file
         command.downgrade(cfg, revision)
 
 

@@ -24,11 +24,15 @@ def upgrade(
     revision: Annotated[str, typer.Argument(help="Target revision.")] = "head",
 ) -> None:
     """Create the catalogue, or migrate it to the newest schema (safe to repeat)."""
-    engine = make_engine(settings(ctx).database_url)
+    from rasterserver.pseudonym_key import key_file
+
+    chosen = settings(ctx)
+    engine = make_engine(chosen.database_url)
     try:
         before = migrate.current_revision(engine)
         try:
-            migrate.upgrade(engine, revision)
+            # 0010 moves the pseudonym key out of the catalogue into this file
+            migrate.upgrade(engine, revision, key_file=key_file(chosen))
         except CommandError as exc:
             # Alembic's words ("Can't locate revision ...") for a revision that is no option
             raise InputError(

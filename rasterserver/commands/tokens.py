@@ -1,4 +1,9 @@
-"""``rasterserver user``, ``token`` and ``audit``: accounts, API tokens, the audit trail."""
+"""``rasterserver user``, ``token``, ``audit`` and ``keys``: accounts, API tokens, the audit
+trail, the pseudonym key.
+
+Every change of accounts or tokens made here is recorded in the audit trail (actor
+``cli:<login>``), as the HTTP API's requests are.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.errors import InputError
 from rasterserver.identifiers import lookup_key
 from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
@@ -21,6 +27,8 @@ tokens = typer.Typer(
     help="API bearer tokens: shown once when created, stored as SHA-256.", no_args_is_help=True
 )
 audit = typer.Typer(help="The audit trail of the HTTP API.", no_args_is_help=True)
+keys = typer.Typer(help="The researchers' pseudonym key (kept outside the catalogue).",
+                   no_args_is_help=True)
 
 
 def _auth() -> ModuleType:
@@ -45,15 +53,56 @@ def user_add(
         p = _auth().add_account(
             archive, name, role=role, kind="service" if service_account else "user"
         )
+        _admin_event(archive, "C", "user add", f"account {p.name} ({p.kind}, {p.role}) created")
     typer.echo(f"account {p.name} ({p.kind}, {p.role}) created")
+
+
+def _admin_event(archive: object, action: str, what: str, detail: str) -> None:
+    from rasterserver.api.audit import record_admin_action
+
+    record_admin_action(archive, action=action, what=what, detail=detail)  # type: ignore[arg-type]
 
 
 @users.command("list")
 def user_list(ctx: typer.Context) -> None:
-    """List API accounts."""
+    """List API accounts (name, role, kind, and "disabled" for a disabled one)."""
+    from sqlalchemy import select
+
+    from rasterserver.catalog.auth_models import ApiAccount
+
+    with open_archive(ctx) as archive, archive.session() as s:
+        for a in s.scalars(select(ApiAccount).order_by(ApiAccount.name)):
+            state = "\tdisabled" if a.disabled_at is not None else ""
+            typer.echo(f"{a.name}\t{a.role}\t{a.kind}{state}")
+
+
+def _set_disabled(ctx: typer.Context, name: str, disabled: bool) -> None:
+    word = "disabled" if disabled else "enabled"
     with open_archive(ctx) as archive:
-        for p in _auth().accounts(archive, limit=1_000_000):
-            typer.echo(f"{p.name}\t{p.role}\t{p.kind}")
+        changed = _auth().set_account_disabled(archive, name, disabled)
+        if changed:
+            _admin_event(archive, "U", f"user {word[:-1]}", f"account {name} {word}")
+    typer.echo(f"account {name} {word}" if changed else f"account {name} was {word} already")
+
+
+@users.command("disable")
+def user_disable(
+    ctx: typer.Context,
+    name: Annotated[str, typer.Argument(help="Account name.", show_default=False)],
+) -> None:
+    """Disable an account: every token of it is refused from the next request on, until
+    `user enable`."""
+    _set_disabled(ctx, name, True)
+
+
+@users.command("enable")
+def user_enable(
+    ctx: typer.Context,
+    name: Annotated[str, typer.Argument(help="Account name.", show_default=False)],
+) -> None:
+    """Enable a disabled account again (its tokens that have not expired or been revoked
+    work again)."""
+    _set_disabled(ctx, name, False)
 
 
 @tokens.command("create")
@@ -70,16 +119,34 @@ def token_create(
         ),
     ] = False,
     role: Annotated[str | None, typer.Option(help="Role of an account created here.")] = None,
+    days: Annotated[
+        int | None,
+        typer.Option(help="Lifetime in days, 1 to 3650 (default: RASTERSERVER_TOKEN_DAYS, "
+                     "else 90).", show_default=False),
+    ] = None,
+    expires_at: Annotated[
+        str | None,
+        typer.Option(help=f"Expiry instead of --days: {TIME_RULE}.", show_default=False),
+    ] = None,
 ) -> None:
-    """Create a token and print it ONCE: only its SHA-256 is kept."""
+    """Create a token and print it ONCE: only its SHA-256 is kept. Every token expires."""
+    until = parse_datetime(expires_at, "--expires-at")
     with open_archive(ctx) as archive:
         # the same account if the names differ only in case or look-alike characters
         if service_account and not any(
             lookup_key(p.name) == lookup_key(account)
             for p in _auth().accounts(archive, limit=1_000_000)
         ):
-            _auth().add_account(archive, account, role=role or "station", kind="service")
-        token = _auth().create_token(archive, account, label=label)
+            p = _auth().add_account(archive, account, role=role or "station", kind="service")
+            _admin_event(archive, "C", "token create",
+                         f"account {p.name} ({p.kind}, {p.role}) created")
+        token = _auth().create_token(archive, account, label=label, days=days,
+                                     expires_at=until)
+        info = _auth().tokens(archive, account=account)[-1]
+        _admin_event(archive, "C", "token create",
+                     f"token {info.id} ({info.prefix}...) for account {info.account}, "
+                     f"expires {info.expires_at:%Y-%m-%d %H:%M} UTC")
+    typer.echo(f"expires {info.expires_at:%Y-%m-%d %H:%M} UTC", err=True)
     typer.echo(token)
 
 
@@ -88,13 +155,17 @@ def token_list(
     ctx: typer.Context,
     account: Annotated[str | None, typer.Option(help="Only this account's tokens.")] = None,
 ) -> None:
-    """List tokens: id, account, role, prefix, created, revoked."""
+    """List tokens: id, account, role, prefix, created, state (active, revoked, expired,
+    account disabled), expires, label."""
     with open_archive(ctx) as archive:
         for t in _auth().tokens(archive, account=account):
-            state = f"revoked {t.revoked_at:%Y-%m-%d %H:%M}" if t.revoked_at else "active"
+            state = t.state()
+            if state == "revoked":
+                state = f"revoked {t.revoked_at:%Y-%m-%d %H:%M}"
+            expires = f"{t.expires_at:%Y-%m-%d %H:%M}" if t.expires_at else "never"
             typer.echo(
                 f"{t.id}\t{t.account}\t{t.role}\t{t.prefix}...\t"
-                f"{t.created_at:%Y-%m-%d %H:%M}\t{state}\t{t.label}"
+                f"{t.created_at:%Y-%m-%d %H:%M}\t{state}\texpires {expires}\t{t.label}"
             )
 
 
@@ -107,7 +178,8 @@ def token_revoke(
 ) -> None:
     """Revoke a token; it is refused from the next request on."""
     with open_archive(ctx) as archive:
-        _auth().revoke_token(archive, token_id)
+        owner = _auth().revoke_token(archive, token_id)
+        _admin_event(archive, "U", "token revoke", f"token {token_id} of account {owner} revoked")
     typer.echo(f"token {token_id} revoked")
 
 
@@ -143,8 +215,43 @@ def audit_export(
         typer.echo(f"{len(events)} audit event(s) written to {out}", err=True)
 
 
+@keys.command("rotate-pseudonyms")
+def keys_rotate_pseudonyms(
+    ctx: typer.Context,
+    keep_old: Annotated[
+        Path | None,
+        typer.Option("--keep-old", help="Keep the old key in this new file (mode 0600). "
+                     "Without it the old key is destroyed.", show_default=False),
+    ] = None,
+    yes: Annotated[
+        bool, typer.Option("--yes", help="Confirm: every pseudonym and date shift changes.")
+    ] = False,
+) -> None:
+    """Replace the pseudonym key with a new random one.
+
+    Every patient gets a new pseudonym and a new date shift: research data exported before
+    cannot be linked to data exported after, and old pseudonyms are no longer accepted.
+    Without --keep-old nobody can map earlier pseudonyms back any more. Restart the servers
+    (they hold the key in memory).
+    """
+    from rasterserver.commands.common import settings
+    from rasterserver.pseudonym_key import rotate_key
+
+    if not yes:
+        raise InputError("rotating the pseudonym key changes every pseudonym and date shift "
+                         "for good; run again with --yes to do it")
+    if keep_old is not None and keep_old.exists():
+        raise InputError(f"--keep-old {keep_old} exists; name a new file")
+    with open_archive(ctx) as archive:
+        path = rotate_key(settings(ctx), keep_old=keep_old)
+        _admin_event(archive, "U", "keys rotate-pseudonyms",
+                     "pseudonym key rotated" + (" (old key kept)" if keep_old else ""))
+    typer.echo(f"new pseudonym key in {path}; restart the servers to use it")
+
+
 def register(app: typer.Typer) -> None:
-    """Add the ``user``, ``token`` and ``audit`` groups to ``app``."""
+    """Add the ``user``, ``token``, ``audit`` and ``keys`` groups to ``app``."""
     app.add_typer(users, name="user")
     app.add_typer(tokens, name="token")
     app.add_typer(audit, name="audit")
+    app.add_typer(keys, name="keys")

@@ -19,6 +19,7 @@ import os
 from pathlib import Path
 
 from rasterserver.errors import ConflictError
+from rasterserver.store.modes import dir_mode, set_dir_mode, set_file_mode
 
 __all__ = ["ensure_dir", "fsync_dir", "fsync_file", "publish"]
 
@@ -66,6 +67,9 @@ def fsync_dir(path: Path) -> None:
 def ensure_dir(path: Path) -> None:
     """Create ``path`` and missing parents, fsyncing each new entry into its parent.
 
+    Folders created here get the archive's mode (owner only, see
+    :mod:`rasterserver.store.modes`); folders that exist already are left as they are.
+
     Parameters
     ----------
     path : Path
@@ -78,9 +82,10 @@ def ensure_dir(path: Path) -> None:
         probe = probe.parent
     for folder in reversed(missing):
         try:
-            folder.mkdir()
+            folder.mkdir(mode=dir_mode())
         except FileExistsError:  # another writer created it meanwhile
             continue
+        set_dir_mode(folder)  # exactly: the umask may have taken the group's bits
         fsync_dir(folder.parent)
 
 
@@ -98,11 +103,16 @@ def publish(temp: Path, final: Path) -> None:
     final : Path
         Name to publish it under.
 
+    The file gets the archive's mode (owner only, see :mod:`rasterserver.store.modes`)
+    before it gets its name, so it is never readable by others under that name.
+
     Raises
     ------
     ConflictError
         ``final`` already exists; ``temp`` is removed.
     """
+    # h5py and open() create files with 0666 less the umask: usually world-readable
+    set_file_mode(temp)
     try:
         os.link(temp, final)
     except FileExistsError:

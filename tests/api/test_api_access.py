@@ -31,7 +31,10 @@ def test_pseudonyms_are_stable_keyed_and_reversible_only_with_the_key(archive: A
     for i in range(50):
         archive.add_patient(f"P{i}")
     one, two = Pseudonymiser(archive), Pseudonymiser(archive)
-    assert load_key(archive) == one.key == two.key  # made once, kept in the catalogue
+    assert load_key(archive) == one.key == two.key  # made once, kept in the key file
+    key_file = archive.settings.archive / "config" / "pseudonym.key"
+    assert bytes.fromhex(key_file.read_text()) == one.key
+    assert key_file.stat().st_mode & 0o777 == 0o600
     names = {one.pseudonym(f"P{i}") for i in range(50)}
     assert len(names) == 50 and names == {two.pseudonym(f"P{i}") for i in range(50)}
     assert not any(f"P{i}" in n for i, n in enumerate(sorted(names)))

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Query
 
 from rasterserver.api import auth
-from rasterserver.api.deps import PageDep, ServicesDep, protected_router
+from rasterserver.api.deps import NoteDep, PageDep, ServicesDep, protected_router
 from rasterserver.api.fields import Role
 from rasterserver.api.schemas import AccountIn, AccountOut
 
@@ -25,7 +25,9 @@ def list_accounts(
 
 
 @router.post("/accounts", name="add_account", response_model=AccountOut, status_code=201)
-def add_account(body: AccountIn, svc: ServicesDep) -> AccountOut:
+def add_account(body: AccountIn, svc: ServicesDep, note: NoteDep) -> AccountOut:
     """Create a user or service account; give it a token with `rasterserver token create`."""
     p = auth.add_account(svc.archive, body.name, role=body.role, kind=body.kind)
+    # the audit event says which account was made, with which role
+    note.detail = f"account {p.name} ({p.kind}, {p.role}) created"
     return AccountOut(name=p.name, role=p.role, kind=p.kind)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import tempfile
+from collections.abc import Callable
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -10,6 +12,7 @@ from fastapi import Path, Query, Request
 from fastapi.responses import Response
 
 from rasterserver.api.deps import (
+    CallerDep,
     NoteDep,
     PageDep,
     ServicesDep,
@@ -18,7 +21,9 @@ from rasterserver.api.deps import (
     protected_router,
     utc,
 )
+from rasterserver.api.errors import scrub_paths
 from rasterserver.api.schemas import ResultOut, RunOut
+from rasterserver.api.views import patient_clock, pseudonymised
 from rasterserver.catalog.models import PipelineRun, StageResult
 from rasterserver.errors import NotFoundError
 from rasterserver.export import ExportFormat, ExportFrame, ExportWhat, select_export
@@ -32,7 +37,10 @@ _MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "stl": "model/
           "csv": "text/csv"}
 
 
-def _result(row: StageResult) -> ResultOut:
+Clock = Callable[[dt.datetime | None], dt.datetime | None]
+
+
+def _result(row: StageResult, clock: Clock) -> ResultOut:
     return ResultOut(
         id=row.id, stage=row.stage, plugin=row.plugin, plugin_version=row.plugin_version,
         plugin_package=row.plugin_package, frame_index=row.frame_index, params=row.params,
@@ -40,58 +48,69 @@ def _result(row: StageResult) -> ResultOut:
         input_checksum=row.input_checksum, output_checksum=row.output_checksum,
         record_kind=row.record_kind, calibration_id=row.calibration_id, reason=row.reason,
         package_version=row.package_version, duration_s=row.duration_s,
-        created_at=utc(row.created_at))  # type: ignore[arg-type]
+        created_at=clock(row.created_at))  # type: ignore[arg-type]
 
 
-def _run(row: PipelineRun) -> RunOut:
+def _run(row: PipelineRun, clock: Clock, archive_root: object) -> RunOut:
     return RunOut(id=row.id, status=row.status, chain=row.chain,
-                  started_at=utc(row.started_at),  # type: ignore[arg-type]
-                  finished_at=utc(row.finished_at), error=row.error,
+                  started_at=clock(row.started_at),  # type: ignore[arg-type]
+                  finished_at=clock(row.finished_at),
+                  error=scrub_paths(row.error, archive_root),
                   computed=row.computed, reused=row.reused)
 
 
-def _touch(svc: ServicesDep, note: NoteDep, uid: str) -> None:
-    acq = svc.archive.acquisition(uid)
-    note.touch(acq.patient_id, acq.uid)
+def _touch(svc: ServicesDep, note: NoteDep, uid: str, caller: CallerDep | None = None) -> Clock:
+    """Audit the read of ``uid``'s data; return how ``caller`` sees the times of its records
+    (shifted for researchers, see :func:`~rasterserver.api.views.patient_clock`)."""
+    info = svc.archive.info(uid)
+    note.touch(info.patient_id, info.uid)
+    if caller is None:
+        return utc
+    return patient_clock(caller, info.patient, svc.pseudonyms)
 
 
 @router.get("/acquisitions/{uid}/results", name="list_results", response_model=list[ResultOut])
 def list_results(
-    uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
+    uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
     stage: Annotated[str | None, Query(max_length=32)] = None, plugin: Plugin = None,
 ) -> list[ResultOut]:
     """Every stored stage result of the acquisition with its provenance, oldest first."""
-    _touch(svc, note, uid)
+    clock = _touch(svc, note, uid, caller)
     rows = [r for r in svc.pipeline.results(uid)
             if (stage is None or r.stage == stage) and (plugin is None or r.plugin == plugin)]
-    return [_result(r) for r in rows[page.offset: page.offset + page.limit]]
+    return [_result(r, clock) for r in rows[page.offset: page.offset + page.limit]]
 
 
 @router.get("/acquisitions/{uid}/results/{stage}", name="get_result", response_model=ResultOut,
             responses={304: {"description": "Not modified"}})
 def get_result(uid: Uid, stage: Annotated[str, Path(max_length=32)], request: Request,
-               svc: ServicesDep, note: NoteDep, plugin: Plugin = None) -> ResultOut | Response:
+               svc: ServicesDep, caller: CallerDep, note: NoteDep,
+               plugin: Plugin = None) -> ResultOut | Response:
     """The newest stored result of one stage; stored results never change (ETag)."""
-    _touch(svc, note, uid)
+    clock = _touch(svc, note, uid, caller)
     rows = [r for r in svc.pipeline.results(uid)
             if r.stage == stage and (plugin is None or r.plugin == plugin)]
     if not rows:
         raise NotFoundError(f"acquisition {uid} has no stored {stage} result")
     row = max(rows, key=lambda r: (utc(r.created_at), r.id))
-    if (cached := not_modified(request, row.output_checksum)) is not None:
+    # the two views differ (shifted times), so must their tags
+    etag = row.output_checksum + ("-pseudonymised" if pseudonymised(caller) else "")
+    if (cached := not_modified(request, etag)) is not None:
         return cached
-    out = _result(row)
+    out = _result(row, clock)
     return Response(out.model_dump_json(), media_type="application/json",
-                    headers={"ETag": f'"{row.output_checksum}"'})
+                    headers={"ETag": f'"{etag}"'})
 
 
 @router.get("/acquisitions/{uid}/runs", name="list_runs", response_model=list[RunOut])
-def list_runs(uid: Uid, svc: ServicesDep, note: NoteDep, page: PageDep,
+def list_runs(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep, page: PageDep,
               status: Annotated[str | None, Query(max_length=16)] = None) -> list[RunOut]:
-    """Pipeline runs of the acquisition, oldest first."""
-    _touch(svc, note, uid)
+    """Pipeline runs of the acquisition, oldest first (researchers: times shifted by the
+    patient's offset, like every time of a patient's data)."""
+    clock = _touch(svc, note, uid, caller)
     rows = [r for r in svc.pipeline.runs(uid) if status is None or r.status == status]
-    return [_run(r) for r in rows[page.offset: page.offset + page.limit]]
+    root = svc.settings.archive
+    return [_run(r, clock, root) for r in rows[page.offset: page.offset + page.limit]]
 
 
 @router.get("/acquisitions/{uid}/export", name="export_result", response_class=Response,
