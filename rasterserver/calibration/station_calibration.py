@@ -275,8 +275,9 @@ def calibrate_station(
     detected: dict[int, list[DetectedPlate]] = {}
     for k in configs:
         fname = frames.names.get((k, "off"), f"config{k}-projector-off")
-        plates = detect_plates(frames.off[k], layout=control.layout, name=fname)
         expected = len(control.plates[k])
+        plates = detect_plates(frames.off[k], layout=control.layout, expected=expected,
+                               name=fname)
         if len(plates) != expected:
             raise InputError(
                 f"{fname}: found {len(plates)} control plate(s), expected {expected} "
