@@ -428,11 +428,124 @@ def default_raster() -> Raster:
     return make_raster(code=DEFAULT_CODE)
 
 
-_BUILTIN = {"default": default_raster}
+def m_sequence(window: int = 7, *, taps: tuple[int, ...] | None = None) -> np.ndarray:
+    """A maximal-length sequence: every non-zero ``window``-bit word once per period.
+
+    The output of a Fibonacci linear-feedback shift register with a primitive feedback
+    polynomial, started from all ones; ``2**window - 1`` bits. Read as a raster code it has
+    window ``window`` but minimum window distance 1 (two windows may differ in one line):
+    a single misread line can place a window elsewhere, which the numbering must survive.
+
+    Parameters
+    ----------
+    window : int
+        Register length, 3-10 (primitive taps are tabulated for these).
+    taps : tuple of int, optional
+        Feedback taps (1-based bit positions) instead of the tabulated ones.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(2**window - 1,)`` uint8 bits.
+    """
+    table = {
+        3: (3, 2),
+        4: (4, 3),
+        5: (5, 3),
+        6: (6, 5),
+        7: (7, 6),
+        8: (8, 6, 5, 4),
+        9: (9, 5),
+        10: (10, 7),
+    }
+    if taps is None:
+        if window not in table:
+            raise ValueError(f"no tabulated primitive polynomial for window {window} (3-10)")
+        taps = table[window]
+    state = [1] * window
+    out = []
+    for _ in range((1 << window) - 1):
+        out.append(state[-1])
+        fb = 0
+        for t in taps:
+            fb ^= state[t - 1]
+        state = [fb, *state[:-1]]
+    return np.array(out, dtype=np.uint8)
+
+
+#: ``generate_window_code(110, window=8, min_distance=1, seed=3)`` (stored, as the default).
+W8_CODE = (
+    "01111011101101110011000011101111010010101100010010011001010000101110001011001110101000101010"
+    "010000110011010111"
+)
+#: ``generate_window_code(96, window=9, min_distance=2, seed=6)``.
+W9_CODE = (
+    "111000010111100011110100001100111011001101110011000100100101001111001011"
+    "101011011010101000101010"
+)
+
+
+@lru_cache(maxsize=1)
+def mseq7_raster() -> Raster:
+    """Clinic raster: a window-7 maximal-length sequence, 127 lines 7.8 units apart, 40:60.
+
+    Two code windows may differ in one line only (minimum distance 1).
+    """
+    return make_raster(
+        127,
+        spacing=7.8,
+        light_width=0.72,
+        heavy_width=1.08,
+        code=m_sequence(7),
+        window=7,
+        name="mseq7",
+    )
+
+
+@lru_cache(maxsize=1)
+def w8_thin_raster() -> Raster:
+    """Clinic raster: 110 lines 9 units apart, window 8, distance 1, light:heavy 1:2."""
+    return make_raster(
+        110,
+        spacing=9.0,
+        light_width=0.6,
+        heavy_width=1.2,
+        code=W8_CODE,
+        window=8,
+        name="w8-1to2",
+    )
+
+
+@lru_cache(maxsize=1)
+def w9_faint_raster() -> Raster:
+    """Clinic raster: 96 lines 10 units apart, window 9, distance 2, light:heavy 45:55
+    (heavy lines only 22 % brighter: the kinds are hard to tell apart)."""
+    return make_raster(
+        96,
+        spacing=10.0,
+        light_width=0.9,
+        heavy_width=1.1,
+        code=W9_CODE,
+        window=9,
+        name="w9-45to55",
+    )
+
+
+_BUILTIN = {
+    "default": default_raster,
+    "mseq7": mseq7_raster,
+    "w8-1to2": w8_thin_raster,
+    "w9-45to55": w9_faint_raster,
+}
+
+#: Built-in clinic rasters (other codes, line counts and light:heavy ratios than the
+#: default one), used by the real-body benchmark.
+CLINIC_RASTERS: tuple[str, ...] = ("mseq7", "w8-1to2", "w9-45to55")
 
 
 def get_raster(name: str) -> Raster:
-    """A built-in raster definition by name (``"default"``)."""
+    """A built-in raster definition by name (``"default"``, ``"mseq7"``, ``"w8-1to2"``,
+    ``"w9-45to55"``)."""
     try:
         return _BUILTIN[name]()
     except KeyError:
