@@ -39,38 +39,39 @@ __all__ = [
 
 #: Where :data:`REPEATABILITY_SD` comes from.
 REPEATABILITY_SOURCE = (
-    "benchmarks/analysis.py, repeatability set of benchmarks/out/analysis.jsonl (analysis code "
-    "'analysis.back-shape 1 89fd6b4e3fd6'): 3 tuning backs (the presets) x 10 acquisitions, "
-    "independent noise and posture sway up to +-5 mm and +-1 deg; the largest SD over the "
-    "backs, rounded up to 0.01. Simulated acquisitions: a clinic's own repeatability (patients "
-    "re-positioned, breathing) is larger and should replace these values when measured."
+    "benchmarks/analysis.py --count 0 --repeat-backs 10 --repeats 10 (analysis code "
+    "'analysis.back-shape 1'): 10 tuning backs (the 3 presets and random seeds 0-6) x 10 "
+    "simulated acquisitions, independent noise and posture sway up to +-5 mm and +-1 deg; the "
+    "pooled within-back SD (root mean of the 10 variances, 90 degrees of freedom), rounded up "
+    "to 0.01. Simulated acquisitions: a clinic's own repeatability (patients re-positioned, "
+    "breathing) is larger and should replace these values when measured."
 )
 
 #: Repeatability standard deviation of every parameter (its unit: mm or deg), from
 #: :data:`REPEATABILITY_SOURCE`. The one place the comparison takes measurement noise from.
 REPEATABILITY_SD: dict[str, float] = {
-    "trunk_length": 0.31,
-    "trunk_inclination_mm": 4.56,
-    "trunk_inclination_deg": 0.63,
-    "trunk_imbalance_mm": 5.10,
-    "trunk_imbalance_deg": 0.67,
-    "pelvic_tilt_mm": 1.28,
-    "pelvic_tilt_deg": 0.70,
-    "pelvic_torsion_deg": 0.41,
-    "pelvic_rotation_deg": 0.67,
-    "kyphotic_angle_deg": 0.75,
-    "lordotic_angle_deg": 0.64,
-    "fleche_cervicale_mm": 1.93,
-    "fleche_lombaire_mm": 2.15,
+    "trunk_length": 0.34,
+    "trunk_inclination_mm": 4.71,
+    "trunk_inclination_deg": 0.60,
+    "trunk_imbalance_mm": 4.88,
+    "trunk_imbalance_deg": 0.63,
+    "pelvic_tilt_mm": 1.10,
+    "pelvic_tilt_deg": 0.63,
+    "pelvic_torsion_deg": 0.48,
+    "pelvic_rotation_deg": 0.52,
+    "kyphotic_angle_deg": 0.41,
+    "lordotic_angle_deg": 0.47,
+    "fleche_cervicale_mm": 1.66,
+    "fleche_lombaire_mm": 2.26,
     "surface_rotation_rms_deg": 0.33,
-    "surface_rotation_max_deg": 0.85,
+    "surface_rotation_max_deg": 0.59,
     "surface_rotation_pos_max_deg": 0.51,
-    "surface_rotation_neg_max_deg": 0.49,
-    "lateral_deviation_rms_mm": 0.32,
-    "lateral_deviation_max_mm": 1.07,
-    "lateral_deviation_pos_max_mm": 0.65,
-    "lateral_deviation_neg_max_mm": 0.69,
-    "scoliosis_angle_deg": 1.28,
+    "surface_rotation_neg_max_deg": 0.41,
+    "lateral_deviation_rms_mm": 0.34,
+    "lateral_deviation_max_mm": 0.63,
+    "lateral_deviation_pos_max_mm": 0.54,
+    "lateral_deviation_neg_max_mm": 0.54,
+    "scoliosis_angle_deg": 0.73,
 }
 
 _SDC_FACTOR = 1.96 * math.sqrt(2.0)
