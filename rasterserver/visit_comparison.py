@@ -40,7 +40,7 @@ from rasterserver.comparison import (
     Visit,
     asymmetry_change,
 )
-from rasterserver.errors import InputError
+from rasterserver.errors import InputError, NotFoundError
 from rasterserver.pair_comparison import asymmetry_of, distance_of, registration_of
 from rasterserver.records_surface import MeshRecord
 from rasterserver.stored_comparison import StoredComparison, stored_comparison
@@ -330,26 +330,38 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
 
 def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetime, Any]]:
     """Each stored acquisition of ``patient``, oldest first, with its analysis parameters
-    (None when the analysis found nothing): ``(uid, acquired_at, parameters)``, what
-    :class:`~rasterserver.trends.TrendVisit` takes. Nothing is processed.
+    (None when the analysis found nothing, when the acquisition is not analysed yet, or has no
+    raster frame: a gap in the trends, not a reason to show none): ``(uid, acquired_at,
+    parameters)``, what :class:`~rasterserver.trends.TrendVisit` takes. Nothing is processed.
 
     Raises
     ------
     NotFoundError
-        Unknown patient, or an acquisition without a stored analysis.
+        Unknown patient, or none of the patient's acquisitions has a stored analysis.
     """
     from rasterserver.analysis import AnalysisRefusedError
 
     pipeline.archive.patient(patient)
     found = sorted(pipeline.archive.find(patient=patient), key=lambda i: i.acquired_at)
     out: list[tuple[str, dt.datetime, Any]] = []
+    analysed = 0
     for info in found:
-        analysis = acquisition_analysis(pipeline, info.uid)
+        try:
+            analysis = acquisition_analysis(pipeline, info.uid)
+        except (NotFoundError, InputError):
+            out.append((info.uid, info.acquired_at, None))  # not processed, or no raster frame
+            continue
+        analysed += 1
         try:
             parameters = analysis.check().document()["parameters"]
         except AnalysisRefusedError:
             parameters = None
         out.append((info.uid, info.acquired_at, parameters))
+    if found and not analysed:
+        raise NotFoundError(
+            "none of the patient's acquisitions has a stored analysis yet: process them first "
+            "(`rasterserver process --patient ID`, or over HTTP a job)"
+        )
     return out
 
 

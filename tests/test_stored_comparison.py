@@ -117,3 +117,14 @@ def test_a_visit_without_geometry_is_refused(archived) -> None:
     broken = type(a)(a.uid, a.acquired_at, None, None, "no trunk found", a.acquisition_id)
     with pytest.raises(InputError, match="no trunk found"):
         stored_comparison(pipeline, broken, load_visit(pipeline, second))
+
+
+def test_trends_show_an_unprocessed_visit_as_a_gap(archived) -> None:
+    from rasterserver.visit_comparison import trend_visits
+
+    pipeline, (first, second, third) = archived
+    rows = trend_visits(pipeline, PATIENT)
+    assert [uid for uid, _when, _p in rows] == [first, second, third]
+    assert rows[0][2] is not None and rows[1][2] is not None
+    assert rows[2][2] is None  # not processed: a gap, not a 404 for the whole patient
+
