@@ -52,6 +52,10 @@ class VisitPair(Record):
     """
 
     kind: ClassVar[str] = "visit-pair"
+    #: What the service builds it from (shown by ``rasterserver plugins --graph``).
+    assembled_from: ClassVar[str] = (
+        "the stored mesh, surface and backshape of two acquisitions of one patient"
+    )
     a_vertices: np.ndarray
     a_triangles: np.ndarray
     a_normals: np.ndarray

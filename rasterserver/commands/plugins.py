@@ -51,6 +51,16 @@ def _table(infos: list[PluginInfo]) -> str:
     return "\n".join(lines)
 
 
+def _assembled(kind: str) -> str:
+    """How the service assembles records of ``kind`` that no stage makes (e.g. the comparison's
+    input from two acquisitions), as the record class declares it in ``assembled_from``."""
+    from rasterserver.records import record_types
+
+    cls = record_types().get(kind)
+    what = getattr(cls, "assembled_from", "") if cls is not None else ""
+    return f"  (assembled from {what})" if what else ""
+
+
 def _graph(edges: list[GraphEdge]) -> str:
     """Draw the graph as a tree from the record kinds nothing makes (the camera image)."""
     by_input: dict[str, list[GraphEdge]] = {}
@@ -73,7 +83,7 @@ def _graph(edges: list[GraphEdge]) -> str:
                 walk(edge.output_kind, indent + ("   " if last else "│  "), seen | {kind})
 
     for root in roots:
-        lines.append(root)
+        lines.append(root + _assembled(root))
         walk(root, "", frozenset({root}))
     return "\n".join(lines)
 
