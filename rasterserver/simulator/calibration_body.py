@@ -16,7 +16,8 @@ i.e. 3 × 2 = 6 frames.
 mottling), the plates stand on columns whose sides show beyond the plates' top and bottom
 edges and join the plates to the base in the image, the plates' sides show, the base carries
 dark mounting holes where the unused columns would stand, and the light is uneven (a lamp
-to one side: the reflected light varies about 2:1 over the body, :class:`UnevenLight`).
+up and to one side: the reflected light varies about 1.8:1 over the body,
+:class:`UnevenLight`).
 Nothing separates a plate from the base by brightness there: only the holes' pattern (and
 the depth steps of the raster lines in the projector-on frame) tell where a plate is. Any
 seven-point hole layout may be given (``layout=``; :func:`random_hole_layout`).
@@ -385,9 +386,9 @@ class UnevenLight:
         Distance (mm) at which the lamp's share is whole; nearer points are clipped to 1.
     """
 
-    source: tuple[float, float, float] = (-900.0, -700.0, -1200.0)
+    source: tuple[float, float, float] = (-1500.0, -1200.0, -400.0)
     floor: float = 0.3
-    reference: float = 1300.0
+    reference: float = 1600.0
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Return the factor ``(N,)`` at world points ``(N, 3)``."""
@@ -448,7 +449,7 @@ class LitAlbedo:
 
 #: Options of :func:`make_calibration_body` for the body as a clinic's camera sees it.
 REAL_BODY: dict[str, object] = {
-    "base_albedo": 0.7,
+    "base_albedo": 0.75,  # 300 mm further from the lamp than the high plate: as bright
     "columns": True,
     "mount_holes": True,
     "mottling": 0.05,

@@ -79,3 +79,42 @@ def perturbed_frames() -> CalibrationFrames:
                        seed=5 + i).image
         (on if projector_on else off)[k] = image
     return CalibrationFrames(off, on)
+
+
+#: The irregular hole layout of :func:`real_body_frames` (seed 11 of ``random_hole_layout``).
+REAL_LAYOUT_SEED = 11
+
+
+@cache
+def real_body_frames() -> tuple[CalibrationFrames, Path]:
+    """The six frames of the body as a clinic's camera sees it, with :func:`perturbed_station`.
+
+    Bright cast base (as bright as the plates), columns and plate sides in view, mounting
+    holes on the base, uneven light, an irregular seven-hole layout; supersampling 2, default
+    noise, seed 40. Returns the frames and the control-point file (JSON, with the layout).
+    """
+    import numpy as np
+
+    from rasterserver.calibration.station_calibration import CalibrationFrames
+    from rasterserver.simulator.calibration_body import (
+        control_points,
+        random_hole_layout,
+        real_body,
+        write_control_points,
+    )
+    from rasterserver.simulator.render import RenderSettings, render
+
+    layout = random_hole_layout(np.random.default_rng(REAL_LAYOUT_SEED))
+    lit = RenderSettings(supersampling=2)
+    dark = lit.replace(projector_electrons=0.0, ambient_electrons=15000.0, line_rows=False)
+    station = perturbed_station()
+    off, on = {}, {}
+    for i, (k, projector_on) in enumerate((k, p) for k in range(3) for p in (True, False)):
+        image = render(real_body(k, layout=layout), station,
+                       settings=lit if projector_on else dark, seed=40 + i).image
+        (on if projector_on else off)[k] = image
+    out = Path(tempfile.mkdtemp(prefix="rs-real-body-"))
+    atexit.register(shutil.rmtree, out, ignore_errors=True)
+    path = write_control_points(out / "control_points.json", control_points(layout=layout),
+                                layout=layout)
+    return CalibrationFrames(off, on), path

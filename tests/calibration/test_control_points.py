@@ -91,3 +91,58 @@ def test_a_folder_or_binary_file_is_refused(tmp_path: Path) -> None:
     binary.write_bytes(bytes(np.random.default_rng(3).integers(128, 256, 64, np.uint8)))
     with pytest.raises(InputError, match="not UTF-8"):
         load_control_points(binary)
+
+
+# --- hole layouts (issue 13): any seven-point pattern, but one that identifies its points ---
+
+
+def _with_layout(good: dict, layout: np.ndarray) -> dict:
+    """The good file's points moved onto ``layout`` (each plate keeps its centre)."""
+    doc = json.loads(json.dumps(good))
+    for p in doc["points"]:
+        centre_x = {"left": -180.0, "centre": 0.0, "right": 180.0}[p["lateral"]]
+        centre_y = -30.0 if p["plate"] == "high" else 30.0
+        p["x"], p["y"] = centre_x + layout[p["index"]][0], centre_y + layout[p["index"]][1]
+    doc["hole_layout"] = {"plate_coordinates_mm": layout.tolist()}
+    return doc
+
+
+def test_an_irregular_layout_reads(tmp_path: Path, good: dict) -> None:
+    from rasterserver.simulator.calibration_body import random_hole_layout
+
+    layout = random_hole_layout(np.random.default_rng(2))
+    loaded = load_control_points(_write(tmp_path, _with_layout(good, layout)))
+    np.testing.assert_allclose(loaded.layout, layout)
+
+
+def test_a_symmetric_layout_is_refused(tmp_path: Path, good: dict) -> None:
+    angles = np.linspace(0.0, 2 * np.pi, 7, endpoint=False)
+    circle = 60.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    with pytest.raises(InputError, match="hole layout is symmetric"):
+        load_control_points(_write(tmp_path, _with_layout(good, circle)))
+
+
+def test_points_that_do_not_have_the_layout_are_refused(tmp_path: Path, good: dict) -> None:
+    good["points"][10]["x"] += 25.0  # c0-low-3 surveyed off its place in the layout
+    with pytest.raises(InputError, match="low plate of configuration 0 does not have the hole"):
+        load_control_points(_write(tmp_path, good))
+
+
+def test_a_mirrored_plate_is_refused(tmp_path: Path, good: dict) -> None:
+    for p in good["points"]:
+        if p["configuration"] == 1 and p["plate"] == "high":
+            p["x"] = -p["x"]  # the plate's points given mirrored (x reversed)
+    with pytest.raises(InputError, match="mirror image of the hole layout"):
+        load_control_points(_write(tmp_path, good))
+
+
+def test_a_csv_takes_its_layout_from_its_points(tmp_path: Path) -> None:
+    from rasterserver.calibration.control_points import identify_holes
+    from rasterserver.simulator.calibration_body import random_hole_layout
+
+    layout = random_hole_layout(np.random.default_rng(5))
+    path = write_control_points(tmp_path / "cp.csv", control_points(layout=layout))
+    loaded = load_control_points(path)
+    # the same pattern up to a rigid motion: the layout's own points identify in order
+    order, _ = identify_holes(layout, loaded.layout)
+    assert order.tolist() == list(range(7))

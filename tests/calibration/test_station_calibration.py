@@ -207,3 +207,94 @@ def test_a_turned_and_moved_station_is_calibrated_from_the_nominal_reference(inp
     estimated = _points(res.station, inputs[2])
     exact = _points(true, inputs[2])
     assert gt.rms(np.linalg.norm(estimated - exact, axis=1)) <= 0.1
+
+
+# --- the body as a clinic's camera sees it (issue 13) --------------------------------------
+
+
+@pytest.fixture(scope="module")
+def real(inputs) -> tuple[CalibrationFrames, ControlPointFile]:
+    from calibration_frames import real_body_frames
+
+    frames, path = real_body_frames()
+    return frames, load_control_points(path)
+
+
+def test_the_base_is_as_bright_as_the_plates(real) -> None:
+    """The frames defeat a dark-background segmentation: plates, columns and base are one
+    bright region, and the base carries dark mounting holes of the holes' size."""
+    from rasterserver.calibration.control_points import detect_plates
+
+    frames, control = real
+    image = frames.off[0]
+    plates = detect_plates(image, layout=control.layout)
+    on_plates = np.median(image[plates[0].interior()])
+    off_plates = np.ones(image.shape, bool)
+    for p in plates:
+        near = cv2.dilate(p.mask.astype(np.uint8), np.ones((81, 81), np.uint8))
+        off_plates &= ~near.astype(bool)
+    base = np.median(image[off_plates])
+    assert abs(on_plates - base) < 0.15 * on_plates
+    # dark spots of the holes' size on the base, outside every plate: the old detection's
+    # "shows 16 holes, expected 7"
+    assert np.count_nonzero(image[off_plates] < 0.3 * base) > 50
+
+
+def test_a_calibration_with_the_base_visible(real, inputs) -> None:
+    from calibration_frames import perturbed_station
+
+    frames, control = real
+    true = perturbed_station()
+    res = calibrate_station(frames, control, raster=inputs[2], reference=default_station())
+    assert len(res.point_ids) == 42
+    assert res.camera.rms <= 0.05
+    # every control point where the true camera sees it
+    xyz = np.array([pp.xyz[i] for k in control.configurations for pp in control.plates[k]
+                    for i in range(7)])
+    by_id = dict(zip([i for k in control.configurations for pp in control.plates[k]
+                      for i in pp.ids], xyz, strict=True))
+    truth = true.camera.project(np.array([by_id[i] for i in res.point_ids]))
+    assert np.linalg.norm(res.point_uv - truth, axis=1).max() < 0.2
+    assert res.projector_rms_mm < 0.05
+    estimated = _points(res.station, inputs[2])
+    exact = _points(true, inputs[2])
+    assert gt.rms(np.linalg.norm(estimated - exact, axis=1)) <= 0.1
+
+
+def test_a_spot_beside_a_hole_is_refused_not_guessed(real, inputs) -> None:
+    """A dark spot close to a hole: two sets of seven spots fit the pattern."""
+    from rasterserver.calibration.control_points import detect_plates
+
+    frames, control = real
+    image = frames.off[1].copy()
+    plate = detect_plates(image, layout=control.layout)[0]
+    u, v = np.rint(plate.holes[3] + [11, 0]).astype(int)
+    cv2.circle(image, (int(u), int(v)), 4, 10, -1)
+    with pytest.raises(InputError, match=r"share holes|shows 8 holes"):
+        detect_plates(image, layout=control.layout, expected=2)
+
+
+def test_a_covered_hole_on_the_real_body_is_named(real, inputs) -> None:
+    from rasterserver.calibration.control_points import detect_plates
+
+    frames, control = real
+    off = dict(frames.off)
+    image = off[2].copy()
+    plate = detect_plates(image, layout=control.layout)[1]
+    u, v = np.rint(plate.holes[0]).astype(int)
+    ring = cv2.circle(np.zeros(image.shape, np.uint8), (int(u), int(v)), 12, 1, 2).astype(bool)
+    cv2.circle(image, (int(u), int(v)), 9, int(np.median(image[ring])), -1)
+    off[2] = image
+    with pytest.raises(InputError, match="shows 6 holes, expected 7"):
+        calibrate_station(dataclasses.replace(frames, off=off), control, raster=inputs[2],
+                          reference=default_station())
+
+
+def test_the_wrong_layout_finds_no_plate(real, inputs) -> None:
+    """Frames of an irregular layout read with the default layout: no pattern, a refusal."""
+    frames, control = real
+    wrong = ControlPointFile(control.plates, np.array(
+        [[-40.0, -120.0], [40.0, -120.0], [-40.0, 0.0], [40.0, 0.0], [-40.0, 120.0],
+         [40.0, 120.0], [20.0, 60.0]]))
+    with pytest.raises(InputError, match=r"found 0 control plate\(s\), expected 2"):
+        calibrate_station(frames, wrong, raster=inputs[2], reference=default_station())

@@ -140,3 +140,85 @@ def test_without_base() -> None:
 def test_bad_calibration_body_input(kwargs: dict) -> None:
     with pytest.raises(InputError):
         make_calibration_body(**kwargs)
+
+
+# --- the body as a clinic's camera sees it (issue 13) --------------------------------------
+
+
+def test_real_body_has_a_bright_base_columns_mounting_holes_and_uneven_light() -> None:
+    from rasterserver.simulator.calibration_body import REAL_BODY, UnevenLight, real_body
+
+    scene = real_body(0)
+    names = [o.name for o in scene.objects]
+    assert names == ["plate-high", "column-high-0", "column-high-1", "plate-low",
+                     "column-low-0", "column-low-1", "base"]
+    base = scene.objects[-1]
+    assert REAL_BODY["base_albedo"] >= 0.7
+    # mounting holes at the columns of the other configurations are dark
+    other = plate_placements(1)[0].columns()[0]
+    assert base.albedo(np.array([[*other, 300.0]]))[0] < 0.05
+    light = UnevenLight()
+    grid = np.stack(np.meshgrid(np.linspace(-300, 300, 7), np.linspace(-300, 300, 7),
+                                [-100.0, 300.0]), -1).reshape(-1, 3)
+    factor = light(grid)
+    assert (factor > 0).all() and (factor <= 1).all() and factor.max() / factor.min() > 1.5
+    assert scene.metadata["columns"] and scene.metadata["mount_holes"]
+    json.dumps(scene.metadata)
+
+
+@pytest.mark.parametrize("configuration", [0, 1, 2])
+def test_real_body_control_points_are_seen_and_columns_show(configuration: int) -> None:
+    """Columns never cover a hole, and they show beyond the plates' outline."""
+    from rasterserver.simulator.calibration_body import random_hole_layout, real_body
+
+    layout = random_hole_layout(np.random.default_rng(configuration))
+    scene = real_body(configuration, layout=layout)
+    station = default_station()
+    pts = scene.landmarks["control_points"]
+    rs = o3d.t.geometry.RaycastingScene()
+    names = {}
+    for obj in scene.objects:
+        names[rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj.mesh))] = obj.name
+    origin = station.camera.centre
+    d = pts - origin
+    rays = np.hstack([np.broadcast_to(origin, d.shape), d / np.linalg.norm(d, axis=1)[:, None]])
+    ans = rs.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
+    hit = [names[int(g)] for g in ans["geometry_ids"].numpy()]
+    assert hit == ["plate-high"] * 7 + ["plate-low"] * 7
+    # a ray just above each plate's top edge meets the column, not the base
+    for placement in plate_placements(configuration):
+        x, y, z = placement.centre
+        top = np.array([x, y - placement.size[1] / 2 - 5.0, z])
+        ray = np.hstack([origin, (top - origin) / np.linalg.norm(top - origin)])
+        g = rs.cast_rays(o3d.core.Tensor(ray[None].astype(np.float32)))["geometry_ids"]
+        assert names[int(g.numpy()[0])].startswith(f"column-{placement.plate}")
+
+
+def test_any_seven_hole_layout_is_used_and_written(tmp_path: Path) -> None:
+    from rasterserver.simulator.calibration_body import random_hole_layout
+
+    layout = random_hole_layout(np.random.default_rng(4))
+    points = control_points(2, layout=layout)
+    high = np.array([[p.x, p.y] for p in points if p.plate == "high"])
+    np.testing.assert_allclose(high - high.mean(0), layout - layout.mean(0))
+    doc = json.loads(write_control_points(tmp_path / "cp.json", points, layout=layout)
+                     .read_text())
+    np.testing.assert_allclose(doc["hole_layout"]["plate_coordinates_mm"], layout)
+    scene = make_calibration_body(2, layout=layout)
+    assert scene.metadata["hole_layout_mm"] == layout.tolist()
+    gaps = np.linalg.norm(layout[:, None] - layout[None], axis=2)
+    assert gaps[gaps > 0].min() >= 45.0
+
+
+@pytest.mark.parametrize(
+    ("layout", "message"),
+    [
+        (np.zeros((6, 2)), "7 finite points"),
+        (np.array([[0.0, float("nan")]] * 7), "7 finite points"),
+        (HOLE_LAYOUT + np.array([0.0, 80.0]), "off the"),
+        (np.array([[0.0, 10.0 * i] for i in range(7)]), "closer than four radii"),
+    ],
+)
+def test_bad_layout_is_refused(layout: np.ndarray, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        make_calibration_body(0, layout=layout)
