@@ -49,7 +49,9 @@ def compare(
     trend (trends.csv, trends.json, trends.png; a change is flagged only beyond the smallest
     detectable change) and report.html go into the same folder, which is written whole or not
     at all. With --patient, consecutive visits and the first with the last are compared.
-    Details: docs/comparison.md.
+    Each comparison is stored in the archive (a result of the comparison stage, plugin
+    comparison.landmark-icp, keyed by the analyses and meshes compared) and reused when asked
+    again. Details: docs/comparison.md.
 
     Exits 2 when the visits cannot be compared (a landmark frame missing, no overlap, ICP not
     converging: the reason is given) or the folder cannot be written, 3 for an unknown or
@@ -77,9 +79,16 @@ def compare(
         typer.echo(
             f"{pair['a']} -> {pair['b']}: registered (fitness {r['fitness']:.2f}, residual "
             f"{r['rmse_mm']:.2f} mm); distance rms {s['rms_mm']:.2f} mm, largest "
-            f"{s['max_abs_mm']:+.1f} mm"
+            f"{s['max_abs_mm']:+.1f} mm; {_stored(pair.get('provenance'))}"
         )
     typer.echo(f"written to {out} (report.html)")
+
+
+def _stored(provenance: dict | None) -> str:
+    if not provenance:
+        return "not stored"
+    how = "reused" if provenance["reused"] else "computed and stored as"
+    return f"{how} result {provenance['result_id']}"
 
 
 def register(app: typer.Typer) -> None:

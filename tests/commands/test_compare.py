@@ -56,6 +56,13 @@ def test_two_acquisitions(patient, tmp_path: Path) -> None:
     assert trends[0].startswith("parameter,unit,visit,date,value,change,sdc,flagged")
     assert any(line.startswith("surface_rotation_rms_deg,deg,") for line in trends)
     assert "Timeline" in (out / "report.html").read_text()
+    # a second command (a fresh process) finds the comparison stored and reuses it
+    again = run_installed("compare", first, second, "-o", str(tmp_path / "again"), archive=root)
+    assert again.returncode == 0, describe(again)
+    result_id = pair["provenance"]["result_id"]
+    assert f"reused result {result_id}" in again.stdout
+    checked = run_installed("verify", archive=root)
+    assert checked.returncode == 0, describe(checked)
 
 
 def test_patient(patient, tmp_path: Path) -> None:
