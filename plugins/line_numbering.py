@@ -21,11 +21,13 @@ better than a wrong number.
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
+from rasterserver_plugins.numbering_checks import contact_votes
 
 from rasterserver.errors import InputError
 from rasterserver.raster import Raster
@@ -58,9 +60,30 @@ def level_differences(
         columns of ``log(area at k / area at k + 1)`` where a line of level ``k`` lies
         directly above one of level ``k + 1``, and the number of such columns.
     """
+    comp, level, ratio, count, _ = level_statistics(col, area, line_id, line_order, line_component)
+    return comp, level, ratio, count
+
+
+def level_statistics(
+    col: np.ndarray,
+    area: np.ndarray,
+    line_id: np.ndarray,
+    line_order: np.ndarray,
+    line_component: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`level_differences` plus the spread of the column ratios about their centre.
+
+    Returns
+    -------
+    comp, level, ratio, count, spread : numpy.ndarray
+        As :func:`level_differences`; ``spread`` is the mean absolute deviation of the
+        (clipped) column log ratios from the robust centre: large where the albedo is uneven
+        (hair, naevi, a clothing edge), so that the ratio says little about the line widths.
+    """
     empty_i = np.zeros(0, dtype=np.int64)
+    empty = (empty_i, empty_i, np.zeros(0), empty_i, np.zeros(0))
     if col.size < 2 or line_order.size == 0:
-        return empty_i, empty_i, np.zeros(0), empty_i
+        return empty
     lid = line_id.astype(np.int64)
     ok_line = lid >= 0
     comp_of = np.where(ok_line, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
@@ -74,13 +97,13 @@ def level_differences(
     )
     k = np.flatnonzero(pair)
     if k.size == 0:
-        return empty_i, empty_i, np.zeros(0), empty_i
+        return empty
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
     good = np.isfinite(lr)
     k, lr = k[good], lr[good]
     if k.size == 0:
-        return empty_i, empty_i, np.zeros(0), empty_i
+        return empty
     comp, level = comp_of[k], lev_of[k]
     span = int(lev_of.max()) + 2
     key = comp * span + level
@@ -96,8 +119,10 @@ def level_differences(
         total = np.bincount(key[near], weights=lr[near], minlength=n_keys)
         n_near = np.bincount(key[near], minlength=n_keys)
         centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
+    spread = np.bincount(key, weights=np.abs(lr - centre[key]), minlength=n_keys)
+    spread /= np.maximum(counts, 1)
     groups = np.flatnonzero(counts)
-    return groups // span, groups % span, centre[groups], counts[groups]
+    return groups // span, groups % span, centre[groups], counts[groups], spread[groups]
 
 
 @dataclass(frozen=True)
@@ -166,8 +191,18 @@ def _observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: fl
     return kinds
 
 
-def _number_component(
-    comp: int,
+@dataclass(frozen=True)
+class _CodeFit:
+    """The code evidence of one component: cost of every placement."""
+
+    cost: np.ndarray  # (offsets,) soft count of badly explained differences; empty if none
+    terms: float  # total weight of the measured differences
+    best: int
+    margin: float
+    reason: str  # why the code alone does not decide; empty when it does
+
+
+def _code_fit(
     n_levels: int,
     d: np.ndarray,
     weight: np.ndarray,
@@ -178,58 +213,116 @@ def _number_component(
     min_lines: int,
     min_margin: float,
     max_cost_rate: float,
-) -> ComponentNumbering:
-    kinds = _observed_kinds(d, weight, lam, tolerance)
-    if n_levels < min_lines:
-        return ComponentNumbering(
-            comp, n_levels, -1, np.nan, 0.0, kinds, f"{n_levels} lines, fewer than {min_lines}"
-        )
+) -> _CodeFit:
     n_off = code.size - n_levels + 1
     if n_off < 1:
-        return ComponentNumbering(
-            comp, n_levels, -1, np.nan, 0.0, kinds, f"{n_levels} lines, more than the raster's"
-        )
-    measured = ~np.isnan(d)
-    if measured.sum() < min_lines - 1:
-        return ComponentNumbering(
-            comp,
-            n_levels,
-            -1,
-            np.nan,
-            0.0,
-            kinds,
-            f"only {int(measured.sum())} neighbour intensity ratios measured",
-        )
-    windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), n_levels)
-    expected = (windows[:, :-1] - windows[:, 1:]) * lam  # (offsets, n_levels - 1)
-    u = (np.where(measured, d, 0.0)[None, :] - expected) / (tolerance * lam)
-    cost = (np.minimum(u * u, 1.0) * np.where(measured, weight, 0.0)[None, :]).sum(axis=1)
+        return _CodeFit(np.zeros(0), 0.0, -1, 0.0, f"{n_levels} lines, more than the raster's")
+    measured = (~np.isnan(d)) & (weight > 0)
+    terms = float(weight[measured].sum())
+    if n_levels >= 2:
+        windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), n_levels)
+        expected = (windows[:, :-1] - windows[:, 1:]) * lam  # (offsets, n_levels - 1)
+        u = (np.where(measured, d, 0.0)[None, :] - expected) / (tolerance * lam)
+        cost = (np.minimum(u * u, 1.0) * np.where(measured, weight, 0.0)[None, :]).sum(axis=1)
+    else:
+        cost = np.zeros(n_off)
     order = np.argsort(cost, kind="stable")
     best = int(order[0])
     best_cost = float(cost[best])
     margin = float(cost[order[1]] - best_cost) if n_off > 1 else float("inf")
-    terms = float(weight[measured].sum())
-    if best_cost > max_cost_rate * terms:
+    if n_levels < min_lines:
+        reason = f"{n_levels} lines, fewer than {min_lines}"
+    elif int(measured.sum()) < min_lines - 1 or terms < 0.5 * (min_lines - 1):
+        reason = (
+            f"only {int(measured.sum())} reliable neighbour intensity ratios "
+            f"(weight {terms:.1f}; uneven albedo or too few columns)"
+        )
+    elif best_cost > max_cost_rate * terms:
         reason = f"best code placement explains too little ({best_cost:.1f} of {terms:.0f} bad)"
-        return ComponentNumbering(comp, n_levels, -1, best_cost, margin, kinds, reason)
-    if margin < min_margin:
+    elif margin < min_margin - 1e-9:
         reason = f"ambiguous code placement (margin {margin:.2f} < {min_margin:g})"
-        return ComponentNumbering(comp, n_levels, -1, best_cost, margin, kinds, reason)
-    return ComponentNumbering(comp, n_levels, best, best_cost, margin, kinds, "")
+    else:
+        reason = ""
+    return _CodeFit(cost, terms, best, margin, reason)
+
+
+def _reliability(
+    count: np.ndarray, spread: np.ndarray, lam: float, correlation: float
+) -> np.ndarray:
+    """How decisively each level difference is read, in [0, 1].
+
+    The standard error of the robust centre (spread over the square root of the number of
+    independent columns; neighbouring columns see the same albedo texture, hence
+    ``correlation``) against half the heavy/light step ``lam / 2``: z <= 1 is worthless,
+    z >= 3 full weight.
+    """
+    n_eff = np.maximum(count / correlation, 1.0)
+    se = np.maximum(1.25 * spread / np.sqrt(n_eff), 0.01)
+    z = 0.5 * lam / se
+    return np.clip((z - 1.0) / 2.0, 0.0, 1.0)
+
+
+def _plausible_distance(
+    data: OrderedLines,
+    mine: np.ndarray,
+    levels: np.ndarray,
+    offset: int,
+    raster: Raster,
+    station: Any,
+    max_depth: float,
+) -> str:
+    """Empty when the points of the lines ``mine``, numbered with ``offset``, lie in the station's
+    working volume (within ``max_depth`` mm of the calibrated distance); else the reason."""
+    lid_all = data.line_id.astype(np.int64)
+    idx = np.flatnonzero((lid_all >= 0) & mine[np.maximum(lid_all, 0)])
+    if idx.size == 0:
+        return ""
+    idx = idx[:: max(1, idx.size // 64)]
+    lid = data.line_id[idx].astype(np.int64)
+    j = offset + levels[lid]
+    if np.any(j < 0) or np.any(j >= raster.n_lines):
+        return "numbers outside the raster"
+    pix = np.column_stack([data.col[idx].astype(np.float64), data.row[idx]])
+    try:
+        pts = station.triangulate(pix, raster.positions[j])
+        centre = np.asarray(station.camera.centre, dtype=np.float64)
+    except Exception:  # a calibration without a usable model: the test is not made
+        return ""
+    good = np.all(np.isfinite(pts), axis=1)
+    if not np.any(good):
+        return "no point reconstructs with these numbers"
+    dist = float(np.median(np.linalg.norm(pts[good] - centre, axis=1)))
+    d0 = float(np.linalg.norm(centre))  # the world origin lies on the calibrated back plane
+    if abs(dist - d0) > max_depth:
+        return f"implausible distance ({dist:.0f} mm from the camera, calibrated {d0:.0f} mm)"
+    return ""
 
 
 def number_lines(
     data: OrderedLines,
     raster: Raster,
     *,
-    area_ratio: float = 1.5,
+    area_ratio: float | None = None,
     tolerance: float = 0.5,
     min_lines: int | None = None,
-    min_margin: float = 2.0,
+    min_margin: float | None = None,
     max_cost_rate: float = 0.25,
     min_columns: int = 5,
+    correlation: float = 4.0,
+    min_votes: float = 5.0,
+    max_conflict: float = 0.2,
+    min_conflict: float = 3.0,
+    station: Any = None,
+    max_depth: float = 600.0,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
+
+    A component is numbered when its code evidence is unique with a margin and the result
+    agrees with the numbered components it touches (:mod:`.numbering_checks`: column
+    neighbours at one line spacing, lines continued across short gaps), and, with a
+    calibration, puts it at a plausible distance. A component the code alone does not
+    decide inherits its number from numbered components it touches when their contacts
+    agree (and its own code does not contradict them). Components are taken largest first.
 
     Parameters
     ----------
@@ -237,20 +330,35 @@ def number_lines(
         Ordered lines.
     raster : Raster
         The diapositive's code.
-    area_ratio : float
-        Expected peak-area ratio of a heavy to a light line (line width ratio).
+    area_ratio : float, optional
+        Expected peak-area ratio of a heavy to a light line; by default the ratio of the
+        raster's heavy to light line widths.
     tolerance : float
         A difference departing from the expected one by this fraction of ``log(area_ratio)``
         counts as fully unexplained; smaller departures count quadratically.
     min_lines : int, optional
-        Least number of lines (levels) of a component to number; the raster's code window
-        by default.
-    min_margin : float
-        Least cost difference between the best and the second-best placement.
+        Least number of lines (levels) of a component numbered by its code alone; the
+        raster's code window by default, one more for a code whose windows may differ in
+        one line only.
+    min_margin : float, optional
+        Least cost difference between the best and the second-best placement; by default 2
+        for a code whose windows differ in two lines or more (one misread line is then
+        detected), 4 for a code where two windows may differ in one line only.
     max_cost_rate : float
         Largest cost of the best placement per measured difference.
     min_columns : int
         Columns of neighbourhood at which a difference gets full weight; fewer weigh less.
+    correlation : float
+        Columns over which the albedo texture is correlated (for a difference's reliability).
+    min_votes : float
+        Least contact weight (columns) for a component to inherit a number.
+    max_conflict, min_conflict : float
+        A component is refused when the contact weight contradicting its number reaches
+        ``min_conflict`` and ``max_conflict`` of its contacts with numbered components.
+    station : Station, optional
+        The calibration; when given, the plausible-distance test is made.
+    max_depth : float
+        Largest distance (mm) of a component from the calibrated back plane's distance.
 
     Returns
     -------
@@ -270,13 +378,33 @@ def number_lines(
     if not np.any(valid):
         return line_number, kind, []
     code = raster.code
+    if area_ratio is None:
+        heavy = raster.widths[code == 1]
+        light = raster.widths[code == 0]
+        area_ratio = (
+            float(np.median(heavy) / np.median(light)) if heavy.size and light.size else 1.5
+        )
+    if area_ratio <= 1.0:
+        raise InputError(f"the heavy/light area ratio must exceed 1, got {area_ratio:g}")
     lam = float(np.log(area_ratio))
-    need = raster.window if min_lines is None else min_lines
-    c_idx, l_idx, ratio, count = level_differences(
+    if min_margin is None:
+        min_margin = 2.0 if raster.min_distance >= 2 else 4.0
+    need = min_lines
+    if need is None:
+        need = raster.window + (1 if raster.min_distance < 2 else 0)
+    c_idx, l_idx, ratio, count, spread = level_statistics(
         data.col, data.area, data.line_id, data.line_order, data.line_component
     )
+    reliable = _reliability(count.astype(np.float64), spread, lam, correlation)
     n_comp = int(comps[valid].max()) + 1
-    results: list[ComponentNumbering] = []
+    fits: dict[int, _CodeFit] = {}
+    n_levels_of: dict[int, int] = {}
+    kinds_of: dict[int, np.ndarray] = {}
+    diffs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    line_unnumbered = np.zeros(n_lines, dtype=bool)
+    size = np.zeros(n_comp)
+    peaks_per_line = np.bincount(data.line_id[data.line_id >= 0], minlength=n_lines)
+    np.add.at(size, comps[valid], peaks_per_line[valid])
     for c in range(n_comp):
         mine = valid & (comps == c)
         if not np.any(mine):
@@ -286,9 +414,11 @@ def number_lines(
         w = np.zeros(max(n_levels - 1, 0))
         sel = c_idx == c
         d[l_idx[sel]] = ratio[sel]
-        w[l_idx[sel]] = np.minimum(1.0, count[sel] / float(min_columns))
-        res = _number_component(
-            c,
+        w[l_idx[sel]] = np.minimum(1.0, count[sel] / float(min_columns)) * reliable[sel]
+        n_levels_of[c] = n_levels
+        diffs[c] = (d, w)
+        kinds_of[c] = _observed_kinds(d, w, lam, tolerance)
+        fits[c] = _code_fit(
             n_levels,
             d,
             w,
@@ -299,18 +429,232 @@ def number_lines(
             min_margin=min_margin,
             max_cost_rate=max_cost_rate,
         )
-        results.append(res)
-        kind[mine] = res.kinds[levels[mine]]
-        if res.offset >= 0:
-            line_number[mine] = raster.numbers[res.offset + levels[mine]].astype(np.int32)
+    votes = contact_votes(data.col, data.row, data.line_id, data.line_order, data.line_component)
+    offset = dict.fromkeys(fits, -1)
+    reason = {c: fits[c].reason for c in fits}
+    decided: set[int] = set()
+    order = sorted(fits, key=lambda c: (-size[c], c))
+
+    def tally(c: int) -> dict[int, float]:
+        """Offsets of ``c`` implied by its contacts with numbered components."""
+        out: dict[int, float] = defaultdict(float)
+        for other in fits:
+            if offset[other] < 0 or other == c:
+                continue
+            for delta, weight in votes.get((other, c), {}).items():
+                out[offset[other] + delta] += weight
+        return out
+
+    def accept(c: int, off: int, how: str) -> None:
+        offset[c] = off
+        reason[c] = ""
+        decided.add(c)
+        _ = how
+
+    for _ in range(6):
+        changed = False
+        for c in order:
+            if c in decided:
+                continue
+            fit = fits[c]
+            implied = tally(c)
+            total = float(sum(implied.values()))
+            n_off = code.size - n_levels_of[c] + 1
+            if not fit.reason:
+                off = fit.best
+                against = total - implied.get(off, 0.0)
+                if against >= min_conflict and against >= max_conflict * total:
+                    worst = max(implied, key=lambda o: implied[o])
+                    reason[c] = (
+                        f"code says offset {off}, but it touches numbered lines that imply "
+                        f"{worst} ({against:.0f} of {total:.0f} contact columns disagree: "
+                        f"a depth step of {abs(worst - off)} line spacing(s) or a wrong order)"
+                    )
+                    decided.add(c)
+                    changed = True
+                    continue
+                if station is not None:
+                    mine = valid & (comps == c)
+                    why = _plausible_distance(data, mine, levels, off, raster, station, max_depth)
+                    if why:
+                        reason[c] = why
+                        decided.add(c)
+                        changed = True
+                        continue
+                accept(c, off, "code")
+                changed = True
+                continue
+            # the code alone does not decide: inherit from touching numbered components
+            if total < min_votes:
+                continue
+            off = max(implied, key=lambda o: implied[o])
+            if implied[off] < (1.0 - max_conflict) * total or not 0 <= off < n_off:
+                reason[c] = (
+                    f"{fit.reason}; touching numbered lines disagree on its number "
+                    f"({implied[off]:.0f} of {total:.0f} contact columns agree)"
+                )
+                continue
+            if fit.cost.size and fit.terms > 0:
+                # its own code must not speak against the inherited placement
+                excess = float(fit.cost[off] - fit.cost.min())
+                if excess > 1.0 or fit.cost[off] > max_cost_rate * fit.terms + 1.0:
+                    reason[c] = (
+                        f"{fit.reason}; its code contradicts the number its neighbours imply "
+                        f"(excess cost {excess:.1f})"
+                    )
+                    decided.add(c)
+                    changed = True
+                    continue
+            if station is not None:
+                mine = valid & (comps == c)
+                why = _plausible_distance(data, mine, levels, off, raster, station, max_depth)
+                if why:
+                    reason[c] = why
+                    decided.add(c)
+                    changed = True
+                    continue
+            accept(c, off, "linked")
+            changed = True
+        if not changed:
+            break
+
+    results: list[ComponentNumbering] = []
+    local_refused = 0
+    for c in sorted(fits):
+        if offset[c] < 0 or c not in diffs:
+            continue
+        d, w = diffs[c]
+        bad_levels = _locally_contradicted(
+            d, w, code, offset[c], 2 * raster.window, lam, tolerance, min_margin, max_cost_rate
+        )
+        if bad_levels.size:
+            drop = valid & (comps == c) & np.isin(levels, bad_levels)
+            line_unnumbered[drop] = True
+            local_refused += int(drop.sum())
+    for c in sorted(fits):
+        fit = fits[c]
+        mine = valid & (comps == c)
+        kind[mine] = kinds_of[c][levels[mine]]
+        off = offset[c]
+        best_cost = float(fit.cost[off]) if off >= 0 and fit.cost.size else float("nan")
+        results.append(
+            ComponentNumbering(
+                c, n_levels_of[c], off, best_cost, fit.margin, kinds_of[c], reason[c]
+            )
+        )
+        if off >= 0:
+            line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
+    line_number[line_unnumbered] = -1
+    if local_refused:
+        results.append(
+            ComponentNumbering(
+                -1,
+                local_refused,
+                -1,
+                float("nan"),
+                0.0,
+                np.zeros(0, np.int8),
+                f"{local_refused} line(s) whose own code contradicts their component's order "
+                "(a line-order error inside a component) left unnumbered",
+            )
+        )
     return line_number, kind, results
+
+
+def _locally_contradicted(
+    d: np.ndarray,
+    w: np.ndarray,
+    code: np.ndarray,
+    offset: int,
+    span: int,
+    lam: float,
+    tolerance: float,
+    min_margin: float,
+    max_cost_rate: float,
+) -> np.ndarray:
+    """Levels of a numbered component where a run of ``span`` levels contradicts the
+    component's placement: it reads, on its own, uniquely and cleanly as another placement,
+    or the component's placement explains it far worse (over twice ``max_cost_rate``) than
+    another. Line sequence analysis then put those lines one or more levels off (a clothing
+    edge, a fold), and the component's single offset would number them wrongly."""
+    n_levels = d.size + 1
+    if n_levels < span + 2:
+        return np.zeros(0, dtype=np.int64)
+    bad = np.zeros(n_levels, dtype=bool)
+    windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), span)
+    expected = (windows[:, :-1] - windows[:, 1:]) * lam
+    for start in range(0, n_levels - span + 1, 2):
+        dd = d[start : start + span - 1]
+        ww = w[start : start + span - 1]
+        measured = ~np.isnan(dd) & (ww > 0)
+        terms = float(ww[measured].sum())
+        if terms < 0.5 * (span - 1):
+            continue
+        u = (np.where(measured, dd, 0.0)[None, :] - expected) / (tolerance * lam)
+        cost = (np.minimum(u * u, 1.0) * np.where(measured, ww, 0.0)[None, :]).sum(axis=1)
+        here = offset + start
+        if not 0 <= here < cost.size:
+            continue
+        order = np.argsort(cost, kind="stable")
+        best = int(order[0])
+        if best == here:
+            continue
+        excess = float(cost[here] - cost[best])
+        local_margin = float(cost[order[1]] - cost[best])
+        # another placement reads cleanly and uniquely here, or the component's placement
+        # explains this run of lines far worse than the component as a whole allows
+        clean_elsewhere = cost[best] <= max_cost_rate * terms and local_margin >= min_margin
+        poorly_explained = cost[here] > 2.0 * max_cost_rate * terms
+        if excess >= min_margin and (clean_elsewhere or poorly_explained):
+            bad[start : start + span] = True
+    return np.flatnonzero(bad)
+
+
+def _column_order_conflicts(
+    col: np.ndarray, row: np.ndarray, number: np.ndarray, *, tolerance: float = 0.3
+) -> np.ndarray:
+    """Peaks whose number breaks the order of their column: two numbered peaks one line
+    spacing apart (the gap within ``tolerance`` of the local spacing) whose numbers do not
+    differ by exactly one, or any two close peaks numbered out of order. Both are refused:
+    the image cannot tell which of the two is wrong."""
+    n = col.size
+    out = np.zeros(n, dtype=bool)
+    if n < 2:
+        return out
+    numbered = np.flatnonzero(number >= 0)
+    if numbered.size < 2:
+        return out
+    a, b = numbered[:-1], numbered[1:]
+    same = col[a] == col[b]
+    a, b = a[same], b[same]
+    if a.size == 0:
+        return out
+    gap = row[b] - row[a]
+    k = number[b].astype(np.int64) - number[a].astype(np.int64)
+    one = k == 1
+    if not np.any(one):
+        return out
+    # the local spacing: mean gap of consecutive lines in cells of 32 x 32 px
+    cell = (col[a].astype(np.int64) // 32) * 100000 + (row[a].astype(np.int64) // 32)
+    keys, inv = np.unique(cell, return_inverse=True)
+    total = np.bincount(inv[one], weights=gap[one], minlength=keys.size)
+    cnt = np.bincount(inv[one], minlength=keys.size)
+    ref_cell = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
+    ref = ref_cell[inv]
+    ref = np.where(np.isnan(ref), float(np.median(gap[one])), ref)
+    adjacent = np.abs(gap / ref - 1.0) <= tolerance
+    conflict = (adjacent & (k != 1)) | ((k <= 0) & (gap < 1.5 * ref))
+    out[a[conflict]] = True
+    out[b[conflict]] = True
+    return out
 
 
 def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[float, str]:
     """Confidence (worst numbered component) and the reasons of the refused ones."""
-    numbered = [r for r in results if r.offset >= 0]
-    if numbered:
-        worst = min(r.margin for r in numbered)
+    numbered = [r for r in results if r.offset >= 0 and not np.isnan(r.cost)]
+    margins = [r.margin for r in numbered if np.isfinite(r.margin) and r.margin > 0]
+    if any(r.offset >= 0 for r in results):
+        worst = min(margins) if margins else float("inf")
         confidence = float(1.0 - np.exp(-worst / 4.0)) if np.isfinite(worst) else 1.0
     else:
         confidence = 0.0
@@ -319,8 +663,8 @@ def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[fl
         return 0.0, "no ordered lines"
     if not refused:
         return confidence, ""
-    small = [r for r in refused if "fewer than" in r.reason]
-    other = [r for r in refused if "fewer than" not in r.reason]
+    small = [r for r in refused if "fewer than" in r.reason and ";" not in r.reason]
+    other = [r for r in refused if r not in small]
     parts = [
         f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): {r.reason}"
         for r in other
@@ -334,17 +678,23 @@ def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[fl
 
 
 class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
-    """Absolute line numbers from the light/heavy code, by maximum likelihood over offsets.
+    """Absolute line numbers from the light/heavy code, checked against the geometry.
 
     Neighbouring lines' intensity ratios in the same columns (shading cancels) are matched
-    against every placement on the raster's window code; a component is numbered only when
-    its best placement is unique by a clear margin, and left unnumbered with the reason
-    otherwise.
+    against every placement on the raster's window code, each ratio weighted by how
+    decisively it is read (uneven albedo, hair, weighs little); a component is numbered only
+    when its best placement is unique by a clear margin *and* agrees with the numbered
+    components it touches (no depth step of a whole line spacing, order kept) *and*, with a
+    calibration in the context, lies at a plausible distance. Components the code alone
+    cannot decide inherit their numbers through short gaps from numbered ones they touch.
+    Everything else is left unnumbered with the reason.
+
+    Version 2: geometric checks, linking, reliability weights, area ratio from the raster.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -352,31 +702,55 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     class Params(StageParams):
         """Parameters of :class:`CodeWindowNumbering`."""
 
-        area_ratio: float = Field(
-            1.5, gt=1, description="Peak-area ratio of a heavy to a light line."
+        area_ratio: float | None = Field(
+            None,
+            gt=1,
+            description="Peak-area ratio of a heavy to a light line (default: from the raster).",
         )
         tolerance: float = Field(
             0.5, gt=0, le=1, description="Departure (in log area ratios) counted as a miss."
         )
         min_lines: int | None = Field(
-            None, ge=1, description="Least lines of a numbered component (default: window)."
+            None,
+            ge=1,
+            description="Fewest lines numbered by the code alone (window; +1 at distance 1).",
         )
-        min_margin: float = Field(
-            2.0, ge=0, description="Least cost margin of the best over the second placement."
+        min_margin: float | None = Field(
+            None,
+            ge=0,
+            description="Least cost margin of the best placement (default: 2, 4 at distance 1).",
         )
         max_cost_rate: float = Field(
             0.25, ge=0, description="Largest share of differences the best may miss."
         )
         min_columns: int = Field(5, ge=1, description="Columns for a difference's full weight.")
+        correlation: float = Field(
+            4.0, ge=1, description="Columns over which the albedo texture is correlated."
+        )
+        min_votes: float = Field(
+            5.0, ge=1, description="Least contact columns for a component to inherit a number."
+        )
+        max_conflict: float = Field(
+            0.2, gt=0, lt=1, description="Share of contradicting contacts that refuses."
+        )
+        min_conflict: float = Field(
+            3.0, ge=1, description="Least contradicting contact columns that refuse."
+        )
+        max_depth: float = Field(
+            600.0, gt=0, description="Largest distance (mm) from the calibrated back plane."
+        )
 
     def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
-        """Number the lines of ``data`` with the raster from ``context.raster``."""
+        """Number the lines of ``data`` with the raster from ``context.raster`` (and the
+        calibration from ``context.calibration`` for the distance test, when it is a
+        station)."""
         raster = context.raster
         if not isinstance(raster, Raster):
             raise InputError(
                 f"{self.name} needs context.raster as a rasterserver.raster.Raster, "
                 f"not {type(raster).__name__}"
             )
+        station = context.calibration if hasattr(context.calibration, "triangulate") else None
         line_number, kind, results = number_lines(
             data,
             raster,
@@ -386,6 +760,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_margin=params.min_margin,
             max_cost_rate=params.max_cost_rate,
             min_columns=params.min_columns,
+            correlation=params.correlation,
+            min_votes=params.min_votes,
+            max_conflict=params.max_conflict,
+            min_conflict=params.min_conflict,
+            station=station,
+            max_depth=params.max_depth,
         )
         lid = data.line_id
         comps = data.line_component
@@ -398,6 +778,15 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         elif comps.size == 0:
             reason = "no lines"
         table = np.append(line_number, -1).astype(np.int32)
+        number = table[np.where(lid >= 0, lid, -1)]
+        clash = _column_order_conflicts(data.col, data.row, number)
+        if np.any(clash):
+            number = np.where(clash, -1, number).astype(np.int32)
+            note = (
+                f"{int(clash.sum())} peak(s) numbered out of order in their column (a peak "
+                "taken from a neighbouring line where lines crowd) left unnumbered"
+            )
+            reason = f"{reason}; {note}" if reason else note
         return NumberedLines(
             col=data.col,
             row=data.row,
@@ -409,7 +798,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             order=data.order,
             line_order=data.line_order,
             line_component=comps,
-            number=table[np.where(lid >= 0, lid, -1)],
+            number=number,
             line_number=line_number,
             kind_observed=kind,
             confidence=confidence,

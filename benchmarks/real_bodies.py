@@ -1,0 +1,333 @@
+"""Numbering and peak location on what a clinic's camera sees (head, hair, arms, clothing).
+
+Every scene is :func:`rasterserver.simulator.body.random_body` (a random back with head and
+hair, arms close / away / hands on hips, a waistband in three scenes of four, posture sway),
+seen by :func:`rasterserver.simulator.body.clinic_station` (random distance and base) through
+one of four diapositive codes (``seed % 4``: the default window-9 code and the clinic rasters
+``mseq7`` (window-7 m-sequence, distance 1), ``w8-1to2`` (window 8, distance 1, light:heavy
+1:2), ``w9-45to55`` (window 9, distance 2, 45:55)), rendered with randomly varied light,
+noise and blur (as :mod:`benchmarks.numbering_backs`). Stages 1-4 run with their defaults.
+
+Truth: a peak's true number is the simulator's exact line centre within 1.5 px in its
+column (the counting of ``numbering_backs.py``: ``_truth_numbers``), and the per-pixel line
+number of the rendering at the peak's pixel must agree (otherwise the peak has no truth).
+Per scene (one JSON line each, resumable):
+
+* ``wrong_peaks``: numbered peaks whose number is not their true one; ``wrong_lines``;
+* ``trunk_crossings``/``trunk_covered``: exact line-centre crossings on the trunk (the lit
+  skin of neck, back and buttocks) and those carrying a peak with the correct number;
+* ``headarm_peaks``/``headarm_unnumbered``: peaks on true lines of the head and arms and how
+  many of them are left unnumbered;
+* peak location: squared-error sums of the reconstructed (numbered, true) peaks and of all
+  matched peaks, and of a generic local-maximum + 3-point Gaussian detector on the same
+  frame; both detectors timed on the same frame.
+
+Usage::
+
+    python benchmarks/real_bodies.py --first-seed 0 --scenes 200 \
+        --out benchmarks/out/bodies-tune.jsonl
+    python benchmarks/real_bodies.py --summary benchmarks/out/bodies-tune.jsonl
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import multiprocessing as mp  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+CODES = ("default", "mseq7", "w8-1to2", "w9-45to55")
+TUNING = (0, 200)  # seeds 0-199
+HELD_OUT = (5000, 6200)  # seeds 5000-6199
+
+
+def _sibling(name: str) -> Any:
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def generic_peaks(image: np.ndarray, *, min_height: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """A generic detector: local maxima per column refined by a 3-point Gaussian fit.
+
+    A pixel is a peak when it exceeds both vertical neighbours (ties to the lower one) and
+    the smaller of the column's minima within 4 px either side by ``min_height``; the row is
+    the vertex of the parabola through the logarithms of the three values.
+
+    Returns
+    -------
+    col, row : numpy.ndarray
+        Sorted by column, then row.
+    """
+    img = np.asarray(image, dtype=np.float32).T  # columns as rows
+    a, b, c = img[:, :-2], img[:, 1:-1], img[:, 2:]
+    from scipy.ndimage import minimum_filter1d
+
+    low = minimum_filter1d(img, 9, axis=1)[:, 1:-1]
+    is_max = (b > a) & (b >= c) & (b - low >= min_height)
+    cc, rr = np.nonzero(is_max)
+    la = np.log(np.maximum(a[cc, rr], 0.5))
+    lb = np.log(np.maximum(b[cc, rr], 0.5))
+    lc = np.log(np.maximum(c[cc, rr], 0.5))
+    den = la - 2.0 * lb + lc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.where(den < 0, 0.5 * (la - lc) / den, 0.0)
+    return cc.astype(np.int32), rr + 1.0 + np.clip(off, -0.5, 0.5)
+
+
+def _match(
+    col: np.ndarray, row: np.ndarray, lr: Any, tol: float = 1.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index into the line rows of the nearest exact crossing in the peak's column (-1)."""
+    gc, gr = lr.column.astype(np.int64), lr.row
+    order = np.lexsort((gr, gc))
+    kg = gc[order] * 1e5 + gr[order]
+    kp = col.astype(np.int64) * 1e5 + row
+    if kg.size == 0 or kp.size == 0:
+        return np.full(kp.size, -1, np.int64), np.full(kp.size, np.inf)
+    last = kg.size - 1
+    j = np.clip(np.searchsorted(kg, kp), 1, max(last, 1))
+    j0, j1 = np.clip(j - 1, 0, last), np.clip(j, 0, last)
+    e0, e1 = np.abs(kg[j0] - kp), np.abs(kg[j1] - kp)
+    jj = np.where(e0 < e1, j0, j1)
+    err = np.minimum(e0, e1)
+    return np.where(err < tol, order[jj], -1), np.where(err < tol, kp - kg[jj], np.inf)
+
+
+def run_scene(seed: int) -> dict[str, Any]:
+    """Render scene ``seed``, run stages 1-4, score against the truth."""
+    from rasterserver_plugins.line_numbering import CodeWindowNumbering
+    from rasterserver_plugins.line_search import HierarchicalLineSearch
+    from rasterserver_plugins.line_sequence import HierarchicalLineOrder
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+    from rasterserver.records import Image
+    from rasterserver.simulator.body import clinic_station, make_body, random_body
+    from rasterserver.simulator.render import render
+    from rasterserver.stage import StageContext, run_stage
+
+    backs = _sibling("numbering_backs")
+    code = CODES[seed % len(CODES)]
+    params = random_body(seed)
+    station = clinic_station(seed, code)
+    t0 = time.perf_counter()
+    scene = make_body(params)
+    rendering = render(scene, station, settings=backs._settings(seed).replace(threads=1), seed=seed)
+    t_render = time.perf_counter() - t0
+    ctx = StageContext(calibration=station, raster=station.raster_definition)
+    image = rendering.image
+    t = time.perf_counter()
+    peaks = run_stage(FirstMomentPeaks, Image(image))
+    t_peaks = time.perf_counter() - t
+    t = time.perf_counter()
+    g_col, g_row = generic_peaks(image)
+    t_generic = time.perf_counter() - t
+    lines = run_stage(HierarchicalLineSearch, peaks)
+    ordered = run_stage(HierarchicalLineOrder, lines)
+    t = time.perf_counter()
+    result = run_stage(CodeWindowNumbering, ordered, context=ctx)
+    t_numbers = time.perf_counter() - t
+
+    lr = rendering.line_rows
+    names = rendering.object_names
+    truth = backs._truth_numbers(result.col, result.row, lr)
+    # the per-pixel truth must agree (a peak off its line's pixels has no truth)
+    h = rendering.line_number.shape[0]
+    r_pix = np.clip(np.rint(result.row).astype(np.int64), 0, h - 1)
+    pixel = rendering.line_number[r_pix, result.col]
+    truth = np.where(pixel == truth, truth, -1)
+    obj = rendering.object_index[r_pix, result.col]
+    on_line = truth >= 0
+    numbered = result.number >= 0
+    wrong = numbered & on_line & (result.number != truth)
+    numbered_off = numbered & ~on_line
+    wrong_lines = 0
+    for line in np.unique(result.line_id[wrong]):
+        sel = (result.line_id == line) & on_line
+        maj = np.bincount(truth[sel]).argmax() if np.any(sel) else -1
+        if result.line_number[line] >= 0 and maj != result.line_number[line]:
+            wrong_lines += 1
+    idx, err = _match(result.col, result.row, lr)
+    trunk = names.index("trunk") if "trunk" in names else -99
+    on_trunk = lr.object_index == trunk
+    good = numbered & on_line & (idx >= 0) & (result.number == truth)
+    # the back proper: trunk crossings at or below the vertebra prominens (the neck above it
+    # is often under hair and in the head's shadow)
+    vp_y = float(scene.landmarks["vertebra_prominens"][1])
+    rr = np.clip(np.rint(lr.row).astype(np.int64), 0, h - 1)
+    on_back = on_trunk & (rendering.points[rr, lr.column, 1] >= vp_y)
+    covered = np.zeros(len(lr), dtype=bool)
+    covered[idx[good]] = True
+    headarm = np.isin(
+        obj, [names.index(n) for n in ("head", "left-arm", "right-arm") if n in names]
+    )
+    rec = numbered & on_line & (result.number == truth) & np.isfinite(err)
+    allm = on_line & np.isfinite(err)
+    _, g_err = _match(g_col, g_row, lr)
+    g_ok = np.isfinite(g_err)
+    by_obj = {}
+    for k, n in enumerate(names):
+        sel = rec & (obj == k)
+        by_obj[n] = [int(sel.sum()), float(np.sum(err[sel] ** 2))]
+    return {
+        "seed": seed,
+        "code": code,
+        "posture": params.arm_posture,
+        "waistband": params.waistband is not None,
+        "hair_albedo": params.hair_albedo,
+        "peaks": int(result.n_peaks),
+        "true_peaks": int(on_line.sum()),
+        "numbered_peaks": int(numbered.sum()),
+        "wrong_peaks": int(wrong.sum()),
+        "wrong_lines": wrong_lines,
+        "wrong_objects": sorted({names[int(o)] for o in obj[wrong] if o >= 0}),
+        "numbered_off_truth": int(numbered_off.sum()),
+        "trunk_crossings": int(on_trunk.sum()),
+        "trunk_covered": int((covered & on_trunk).sum()),
+        "back_crossings": int(on_back.sum()),
+        "back_covered": int((covered & on_back).sum()),
+        "headarm_peaks": int((headarm & on_line).sum()),
+        "headarm_unnumbered": int((headarm & on_line & ~numbered).sum()),
+        "rec_n": int(rec.sum()),
+        "rec_sse": float(np.sum(err[rec] ** 2)),
+        "rec_max": float(np.max(np.abs(err[rec]), initial=0.0)),
+        "all_n": int(allm.sum()),
+        "all_sse": float(np.sum(err[allm] ** 2)),
+        "generic_n": int(g_ok.sum()),
+        "generic_sse": float(np.sum(g_err[g_ok] ** 2)),
+        "generic_peaks": int(g_col.size),
+        "rec_by_object": by_obj,
+        "reason": result.reason[:400],
+        "ms": {
+            "peaks": round(1e3 * t_peaks, 3),
+            "generic": round(1e3 * t_generic, 3),
+            "numbers": round(1e3 * t_numbers, 3),
+        },
+        "render_s": round(t_render, 3),
+    }
+
+
+def _safe(seed: int) -> dict[str, Any]:
+    try:
+        return run_scene(seed)
+    except Exception as exc:  # a crash is a result too: count it, keep going
+        import traceback
+
+        return {
+            "seed": seed,
+            "error": f"{type(exc).__name__}: {exc}",
+            "tb": traceback.format_exc()[-800:],
+        }
+
+
+def summary(path: Path) -> dict[str, Any]:
+    """Totals over the JSON lines in ``path``."""
+    rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    ok = [r for r in rows if "error" not in r]
+
+    def tot(key: str, sel: list[dict[str, Any]] = ok) -> float:
+        return float(sum(r[key] for r in sel))
+
+    per_code = {}
+    for code in CODES:
+        sel = [r for r in ok if r["code"] == code]
+        if sel:
+            per_code[code] = {
+                "scenes": len(sel),
+                "wrong_peaks": int(tot("wrong_peaks", sel)),
+                "scenes_with_wrong": sum(1 for r in sel if r["wrong_peaks"]),
+                "trunk_coverage": tot("trunk_covered", sel) / max(tot("trunk_crossings", sel), 1),
+                "back_coverage": tot("back_covered", sel) / max(tot("back_crossings", sel), 1),
+                "headarm_unnumbered": tot("headarm_unnumbered", sel)
+                / max(tot("headarm_peaks", sel), 1),
+                "rec_rms": (tot("rec_sse", sel) / max(tot("rec_n", sel), 1)) ** 0.5,
+            }
+    ms = np.array([[r["ms"]["peaks"], r["ms"]["generic"], r["ms"]["numbers"]] for r in ok])
+    return {
+        "scenes": len(rows),
+        "errors": len(rows) - len(ok),
+        "error_seeds": [r["seed"] for r in rows if "error" in r][:20],
+        "wrong_peaks": int(tot("wrong_peaks")),
+        "wrong_lines": int(tot("wrong_lines")),
+        "scenes_with_wrong": sum(1 for r in ok if r["wrong_peaks"]),
+        "wrong_seeds": [
+            (r["seed"], r["code"], r["wrong_peaks"], r["wrong_objects"])
+            for r in ok
+            if r["wrong_peaks"]
+        ][:40],
+        "numbered_off_truth": int(tot("numbered_off_truth")),
+        "trunk_coverage": tot("trunk_covered") / max(tot("trunk_crossings"), 1),
+        "back_coverage": tot("back_covered") / max(tot("back_crossings"), 1),
+        "back_coverage_p5": float(
+            np.percentile([r["back_covered"] / max(r["back_crossings"], 1) for r in ok], 5)
+        )
+        if ok
+        else 0.0,
+        "trunk_coverage_p5": float(
+            np.percentile([r["trunk_covered"] / max(r["trunk_crossings"], 1) for r in ok], 5)
+        )
+        if ok
+        else 0.0,
+        "headarm_unnumbered_share": tot("headarm_unnumbered") / max(tot("headarm_peaks"), 1),
+        "rec_peaks": int(tot("rec_n")),
+        "rec_rms": (tot("rec_sse") / max(tot("rec_n"), 1)) ** 0.5,
+        "all_matched_rms": (tot("all_sse") / max(tot("all_n"), 1)) ** 0.5,
+        "generic_rms": (tot("generic_sse") / max(tot("generic_n"), 1)) ** 0.5,
+        "generic_matched": int(tot("generic_n")),
+        "ms_median_peaks_generic_numbers": np.median(ms, axis=0).round(2).tolist() if ok else [],
+        "per_code": per_code,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line entry point."""
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--scenes", type=int, default=200)
+    ap.add_argument("--first-seed", type=int, default=TUNING[0])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/out/bodies-tune.jsonl"))
+    ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
+    args = ap.parse_args(argv)
+    if args.summary is not None:
+        print(json.dumps(summary(args.summary), indent=2))
+        return 0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    done = set()
+    if args.out.exists():
+        done = {json.loads(x)["seed"] for x in args.out.read_text().splitlines() if x.strip()}
+    todo = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
+    print(f"{len(done)} scenes done, {len(todo)} to go", flush=True)
+    start = time.time()
+    with (
+        mp.get_context("spawn").Pool(args.workers, maxtasksperchild=40) as pool,
+        args.out.open("a") as fh,
+    ):
+        for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):
+            fh.write(json.dumps(res) + "\n")
+            fh.flush()
+            if i % 20 == 0 or res.get("wrong_peaks") or res.get("error"):
+                rate = (time.time() - start) / i
+                print(
+                    f"{i}/{len(todo)} seed {res['seed']} wrong {res.get('wrong_peaks')} "
+                    f"err {res.get('error')} {rate:.2f} s/scene",
+                    flush=True,
+                )
+    print(json.dumps(summary(args.out), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,161 @@
+"""Geometric evidence between components of ordered lines, for line numbering.
+
+Line sequence analysis leaves lines that it cannot link in separate components; each gets
+its absolute number from the code on its own. Two kinds of contact between components tell
+how their numbers must relate, without the code:
+
+* **column neighbours**: in a pixel column, the lowest peak of a line of component A lies
+  directly above a peak of component B, at the local line spacing (the gap agrees with the
+  gaps above and below it within ``gap_tolerance``). On a continuous surface these are two
+  consecutive raster lines, so ``number(B line) = number(A line) + 1``. Any other relation
+  is a depth step of a whole line spacing (or more) between touching surfaces, or an order
+  that contradicts the image.
+* **continuations**: a line of B starts a few columns (``max_gap``) after a line of A ends,
+  where A's line, extended along its slope, arrives (within ``row_tolerance`` of the
+  spacing) and B's line, extended backwards, arrives at A's end: one raster line
+  interrupted by a shadow, a fold or the chin, so ``number(B line) = number(A line)``.
+
+Both are returned as votes on the offset difference ``offset(B) - offset(A)`` of the two
+components (offsets index the raster's lines at level 0), with a weight in columns.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+
+__all__ = ["contact_votes"]
+
+
+def _line_ends(
+    col: np.ndarray, row: np.ndarray, line_id: np.ndarray, n_lines: int, fit: int
+) -> tuple[np.ndarray, ...]:
+    """Per line: first/last column and row, the slopes at both ends, and the peak count."""
+    lid = line_id.astype(np.int64)
+    ok = lid >= 0
+    idx = np.flatnonzero(ok)
+    order = idx[np.lexsort((col[idx], lid[idx]))]
+    lines = lid[order]
+    starts = np.searchsorted(lines, np.arange(n_lines), side="left")
+    stops = np.searchsorted(lines, np.arange(n_lines), side="right")
+    count = stops - starts
+    c0 = np.full(n_lines, -1, np.int64)
+    c1 = np.full(n_lines, -1, np.int64)
+    r0 = np.full(n_lines, np.nan)
+    r1 = np.full(n_lines, np.nan)
+    s0 = np.zeros(n_lines)
+    s1 = np.zeros(n_lines)
+    cs, rs = col[order].astype(np.float64), row[order]
+    for line in np.flatnonzero(count > 0):
+        a, b = starts[line], stops[line]
+        c0[line], c1[line] = int(cs[a]), int(cs[b - 1])
+        r0[line], r1[line] = rs[a], rs[b - 1]
+        m = min(fit, b - a)
+        if m >= 3:
+            for lo, hi, out in ((a, a + m, s0), (b - m, b, s1)):
+                x, y = cs[lo:hi], rs[lo:hi]
+                dx = x - x.mean()
+                den = float((dx * dx).sum())
+                out[line] = float((dx * (y - y.mean())).sum() / den) if den > 0 else 0.0
+    return c0, c1, r0, r1, s0, s1, count
+
+
+def contact_votes(
+    col: np.ndarray,
+    row: np.ndarray,
+    line_id: np.ndarray,
+    line_order: np.ndarray,
+    line_component: np.ndarray,
+    *,
+    gap_tolerance: float = 0.2,
+    max_gap: int = 40,
+    row_tolerance: float = 0.3,
+    min_line: int = 5,
+    continuation_weight: float = 4.0,
+) -> dict[tuple[int, int], dict[int, float]]:
+    """Votes on the offset differences of touching components.
+
+    Parameters
+    ----------
+    col, row, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    line_order, line_component : numpy.ndarray
+        Per-line level and component (-1: unordered).
+    gap_tolerance : float
+        A column neighbour's gap may depart from the spacing by this fraction.
+    max_gap : int
+        Largest gap (columns) bridged by a continuation.
+    row_tolerance : float
+        Largest departure (in line spacings) of an extended line from the other's end.
+    min_line : int
+        Least peaks of each line of a continuation.
+    continuation_weight : float
+        Weight (in column-neighbour columns) of one continuation.
+
+    Returns
+    -------
+    dict
+        ``votes[(a, b)][delta]``: the weight of the evidence that
+        ``offset(b) - offset(a) == delta``, for components ``a != b`` (both directions).
+    """
+    votes: dict[tuple[int, int], dict[int, float]] = defaultdict(lambda: defaultdict(float))
+    n = col.size
+    n_lines = line_order.size
+    if n < 2 or n_lines < 2:
+        return votes
+    lid = line_id.astype(np.int64)
+    comp = np.where(lid >= 0, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
+    lev = np.where(lid >= 0, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
+    same_col = col[1:] == col[:-1]
+    gap = row[1:] - row[:-1]
+    # Typical spacing: the median gap between consecutive levels of one component.
+    inside = same_col & (comp[1:] == comp[:-1]) & (comp[:-1] >= 0) & (lev[1:] == lev[:-1] + 1)
+    spacing = float(np.median(gap[inside])) if np.any(inside) else float("nan")
+    if not np.isfinite(spacing) or spacing <= 0:
+        return votes
+    # ---- column neighbours across two components
+    g_prev = np.full(n - 1, np.nan)
+    g_prev[1:] = np.where(same_col[:-1] & inside[:-1], gap[:-1], np.nan)
+    g_next = np.full(n - 1, np.nan)
+    g_next[:-1] = np.where(same_col[1:] & inside[1:], gap[1:], np.nan)
+    with np.errstate(invalid="ignore"):
+        ref = np.where(
+            np.isnan(g_prev),
+            np.where(np.isnan(g_next), spacing, g_next),
+            np.where(np.isnan(g_next), g_prev, 0.5 * (g_prev + g_next)),
+        )
+    cross = same_col & (comp[:-1] >= 0) & (comp[1:] >= 0) & (comp[:-1] != comp[1:])
+    cross &= np.abs(gap / ref - 1.0) <= gap_tolerance
+    cross &= np.abs(ref / spacing - 1.0) <= 0.5
+    for k in np.flatnonzero(cross):
+        a, b = int(comp[k]), int(comp[k + 1])
+        delta = int(lev[k] + 1 - lev[k + 1])  # offset(b) - offset(a)
+        votes[(a, b)][delta] += 1.0
+        votes[(b, a)][-delta] += 1.0
+    # ---- continuations of lines across short gaps
+    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, line_id, n_lines, fit=8)
+    ok = (count >= min_line) & (line_component >= 0) & (line_order >= 0)
+    ends = np.flatnonzero(ok)
+    if ends.size < 2:
+        return votes
+    tol = row_tolerance * spacing
+    for a in ends:
+        # lines of other components starting within max_gap columns after a ends
+        dc = c0[ends] - c1[a]
+        cand = ends[(dc >= 1) & (dc <= max_gap) & (line_component[ends] != line_component[a])]
+        if cand.size == 0:
+            continue
+        dcc = (c0[cand] - c1[a]).astype(np.float64)
+        fwd = r1[a] + s1[a] * dcc  # a extended to b's start
+        bwd = r0[cand] - s0[cand] * dcc  # b extended back to a's end
+        hit = (np.abs(fwd - r0[cand]) <= tol) & (np.abs(bwd - r1[a]) <= tol)
+        if np.count_nonzero(hit) != 1:
+            continue  # none, or not unique: no evidence
+        b = int(cand[hit][0])
+        ca, cb = int(line_component[a]), int(line_component[b])
+        delta = int(line_order[a] - line_order[b])
+        w = continuation_weight * min(1.0, min(count[a], count[b]) / 20.0)
+        votes[(ca, cb)][delta] += w
+        votes[(cb, ca)][-delta] += w
+    return votes
