@@ -377,6 +377,19 @@ def calibration_body(
     hole_radius: Annotated[
         float, typer.Option(help="Radius of the control-point holes, mm (1-15).")
     ] = 4.5,
+    clinic_body: Annotated[
+        bool,
+        typer.Option(
+            "--clinic-body",
+            help="The body as a clinic's camera sees it: a cast base as bright as the plates "
+            "with mounting holes, columns and plate sides in view, uneven light.",
+        ),
+    ] = False,
+    layout_seed: Annotated[
+        int | None,
+        typer.Option(help="Drill an irregular seven-hole layout drawn from this seed (>= 0); "
+                     "control_points.json carries it."),
+    ] = None,
     out: _Out = Path("simulated-calibration"),
     image_format: _Format = ImageFormat.png,
     truth_format: _Truth = TruthFormat.npz,
@@ -392,21 +405,28 @@ def calibration_body(
     calibration.json (the true station) and raster.json.
     """
     from rasterserver.simulator.calibration_body import (
+        REAL_BODY,
         control_points,
         make_calibration_body,
+        random_hole_layout,
         write_control_points,
     )
     from rasterserver.simulator.ground_truth import LineRows
     from rasterserver.simulator.render import render
 
     _check_seed("--seed", seed)
+    layout = None
+    if layout_seed is not None:
+        _check_seed("--layout-seed", layout_seed)
+        layout = random_hole_layout(np.random.default_rng(layout_seed))
+    body: dict[str, Any] = dict(REAL_BODY) if clinic_body else {}
     station = _station(width, height)
     check_output_folder(out, what="--out")
     frames = [(k, on) for k in range(3) for on in (True, False)]
     for i, (k, on) in enumerate(frames):
         stem = f"config{k}-projector-{'on' if on else 'off'}"
         _echo_progress(f"[{i + 1}/{len(frames)}] rendering {stem}")
-        scene = make_calibration_body(k, hole_radius=hole_radius)
+        scene = make_calibration_body(k, hole_radius=hole_radius, layout=layout, **body)
         settings = _render_settings(
             supersample=supersample, noise=noise, bit_depth=bit_depth, projector=on
         )
@@ -429,7 +449,8 @@ def calibration_body(
             image_format=image_format,
             truth_format=truth_format,
         )
-    path = write_control_points(out / "control_points.json", control_points())
+    path = write_control_points(out / "control_points.json", control_points(layout=layout),
+                                layout=layout)
     typer.echo(f"wrote {len(frames)} frames and {path.name} to {out}")
 
 

@@ -163,3 +163,19 @@ def test_distortion_terms_are_chosen_and_checked(capsys) -> None:
     assert main(["calibrate", frames, "--dry-run", "--camera-distortion", "k1,k7"]) == 2
     assert "unknown distortion terms ['k7']" in capsys.readouterr().err
     assert main(["calibrate", frames, "--dry-run", "--camera-distortion", "k1,p1,p2"]) == 0
+
+
+def test_the_body_as_a_clinic_sees_it_calibrates(tmp_path: Path) -> None:
+    """Issue 13: a base as bright as the plates, columns, uneven light and an irregular hole
+    layout, simulated and calibrated by the installed commands."""
+    from installed_cli import TRACEBACK, run_installed
+
+    out = tmp_path / "clinic"
+    made = run_installed("simulate", "calibration-body", "--clinic-body", "--layout-seed", "3",
+                         "--supersample", "2", "--out", str(out))
+    assert made.returncode == 0, made.stderr
+    layout = json.loads((out / "control_points.json").read_text())["hole_layout"]
+    assert layout["plate_coordinates_mm"][6] != [20.0, 60.0]  # not the default pattern
+    done = run_installed("calibrate", str(out), "--dry-run", "--max-rms-px", "0.05")
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "verdict: PASS" in done.stdout and TRACEBACK not in done.stderr
