@@ -12,6 +12,13 @@ One machine and a clinic run the same code; only these settings change:
     Address of a Dask scheduler for reprocessing jobs; empty means a local cluster.
 ``RASTERSERVER_MAX_FRAME_BYTES``
     Largest frame accepted at ingest, in bytes (default 256 MiB).
+``RASTERSERVER_GROUP_ACCESS``
+    ``1``: the archive's files and folders are readable by the owner's group (0640/0750)
+    instead of owner-only (0600/0700); see :mod:`rasterserver.store.modes`.
+``RASTERSERVER_PSEUDONYM_KEY``, ``RASTERSERVER_PSEUDONYM_KEY_FILE``
+    The researchers' pseudonym key, never in the catalogue: :mod:`rasterserver.pseudonym_key`.
+``RASTERSERVER_TOKEN_DAYS``
+    Lifetime of a new API token in days (default 90).
 """
 
 from __future__ import annotations

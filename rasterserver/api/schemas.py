@@ -66,10 +66,16 @@ class StationIn(BaseModel):
     description: str = ""
 
 
+#: Times of stations, calibrations and rasters are withheld from researchers: when a
+#: calibration applied bounds when the acquisitions made with it were taken, and so the
+#: patients' date shifts.
+_WITHHELD = "Null for researchers: it would bound their patients' true dates."
+
+
 class StationOut(BaseModel):
     name: str
     description: str
-    created_at: dt.datetime
+    created_at: dt.datetime | None = Field(description=_WITHHELD)
 
 
 class RasterIn(BaseModel):
@@ -81,7 +87,7 @@ class RasterOut(BaseModel):
     name: str
     sha256: str
     definition: dict[str, Any]
-    created_at: dt.datetime
+    created_at: dt.datetime | None = Field(description=_WITHHELD)
 
 
 class CalibrationIn(BaseModel):
@@ -101,9 +107,9 @@ class CalibrationOut(BaseModel):
     raster_id: int | None
     parameters: dict[str, Any]
     residuals: dict[str, Any]
-    valid_from: dt.datetime
-    notes: str
-    created_at: dt.datetime
+    valid_from: dt.datetime | None = Field(description=_WITHHELD)
+    notes: str | None = Field(description="Null for researchers (free text, may hold dates).")
+    created_at: dt.datetime | None = Field(description=_WITHHELD)
 
 
 class PatientIn(BaseModel):

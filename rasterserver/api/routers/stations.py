@@ -6,8 +6,10 @@ from typing import Annotated
 
 from fastapi import Path, Query, Request, Response
 
+from rasterserver.api.auth import Principal
 from rasterserver.api.deps import (
     MAX_OFFSET,
+    CallerDep,
     PageDep,
     ServicesDep,
     not_modified,
@@ -22,6 +24,7 @@ from rasterserver.api.schemas import (
     StationIn,
     StationOut,
 )
+from rasterserver.api.views import pseudonymised
 from rasterserver.catalog.models import Calibration, Raster, Station
 
 router = protected_router("stations")
@@ -29,33 +32,41 @@ router = protected_router("stations")
 StationName = Annotated[str, Path(max_length=100)]
 
 
-def _station(row: Station) -> StationOut:
+# Researchers get no times of stations, calibrations and rasters: the period a calibration
+# applied brackets the true dates of the acquisitions made with it (a researcher sees which
+# calibration each used), which would undo the patients' date shifts.
+
+
+def _station(row: Station, caller: Principal | None = None) -> StationOut:
+    hide = caller is not None and pseudonymised(caller)
     return StationOut(name=row.name, description=row.description,
-                      created_at=utc(row.created_at))  # type: ignore[arg-type]
+                      created_at=None if hide else utc(row.created_at))
 
 
-def _calibration(row: Calibration, station: str) -> CalibrationOut:
+def _calibration(row: Calibration, station: str, caller: Principal | None = None) -> CalibrationOut:
+    hide = caller is not None and pseudonymised(caller)
     return CalibrationOut(
         station=station, version=row.version, sha256=row.sha256, raster_id=row.raster_id,
         parameters=row.parameters, residuals=row.residuals,
-        valid_from=utc(row.valid_from), notes=row.notes,  # type: ignore[arg-type]
-        created_at=utc(row.created_at))  # type: ignore[arg-type]
+        valid_from=None if hide else utc(row.valid_from), notes=None if hide else row.notes,
+        created_at=None if hide else utc(row.created_at))
 
 
-def _raster(row: Raster) -> RasterOut:
+def _raster(row: Raster, caller: Principal | None = None) -> RasterOut:
+    hide = caller is not None and pseudonymised(caller)
     return RasterOut(name=row.name, sha256=row.sha256, definition=row.definition,
-                     created_at=utc(row.created_at))  # type: ignore[arg-type]
+                     created_at=None if hide else utc(row.created_at))
 
 
 @router.get("/stations", name="list_stations", response_model=list[StationOut])
 def list_stations(
-    svc: ServicesDep, page: PageDep,
+    svc: ServicesDep, caller: CallerDep, page: PageDep,
     name_prefix: Annotated[str | None, Query(max_length=100)] = None,
 ) -> list[StationOut]:
     """Stations by name (there are few: filtered and paged here)."""
     rows = [s for s in svc.archive.stations()
             if name_prefix is None or s.name.startswith(name_prefix)]
-    return [_station(s) for s in rows[page.offset: page.offset + page.limit]]
+    return [_station(s, caller) for s in rows[page.offset: page.offset + page.limit]]
 
 
 @router.post("/stations", name="add_station", response_model=StationOut, status_code=201)
@@ -65,19 +76,20 @@ def add_station(body: StationIn, svc: ServicesDep) -> StationOut:
 
 
 @router.get("/stations/{station}", name="get_station", response_model=StationOut)
-def get_station(station: StationName, svc: ServicesDep) -> StationOut:
+def get_station(station: StationName, svc: ServicesDep, caller: CallerDep) -> StationOut:
     """One station."""
-    return _station(svc.archive.station(station))
+    return _station(svc.archive.station(station), caller)
 
 
 @router.get("/stations/{station}/calibrations", name="list_calibrations",
             response_model=list[CalibrationOut])
 def list_calibrations(
-    station: StationName, svc: ServicesDep, page: PageDep
+    station: StationName, svc: ServicesDep, caller: CallerDep, page: PageDep
 ) -> list[CalibrationOut]:
     """The station's calibrations, oldest version first."""
     rows = svc.archive.calibrations(station)
-    return [_calibration(c, station) for c in rows[page.offset: page.offset + page.limit]]
+    return [_calibration(c, station, caller)
+            for c in rows[page.offset: page.offset + page.limit]]
 
 
 @router.post("/stations/{station}/calibrations", name="add_calibration",
@@ -97,16 +109,17 @@ def add_calibration(station: StationName, body: CalibrationIn,
 def get_calibration(
     station: StationName,
     version: Annotated[int, Path(ge=1, le=MAX_OFFSET)],
-    request: Request, response: Response, svc: ServicesDep,
+    request: Request, response: Response, svc: ServicesDep, caller: CallerDep,
 ) -> CalibrationOut | Response:
     """One calibration version; immutable, so it carries an ETag (its SHA-256)."""
     row = svc.archive.calibration(station, version)
-    etag = f"calibration-{row.sha256}"
+    # the researchers' view differs (no times), so must its tag
+    etag = f"calibration-{row.sha256}" + ("-pseudonymised" if pseudonymised(caller) else "")
     if (cached := not_modified(request, etag)) is not None:
         return cached
     response.headers["ETag"] = f'"{etag}"'
     response.headers["Cache-Control"] = "private, max-age=31536000, immutable"
-    return _calibration(row, station)
+    return _calibration(row, station, caller)
 
 
 @router.post("/rasters", name="add_raster", response_model=RasterOut, status_code=201)
@@ -117,10 +130,11 @@ def add_raster(body: RasterIn, svc: ServicesDep) -> RasterOut:
 
 @router.get("/rasters/{name}", name="get_raster", response_model=RasterOut)
 def get_raster(name: Annotated[str, Path(max_length=100)], request: Request,
-               response: Response, svc: ServicesDep) -> RasterOut | Response:
+               response: Response, svc: ServicesDep, caller: CallerDep) -> RasterOut | Response:
     """One raster definition, with its SHA-256 as ETag."""
     row = svc.archive.raster(name)
-    if (cached := not_modified(request, f"raster-{row.sha256}")) is not None:
+    etag = f"raster-{row.sha256}" + ("-pseudonymised" if pseudonymised(caller) else "")
+    if (cached := not_modified(request, etag)) is not None:
         return cached
-    response.headers["ETag"] = f'"raster-{row.sha256}"'
-    return _raster(row)
+    response.headers["ETag"] = f'"{etag}"'
+    return _raster(row, caller)
