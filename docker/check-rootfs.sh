@@ -121,6 +121,14 @@ rm -rf "$IMAGE"
 cp -a "$BASE" "$IMAGE"
 rm -f "$IMAGE/.check-rootfs-base"
 cp /etc/resolv.conf "$IMAGE/etc/resolv.conf"  # the builder's DNS, as Docker gives a build
+# what Debian's Docker images (and so python:3.11-slim-bookworm) configure: apt deletes the
+# packages it has installed from its cache, so they are not left in the image
+cat >"$IMAGE/etc/apt/apt.conf.d/docker-clean" <<'EOF'
+DPkg::Post-Invoke { "rm -f /var/cache/apt/archives/*.deb /var/cache/apt/archives/partial/*.deb /var/cache/apt/*.bin || true"; };
+APT::Update::Post-Invoke { "rm -f /var/cache/apt/archives/*.deb /var/cache/apt/archives/partial/*.deb /var/cache/apt/*.bin || true"; };
+Dir::Cache::pkgcache "";
+Dir::Cache::srcpkgcache "";
+EOF
 # pip in the build trusts what pip on this host trusts (a proxy that re-signs TLS has its own
 # CA); the bundle is removed again and is not part of the image
 cp "${PIP_CERT:-/etc/ssl/certs/ca-certificates.crt}" "$IMAGE/tmp/check-rootfs-ca.crt"
