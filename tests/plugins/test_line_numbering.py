@@ -198,3 +198,112 @@ def test_min_lines_parameter() -> None:
     assert np.array_equal(numbered.number, number[keep])
     refused = run_stage(CodeWindowNumbering, ordered, {"min_lines": 13}, context=_context())
     assert np.all(refused.number == -1) and "too few lines" in refused.reason
+
+
+def test_shifted_block_inside_a_component_is_refused_not_misnumbered() -> None:
+    """Line sequence put the lower lines one level off (as at a waistband): the old,
+    code-only numbering gives them wrong numbers, version 2 leaves them unnumbered."""
+    from rasterserver_plugins.line_numbering import number_lines
+
+    col, row, area, number = truth_lines(back("normal"))
+    ordered = _ordered_truth(col, row, area, number)
+    numbers = np.unique(number)
+    cut = numbers[-16]
+    shifted = ordered.line_order.copy()
+    shifted[numbers >= cut] += 1  # a line taken for missing: every lower line one level off
+    bad = OrderedLines(
+        **{**ordered.__dict__, "line_order": shifted, "order": shifted[ordered.line_id]}
+    )
+    raster = rendering_raster()
+    _, _, comps = number_lines(bad, raster)
+    assert comps[0].offset >= 0  # the component as a whole reads clearly
+    # the naive reading: that one offset for the whole component, the lower block all wrong
+    naive = raster.numbers[np.minimum(comps[0].offset + shifted, raster.n_lines - 1)]
+    naive_wrong = naive != numbers
+    result = run_stage(CodeWindowNumbering, bad, context=_context())
+    wrong = (result.line_number >= 0) & (result.line_number != numbers)
+    assert naive_wrong.sum() >= 10
+    assert wrong.sum() == 0
+    assert np.count_nonzero(result.line_number >= 0) > 30
+    assert "contradicts" in result.reason or "order" in result.reason
+
+
+def test_touching_component_with_contradicting_code_is_refused() -> None:
+    """A small component whose code reads one line off against the numbered trunk it
+    continues: the contacts contradict it, so it stays unnumbered with the reason."""
+    col, row, area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    ordered = _ordered_truth(col, row, area, number)
+    # split: the right part (col >= 400) of lines 20..34 becomes component 1, and its areas
+    # are those of the lines one below (a misreading of the whole piece by one line)
+    line_of = ordered.line_id
+    piece = (col >= 400) & np.isin(number, numbers[20:35])
+    n_lines = numbers.size
+    new_line = np.where(piece, n_lines + (line_of - 20), line_of)
+    line_order = np.concatenate([ordered.line_order, np.arange(15)]).astype(np.int32)
+    line_comp = np.concatenate([ordered.line_component, np.ones(15, np.int32)]).astype(np.int32)
+    area2 = area.copy()
+    for k in range(15):
+        src = (number == numbers[21 + k]) & ~piece
+        dst = piece & (number == numbers[20 + k])
+        if src.any() and dst.any():
+            area2[dst] = np.median(area[src])
+    order = np.lexsort((row, col))
+    sel = lambda a: a[order]  # noqa: E731
+    data = OrderedLines(
+        col=sel(col), row=sel(row), area=sel(area2).astype(np.float32),
+        height=np.full(col.size, 40.0, np.float32), width=np.full(col.size, 7, np.int16),
+        image_shape=np.array([604, 576]), line_id=sel(new_line).astype(np.int32),
+        order=line_order[sel(new_line)], line_order=line_order, line_component=line_comp,
+    )
+    result = run_stage(CodeWindowNumbering, data, context=_context())
+    truth = sel(number)
+    assert np.all(result.number[(result.number >= 0)] == truth[result.number >= 0])
+    assert np.all(result.line_number[n_lines:] == -1)
+
+
+@pytest.mark.parametrize("name", ["mseq7", "w8-1to2", "w9-45to55"])
+def test_clinic_codes_number_truth_lines(name: str) -> None:
+    """Truth lines of a flat wall under each clinic raster: numbered from the raster's own
+    width ratio, and never wrongly."""
+    from rasterserver.raster import get_raster
+
+    raster = get_raster(name)
+    n = 40
+    first = 30
+    cols = np.arange(100, 300)
+    col = np.repeat(cols, n).astype(np.int32)
+    row = np.tile(np.arange(n) * 10.0 + 50.0, cols.size)
+    rng = np.random.default_rng(1)
+    widths = raster.widths[first : first + n]
+    area = (np.tile(widths, cols.size) * 300.0 * rng.lognormal(0.0, 0.03, col.size)).astype(
+        np.float32
+    )
+    number = np.tile(raster.numbers[first : first + n], cols.size)
+    result = run_stage(
+        CodeWindowNumbering,
+        _ordered_truth(col, row, area, number),
+        context=StageContext(raster=raster),
+    )
+    assert np.array_equal(result.number, number)
+
+
+def test_uneven_albedo_is_not_read_as_code() -> None:
+    """Hair: the neighbour ratios scatter far more than the heavy/light step; the component
+    is left unnumbered rather than placed by chance."""
+    col, row, _area, number = truth_lines(back("normal"))
+    numbers = np.unique(number)
+    keep = np.isin(number, numbers[10:24])
+    rng = np.random.default_rng(5)
+    noisy = (100.0 * rng.lognormal(0.0, 0.8, int(keep.sum()))).astype(np.float32)
+    result = run_stage(
+        CodeWindowNumbering,
+        _ordered_truth(col[keep], row[keep], noisy, number[keep]),
+        context=_context(),
+    )
+    assert np.all(result.number == -1)
+    assert "reliable" in result.reason or "ambiguous" in result.reason or "explains" in result.reason
+
+
+def test_version_is_bumped() -> None:
+    assert CodeWindowNumbering.version == "2"
