@@ -1,4 +1,5 @@
-"""The comparison stage: two visits of one patient registered, their difference mapped.
+"""The comparison and asymmetry stages: visits of one patient registered, their difference
+and each visit's asymmetry mapped.
 
 The first stage kind whose input comes from more than one acquisition: the service
 (:mod:`rasterserver.stored_comparison`) assembles a
@@ -7,7 +8,8 @@ surface outline and analysis, and stores the output with the input results' ids 
 provenance, so a comparison is computed once per pair of inputs and reused after. The
 method (landmark frames, then robust point-to-plane ICP on the trunk; signed distance along
 A's normals; mirror images for the asymmetry maps) is :mod:`rasterserver.comparison`'s and is
-described in ``docs/comparison.md``.
+described in ``docs/comparison.md``. The asymmetry map is a stage of its own (input: one
+visit) so that it is computed once per visit, not once per pair the visit is part of.
 """
 
 from __future__ import annotations
@@ -17,11 +19,16 @@ from dataclasses import replace
 from pydantic import Field
 
 from rasterserver.comparison import EDGE_MARGIN, THRESHOLDS
-from rasterserver.pair_comparison import compare_pair
-from rasterserver.records_comparison import ComparisonRecord, VisitPair
+from rasterserver.pair_comparison import compare_pair, visit_asymmetry
+from rasterserver.records_comparison import (
+    AsymmetryRecord,
+    ComparisonRecord,
+    VisitGeometry,
+    VisitPair,
+)
 from rasterserver.stage import Stage, StageContext, StageParams
 
-__all__ = ["LandmarkIcpComparison"]
+__all__ = ["LandmarkIcpComparison", "MirrorIcpAsymmetry"]
 
 
 class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
@@ -55,3 +62,30 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
         """Compare the two visits; a refusal is a record with its reason."""
         thresholds = replace(THRESHOLDS, robust_scale=params.robust_scale, voxel=params.voxel)
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
+
+
+class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
+    """The back against its mirror image about the plane of best symmetry (Komeili et al.,
+    Spine J 2015): mirrored about the body frame's sagittal plane, fitted by robust ICP."""
+
+    name = "asymmetry.mirror-icp"
+    stage = "asymmetry"
+    version = "1"
+    input_type = VisitGeometry
+    output_type = AsymmetryRecord
+
+    class Params(StageParams):
+        margin: float = Field(
+            EDGE_MARGIN, gt=0.0, le=100.0, description="Outline erosion of the trunk (mm)."
+        )
+        mirror_distance: float = Field(
+            THRESHOLDS.mirror_distance,
+            gt=0.0,
+            le=50.0,
+            description="Correspondence distance of the mirror fit (mm).",
+        )
+
+    def run(self, data: VisitGeometry, params: Params, context: StageContext) -> AsymmetryRecord:
+        """Map the visit's asymmetry; a refusal is a record with its reason."""
+        thresholds = replace(THRESHOLDS, mirror_distance=params.mirror_distance)
+        return visit_asymmetry(data, thresholds=thresholds, margin=params.margin)

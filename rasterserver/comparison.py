@@ -50,6 +50,7 @@ __all__ = [
     "Thresholds",
     "Visit",
     "asymmetry_change",
+    "asymmetry_fit",
     "asymmetry_map",
     "distance_map",
     "landmark_transform",
@@ -97,6 +98,8 @@ class Thresholds:
     voxel : float or None
         Voxel size (mm) the moved visit's trunk is thinned to for ICP (one point per voxel,
         their mean); None: every point.
+    mirror_distance : float
+        Correspondence distance (mm) of the asymmetry map's mirror fit, both passes.
     """
 
     coarse_distance: float = 20.0
@@ -108,6 +111,7 @@ class Thresholds:
     min_points: int = 500
     robust_scale: float | None = 1.0
     voxel: float | None = 4.0
+    mirror_distance: float = 10.0
 
 
 #: The thresholds :func:`register` uses unless given others.
@@ -450,10 +454,15 @@ def _cloud(points: np.ndarray, normals: np.ndarray | None = None) -> Any:
 
 
 def _icp(
-    source: MeshRecord, target: MeshRecord, start: np.ndarray, thresholds: Thresholds
+    source: MeshRecord,
+    target: MeshRecord,
+    start: np.ndarray,
+    thresholds: Thresholds,
+    judge: float | None = None,
 ) -> tuple[np.ndarray, float, float]:
     """Point-to-plane ICP of ``source`` onto ``target`` from ``start``, coarse then fine;
-    returns the transform, fitness and inlier rmse at ``thresholds.fine_distance``."""
+    returns the transform, fitness and inlier rmse at ``judge`` (default
+    ``thresholds.fine_distance``)."""
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -481,7 +490,7 @@ def _icp(
         )
         result = reg.registration_icp(src, dst, distance, transform, method, criteria)
         transform = np.array(result.transformation)
-    final = reg.evaluate_registration(src, dst, thresholds.fine_distance, transform)
+    final = reg.evaluate_registration(src, dst, judge or thresholds.fine_distance, transform)
     return transform, float(final.fitness), float(final.inlier_rmse)
 
 
@@ -615,6 +624,17 @@ def asymmetry_map(
     margin: float = EDGE_MARGIN,
     limit: float = MAX_DISTANCE,
 ) -> DistanceMap:
+    """The back against its own mirror image (:func:`asymmetry_fit` without the fit)."""
+    return asymmetry_fit(visit, thresholds=thresholds, margin=margin, limit=limit)[0]
+
+
+def asymmetry_fit(
+    visit: Visit,
+    *,
+    thresholds: Thresholds = THRESHOLDS,
+    margin: float = EDGE_MARGIN,
+    limit: float = MAX_DISTANCE,
+) -> tuple[DistanceMap, np.ndarray, float, float]:
     """The back against its own mirror image about its plane of best symmetry.
 
     The mesh is mirrored about the body frame's sagittal plane (through DM, normal to the
@@ -635,6 +655,10 @@ def asymmetry_map(
         Positive where the back is more posterior (towards the camera) than its mirror
         image there: a right rib hump is positive on the right and, mirrored, negative at
         the same place on the left.
+    transform : numpy.ndarray
+        ``(4, 4)`` the fit of the mirror image onto the back (after the reflection).
+    fitness, rmse : float
+        The fit's overlap fraction and inlier rms (mm) at ``thresholds.coarse_distance``.
 
     Raises
     ------
@@ -659,10 +683,19 @@ def asymmetry_map(
             f"({len(trunk.vertices)} points, at least {thresholds.min_points} needed)"
         )
     mirror_trunk = _submesh(mirrored, trunk_mask(visit, mesh.vertices, margin=margin))
-    # a scoliotic back differs from its mirror image by up to a centimetre or two (that is
-    # what the map shows), so the fit is judged at the coarse distance
-    coarse = replace(thresholds, fine_distance=thresholds.coarse_distance)
-    transform, fitness, rmse = _icp(mirror_trunk, trunk, np.eye(4), coarse)
+    # The landmark plane is within a few millimetres of the plane of best symmetry, so both
+    # passes use mirror_distance; a scoliotic back differs from its mirror image by up to a
+    # centimetre or two (that is what the map shows), and the robust fine pass keeps those
+    # parts from tilting the plane; for the same reason the fit is judged at the coarse
+    # distance.
+    mirror = replace(
+        thresholds,
+        coarse_distance=thresholds.mirror_distance,
+        fine_distance=thresholds.mirror_distance,
+    )
+    transform, fitness, rmse = _icp(
+        mirror_trunk, trunk, np.eye(4), mirror, judge=thresholds.coarse_distance
+    )
     turn, shift = _angle(transform[:3, :3]), float(np.linalg.norm(transform[:3, 3]))
     if fitness < thresholds.min_fitness or shift > thresholds.max_shift:
         raise ComparisonRefusedError(
@@ -677,9 +710,10 @@ def asymmetry_map(
     )
     # the distance runs from the back to its mirror; the back lying out of it is the negative
     distance = -_signed_distances(trunk.vertices, trunk.normals, fitted, limit=limit)
-    return DistanceMap(
+    amap = DistanceMap(
         trunk.vertices, trunk.triangles, trunk.normals, distance, what="asymmetry (mm)"
     )
+    return amap, transform, fitness, rmse
 
 
 def asymmetry_change(

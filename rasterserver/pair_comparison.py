@@ -1,12 +1,12 @@
-"""One comparison of two visits as a record: what the comparison stage computes and stores.
+"""Comparisons and asymmetry maps as records: what the two stages compute and store.
 
-:func:`pack` turns two :class:`~rasterserver.comparison.Visit` into the stage's input
-(:class:`~rasterserver.records_comparison.VisitPair`), :func:`unpack` back; :func:`compare_pair`
-is the computation (registration, distance map, both asymmetry maps) as a
-:class:`~rasterserver.records_comparison.ComparisonRecord`, a refusal included (its reason),
-so that a refused pair is stored and not recomputed either. :func:`distance_of`,
-:func:`asymmetry_of` and :func:`registration_of` redraw the maps from a stored record and
-visit A's (or B's) mesh.
+:func:`pack` turns two :class:`~rasterserver.comparison.Visit` into the comparison stage's
+input (:class:`~rasterserver.records_comparison.VisitPair`), :func:`pack_visit` one visit into
+the asymmetry stage's (:class:`~rasterserver.records_comparison.VisitGeometry`); :func:`unpack`
+and :func:`unpack_visit` go back. :func:`compare_pair` (registration and distance map) and
+:func:`visit_asymmetry` are the computations, a refusal included (its reason), so that a
+refused one is stored and not recomputed either. :func:`distance_of`, :func:`asymmetry_of` and
+:func:`registration_of` redraw the maps from a stored record and the visit's mesh.
 """
 
 from __future__ import annotations
@@ -25,13 +25,18 @@ from rasterserver.comparison import (
     Registration,
     Thresholds,
     Visit,
-    asymmetry_map,
+    asymmetry_fit,
     distance_map,
     register,
     trunk_mask,
 )
 from rasterserver.errors import InputError
-from rasterserver.records_comparison import ComparisonRecord, VisitPair
+from rasterserver.records_comparison import (
+    AsymmetryRecord,
+    ComparisonRecord,
+    VisitGeometry,
+    VisitPair,
+)
 from rasterserver.records_surface import MeshRecord, Surface
 
 __all__ = [
@@ -39,37 +44,46 @@ __all__ = [
     "compare_pair",
     "distance_of",
     "pack",
+    "pack_visit",
     "registration_of",
     "unpack",
+    "unpack_visit",
+    "visit_asymmetry",
 ]
+
+
+def _fields(visit: Visit, prefix: str) -> dict[str, object]:
+    frame = BodyFrame.of(visit.shape)
+    return {
+        f"{prefix}vertices": np.asarray(visit.mesh.vertices, dtype=np.float64),
+        f"{prefix}triangles": np.asarray(visit.mesh.triangles, dtype=np.int32),
+        f"{prefix}normals": np.asarray(visit.mesh.normals, dtype=np.float64),
+        f"{prefix}valid": np.asarray(visit.surface.valid, dtype=bool),
+        f"{prefix}x0": float(visit.surface.x0),
+        f"{prefix}y0": float(visit.surface.y0),
+        f"{prefix}spacing": float(visit.surface.spacing),
+        f"{prefix}landmarks": frame.landmarks,
+        f"{prefix}frame_origin": frame.frame_origin,
+        f"{prefix}frame_axes": frame.frame_axes,
+        f"{prefix}reason": frame.reason,
+        f"{prefix}reasons": frame.reasons,
+        f"{prefix}label": visit.label,
+    }
 
 
 def pack(a: Visit, b: Visit) -> VisitPair:
     """The comparison stage's input from two visits (B is registered onto A)."""
-    fields: dict[str, object] = {}
-    for side, visit in (("a", a), ("b", b)):
-        frame = BodyFrame.of(visit.shape)
-        fields |= {
-            f"{side}_vertices": np.asarray(visit.mesh.vertices, dtype=np.float64),
-            f"{side}_triangles": np.asarray(visit.mesh.triangles, dtype=np.int32),
-            f"{side}_normals": np.asarray(visit.mesh.normals, dtype=np.float64),
-            f"{side}_valid": np.asarray(visit.surface.valid, dtype=bool),
-            f"{side}_x0": float(visit.surface.x0),
-            f"{side}_y0": float(visit.surface.y0),
-            f"{side}_spacing": float(visit.surface.spacing),
-            f"{side}_landmarks": frame.landmarks,
-            f"{side}_frame_origin": frame.frame_origin,
-            f"{side}_frame_axes": frame.frame_axes,
-            f"{side}_reason": frame.reason,
-            f"{side}_reasons": frame.reasons,
-            f"{side}_label": visit.label,
-        }
-    return VisitPair(**fields)  # type: ignore[arg-type]
+    return VisitPair(**_fields(a, "a_"), **_fields(b, "b_"))  # type: ignore[arg-type]
 
 
-def _visit(pair: VisitPair, side: str) -> Visit:
+def pack_visit(visit: Visit) -> VisitGeometry:
+    """The asymmetry stage's input from one visit."""
+    return VisitGeometry(**_fields(visit, ""))  # type: ignore[arg-type]
+
+
+def _visit(record: VisitPair | VisitGeometry, prefix: str) -> Visit:
     def get(name: str) -> object:
-        return getattr(pair, f"{side}_{name}")
+        return getattr(record, f"{prefix}{name}")
 
     valid = np.asarray(get("valid"), dtype=bool)
     surface = Surface(
@@ -94,8 +108,13 @@ def _visit(pair: VisitPair, side: str) -> Visit:
 
 
 def unpack(pair: VisitPair) -> tuple[Visit, Visit]:
-    """The two visits of a stage input, A first."""
-    return _visit(pair, "a"), _visit(pair, "b")
+    """The two visits of a comparison's input, A first."""
+    return _visit(pair, "a_"), _visit(pair, "b_")
+
+
+def unpack_visit(record: VisitGeometry) -> Visit:
+    """The visit of an asymmetry stage's input."""
+    return _visit(record, "")
 
 
 def _indices(visit: Visit, margin: float) -> np.ndarray:
@@ -105,55 +124,79 @@ def _indices(visit: Visit, margin: float) -> np.ndarray:
 def compare_pair(
     pair: VisitPair, *, thresholds: Thresholds = THRESHOLDS, margin: float = EDGE_MARGIN
 ) -> ComparisonRecord:
-    """Register B onto A, measure the distance map and each visit's asymmetry map.
+    """Register B onto A and measure the distance map.
 
     Parameters
     ----------
     pair : VisitPair
         The two visits.
     thresholds : Thresholds, optional
-        When a registration (and a mirror fit) is accepted.
+        When a registration is accepted.
     margin : float, optional
         Outline erosion of the trunk, mm.
 
     Returns
     -------
     ComparisonRecord
-        With ``reason`` set (and empty maps) when the registration was refused; an asymmetry
-        map that was refused has its own reason.
+        With ``reason`` set (and an empty map) when the registration was refused.
     """
     a, b = unpack(pair)
     parameters = json.dumps({"margin_mm": margin, "thresholds": asdict(thresholds)})
-    empty_i, empty_f = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64)
-    asym: dict[str, tuple[np.ndarray, np.ndarray, str]] = {}
-    for side, visit in (("a", a), ("b", b)):
-        try:
-            amap = asymmetry_map(visit, thresholds=thresholds, margin=margin)
-            asym[side] = (_indices(visit, margin), amap.distance, "")
-        except ComparisonRefusedError as exc:
-            asym[side] = (empty_i, empty_f, str(exc))
     try:
         reg = register(a, b, thresholds=thresholds, margin=margin)
     except ComparisonRefusedError as exc:
         nan = np.full((4, 4), np.nan)
-        reg, dmap, reason = Registration(nan, nan, 0.0, 0.0, 0), None, str(exc)
-    else:
-        dmap, reason = distance_map(a, b, reg, margin=margin), ""
+        return ComparisonRecord(
+            reason=str(exc),
+            transform=nan,
+            start=nan,
+            fitness=0.0,
+            rmse=0.0,
+            points=0,
+            trunk=np.zeros(0, dtype=np.int64),
+            distance=np.zeros(0, dtype=np.float64),
+            parameters=parameters,
+        )
+    dmap = distance_map(a, b, reg, margin=margin)
     return ComparisonRecord(
-        reason=reason,
+        reason="",
         transform=np.asarray(reg.transform, dtype=np.float64),
         start=np.asarray(reg.start, dtype=np.float64),
         fitness=float(reg.fitness),
         rmse=float(reg.rmse),
         points=int(reg.points),
-        trunk=_indices(a, margin) if dmap is not None else empty_i,
-        distance=np.asarray(dmap.distance, dtype=np.float64) if dmap is not None else empty_f,
-        a_asymmetry_trunk=asym["a"][0],
-        a_asymmetry=np.asarray(asym["a"][1], dtype=np.float64),
-        a_asymmetry_reason=asym["a"][2],
-        b_asymmetry_trunk=asym["b"][0],
-        b_asymmetry=np.asarray(asym["b"][1], dtype=np.float64),
-        b_asymmetry_reason=asym["b"][2],
+        trunk=_indices(a, margin),
+        distance=np.asarray(dmap.distance, dtype=np.float64),
+        parameters=parameters,
+    )
+
+
+def visit_asymmetry(
+    record: VisitGeometry, *, thresholds: Thresholds = THRESHOLDS, margin: float = EDGE_MARGIN
+) -> AsymmetryRecord:
+    """One visit's asymmetry map (:func:`~rasterserver.comparison.asymmetry_fit`) as a record;
+    a refusal is a record with its reason."""
+    visit = unpack_visit(record)
+    parameters = json.dumps({"margin_mm": margin, "thresholds": asdict(thresholds)})
+    try:
+        amap, transform, fitness, rmse = asymmetry_fit(visit, thresholds=thresholds, margin=margin)
+    except ComparisonRefusedError as exc:
+        return AsymmetryRecord(
+            reason=str(exc),
+            trunk=np.zeros(0, dtype=np.int64),
+            asymmetry=np.zeros(0, dtype=np.float64),
+            transform=np.full((4, 4), np.nan),
+            fitness=0.0,
+            rmse=0.0,
+            parameters=parameters,
+        )
+    return AsymmetryRecord(
+        reason="",
+        trunk=_indices(visit, margin),
+        asymmetry=np.asarray(amap.distance, dtype=np.float64),
+        transform=np.asarray(transform, dtype=np.float64),
+        fitness=float(fitness),
+        rmse=float(rmse),
         parameters=parameters,
     )
 
@@ -201,12 +244,9 @@ def distance_of(record: ComparisonRecord, mesh_a: MeshRecord) -> DistanceMap:
     return _map(mesh_a, record.trunk, record.distance, "signed distance (mm)")
 
 
-def asymmetry_of(record: ComparisonRecord, side: str, mesh: MeshRecord) -> DistanceMap | None:
-    """Visit ``side``'s (``"a"`` or ``"b"``) asymmetry map on its mesh; None when refused
-    (:attr:`~rasterserver.records_comparison.ComparisonRecord.a_asymmetry_reason`)."""
-    if side not in ("a", "b"):
-        raise InputError(f"side must be 'a' or 'b', not {side!r}")
-    if getattr(record, f"{side}_asymmetry_reason"):
+def asymmetry_of(record: AsymmetryRecord, mesh: MeshRecord) -> DistanceMap | None:
+    """A stored asymmetry map on its visit's mesh; None when it was refused
+    (:attr:`~rasterserver.records_comparison.AsymmetryRecord.reason`)."""
+    if record.refused:
         return None
-    index = getattr(record, f"{side}_asymmetry_trunk")
-    return _map(mesh, index, getattr(record, f"{side}_asymmetry"), "asymmetry (mm)")
+    return _map(mesh, record.trunk, record.asymmetry, "asymmetry (mm)")

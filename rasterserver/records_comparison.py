@@ -21,23 +21,50 @@ from rasterserver.errors import InputError
 from rasterserver.records import Record
 from rasterserver.records_analysis import LANDMARKS
 
-__all__ = ["ComparisonRecord", "VisitPair"]
+__all__ = ["AsymmetryRecord", "ComparisonRecord", "VisitGeometry", "VisitPair"]
 
 
-def _check_visit(record: Record, side: str) -> None:
-    vertices = getattr(record, f"{side}_vertices")
-    normals = getattr(record, f"{side}_normals")
-    triangles = getattr(record, f"{side}_triangles")
+def _check_visit(record: Record, prefix: str) -> None:
+    where = f"{type(record).__name__}.{prefix}"
+    vertices = getattr(record, f"{prefix}vertices")
+    normals = getattr(record, f"{prefix}normals")
+    triangles = getattr(record, f"{prefix}triangles")
     if vertices.ndim != 2 or vertices.shape[1] != 3 or normals.shape != vertices.shape:
-        raise InputError(f"VisitPair.{side}: vertices and normals must both be (N, 3)")
+        raise InputError(f"{where}vertices and normals must both be (N, 3)")
     if triangles.ndim != 2 or triangles.shape[1] != 3:
-        raise InputError(f"VisitPair.{side}: triangles must be (M, 3)")
-    if getattr(record, f"{side}_landmarks").shape != (len(LANDMARKS), 3):
-        raise InputError(f"VisitPair.{side}: landmarks must be ({len(LANDMARKS)}, 3)")
-    if getattr(record, f"{side}_frame_axes").shape != (3, 3):
-        raise InputError(f"VisitPair.{side}: frame axes must be (3, 3)")
-    if getattr(record, f"{side}_spacing") <= 0:
-        raise InputError(f"VisitPair.{side}: grid spacing must be positive")
+        raise InputError(f"{where}triangles must be (M, 3)")
+    if getattr(record, f"{prefix}landmarks").shape != (len(LANDMARKS), 3):
+        raise InputError(f"{where}landmarks must be ({len(LANDMARKS)}, 3)")
+    if getattr(record, f"{prefix}frame_axes").shape != (3, 3):
+        raise InputError(f"{where}frame_axes must be (3, 3)")
+    if not getattr(record, f"{prefix}spacing") > 0:
+        raise InputError(f"{where}spacing must be positive")
+
+
+class VisitGeometry(Record):
+    """One analysed visit as the asymmetry stage sees it (fields as one side of
+    :class:`VisitPair`, without the prefix)."""
+
+    kind: ClassVar[str] = "visit-geometry"
+    #: What the service builds it from (shown by ``rasterserver plugins --graph``).
+    assembled_from: ClassVar[str] = "the stored mesh, surface and backshape of one acquisition"
+    vertices: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray
+    valid: np.ndarray
+    x0: float
+    y0: float
+    spacing: float
+    landmarks: np.ndarray
+    frame_origin: np.ndarray
+    frame_axes: np.ndarray
+    reason: str
+    reasons: str
+    label: str
+
+    def validate(self) -> None:
+        """Refuse badly shaped meshes, landmark tables or frames."""
+        _check_visit(self, "")
 
 
 class VisitPair(Record):
@@ -85,12 +112,12 @@ class VisitPair(Record):
 
     def validate(self) -> None:
         """Refuse badly shaped meshes, landmark tables or frames."""
-        _check_visit(self, "a")
-        _check_visit(self, "b")
+        _check_visit(self, "a_")
+        _check_visit(self, "b_")
 
 
 class ComparisonRecord(Record):
-    """The stored comparison of two visits: registration, distance map, asymmetry maps.
+    """The stored comparison of two visits: registration and distance map.
 
     Attributes
     ----------
@@ -108,12 +135,6 @@ class ComparisonRecord(Record):
     distance : numpy.ndarray
         ``(K,)`` float64 signed distance (mm) along A's normals to registered B, NaN without
         a counterpart; positive where B is posterior of A.
-    a_asymmetry_trunk, b_asymmetry_trunk : numpy.ndarray
-        Indices of each visit's mesh vertices where its asymmetry map is.
-    a_asymmetry, b_asymmetry : numpy.ndarray
-        Each visit's asymmetry map (mm; empty when refused).
-    a_asymmetry_reason, b_asymmetry_reason : str
-        Why a visit's asymmetry map was refused.
     parameters : str
         JSON: the stage's parameters and the thresholds used.
     """
@@ -127,12 +148,6 @@ class ComparisonRecord(Record):
     points: int
     trunk: np.ndarray
     distance: np.ndarray
-    a_asymmetry_trunk: np.ndarray
-    a_asymmetry: np.ndarray
-    a_asymmetry_reason: str
-    b_asymmetry_trunk: np.ndarray
-    b_asymmetry: np.ndarray
-    b_asymmetry_reason: str
     parameters: str = "{}"
 
     def validate(self) -> None:
@@ -140,13 +155,8 @@ class ComparisonRecord(Record):
         for name in ("transform", "start"):
             if getattr(self, name).shape != (4, 4):
                 raise InputError(f"ComparisonRecord.{name} must be (4, 4)")
-        for index, values in (
-            ("trunk", "distance"),
-            ("a_asymmetry_trunk", "a_asymmetry"),
-            ("b_asymmetry_trunk", "b_asymmetry"),
-        ):
-            if getattr(self, index).shape != getattr(self, values).shape:
-                raise InputError(f"ComparisonRecord.{index} and {values} differ in length")
+        if self.trunk.shape != self.distance.shape:
+            raise InputError("ComparisonRecord.trunk and distance differ in length")
 
     @property
     def refused(self) -> bool:
@@ -159,3 +169,45 @@ class ComparisonRecord(Record):
         if not isinstance(value, dict):
             raise InputError("ComparisonRecord.parameters is not a JSON object")
         return value
+
+
+class AsymmetryRecord(Record):
+    """One visit's asymmetry map: the back against its mirror image (Komeili et al. 2015).
+
+    Attributes
+    ----------
+    reason : str
+        Why the map was refused (no body frame, too little trunk, the mirror not fitted).
+    trunk : numpy.ndarray
+        ``(K,)`` int64 indices of the visit's mesh vertices on its trunk.
+    asymmetry : numpy.ndarray
+        ``(K,)`` float64 signed distance (mm) to the fitted mirror image, NaN without one;
+        positive where the back is more posterior than its mirror image.
+    transform : numpy.ndarray
+        ``(4, 4)`` the fit of the mirror image onto the back (after the reflection).
+    fitness, rmse : float
+        The mirror fit's overlap and inlier rms (mm).
+    parameters : str
+        JSON: the stage's parameters and thresholds.
+    """
+
+    kind: ClassVar[str] = "asymmetry"
+    reason: str
+    trunk: np.ndarray
+    asymmetry: np.ndarray
+    transform: np.ndarray
+    fitness: float
+    rmse: float
+    parameters: str = "{}"
+
+    def validate(self) -> None:
+        """Refuse a map whose indices and values differ in length."""
+        if self.trunk.shape != self.asymmetry.shape:
+            raise InputError("AsymmetryRecord.trunk and asymmetry differ in length")
+        if self.transform.shape != (4, 4):
+            raise InputError("AsymmetryRecord.transform must be (4, 4)")
+
+    @property
+    def refused(self) -> bool:
+        """True when there is no map (:attr:`reason` says why)."""
+        return bool(self.reason)

@@ -8,7 +8,8 @@ input results (each visit's mesh and analysis; the surface is the analysis's par
 inputs are also rows of ``stage_result_input``, so an input cannot be deleted from under a
 comparison. Asking again for the same comparison of the same results finds the row; a new
 analysis of either visit, another plugin version or other parameters computes a new one
-beside the old.
+beside the old. The asymmetry map (kind ``asymmetry``, default ``asymmetry.mirror-icp``) is
+stored the same way with one visit's inputs, so it is computed once per visit.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import hashlib
 import json
 import socket
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -27,31 +28,42 @@ from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from rasterserver import __version__
 from rasterserver.catalog.models import StageResult, StageResultInput, utcnow
 from rasterserver.errors import InputError
-from rasterserver.pair_comparison import pack
-from rasterserver.records_comparison import ComparisonRecord
+from rasterserver.pair_comparison import pack, pack_visit
+from rasterserver.records import Record
 from rasterserver.stage import coerce_params, params_hash, run_stage
 
 if TYPE_CHECKING:
     from rasterserver.pipeline import Pipeline
     from rasterserver.visit_comparison import ArchivedVisit
 
-__all__ = ["COMPARISON_STAGE", "StoredComparison", "comparison_key", "stored_comparison"]
+__all__ = [
+    "ASYMMETRY_STAGE",
+    "COMPARISON_STAGE",
+    "StoredComparison",
+    "comparison_key",
+    "stored_asymmetry",
+    "stored_comparison",
+]
 
 #: The stage kind of comparisons.
 COMPARISON_STAGE = "comparison"
+#: The stage kind of a visit's asymmetry map.
+ASYMMETRY_STAGE = "asymmetry"
 _KEY_TAG = "rasterserver.comparison-key/1"
 
 
 @dataclass(frozen=True)
 class StoredComparison:
-    """A comparison of two visits as stored.
+    """A comparison of two visits (or one visit's asymmetry map) as stored.
 
     Attributes
     ----------
     result_id : int
         Its ``stage_result`` row.
-    record : ComparisonRecord
-        The registration and maps (``reason`` set when refused).
+    record : Record
+        A :class:`~rasterserver.records_comparison.ComparisonRecord` or
+        :class:`~rasterserver.records_comparison.AsymmetryRecord` (``reason`` set when
+        refused).
     reused : bool
         True when it was found stored, False when computed now.
     plugin, version : str
@@ -59,7 +71,7 @@ class StoredComparison:
     """
 
     result_id: int
-    record: ComparisonRecord
+    record: Any
     reused: bool
     plugin: str
     version: str
@@ -86,17 +98,119 @@ def comparison_key(
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _inputs(a: ArchivedVisit, b: ArchivedVisit) -> list[tuple[str, int, str, int]]:
-    """``(role, result id, checksum, acquisition id)`` of every input, A's first."""
+def _inputs(visits: Sequence[tuple[str, ArchivedVisit]]) -> list[tuple[str, int, str, int]]:
+    """``(role, result id, checksum, acquisition id)`` of every input, in order."""
     out = []
-    for side, visit in (("a", a), ("b", b)):
+    for prefix, visit in visits:
+        if visit.visit is None:
+            raise InputError(f"acquisition {visit.uid} cannot be compared: {visit.reason}")
         if not visit.inputs:
             raise InputError(f"acquisition {visit.uid}: no stored results to compare")
         out += [
-            (f"{side}.{role}", rid, checksum, visit.acquisition_id)
+            (f"{prefix}{role}", rid, checksum, visit.acquisition_id)
             for role, rid, checksum in visit.inputs
         ]
     return out
+
+
+def _stored(
+    pipeline: Pipeline,
+    kind: str,
+    visits: Sequence[tuple[str, ArchivedVisit]],
+    make_input: Callable[[], Record],
+    plugin: str | None,
+    params: Mapping[str, Any] | None,
+) -> StoredComparison:
+    """The stored result of stage ``kind`` over ``visits`` (stored under the first one's
+    acquisition), or computed now and stored."""
+    registry = pipeline.registry
+    stage = registry.get(plugin) if plugin else registry.default_for(kind)
+    if stage.stage != kind:
+        raise InputError(f"plugin {stage.name!r} implements {stage.stage!r}, not {kind!r}")
+    validated = coerce_params(stage, params)
+    digest = params_hash(validated)
+    inputs = _inputs(visits)
+    owner = visits[0][1]
+    key = comparison_key(stage.name, stage.version, digest, [i[:3] for i in inputs])
+    with pipeline.archive.session() as s:
+        row = s.scalar(
+            select(StageResult).where(
+                StageResult.acquisition_id == owner.acquisition_id, StageResult.chain_key == key
+            )
+        )
+    if row is not None:
+        record = pipeline.derived.read(row.store_path, expected_checksum=row.output_checksum)
+        if not isinstance(record, stage.output_type):
+            raise InputError(f"result {row.id} holds {row.record_kind!r}, not {kind!r}")
+        return StoredComparison(row.id, record, True, stage.name, stage.version)
+    began = time.perf_counter()
+    record = run_stage(stage, make_input(), validated)
+    duration = time.perf_counter() - began
+    input_checksum = hashlib.sha256("".join(i[2] for i in inputs).encode()).hexdigest()
+    stored = pipeline.derived.write(
+        owner.uid,
+        record,
+        stage=kind,
+        plugin=stage.name,
+        plugin_version=stage.version,
+        params=validated.model_dump(mode="json"),
+        params_hash=digest,
+        chain_key=key,
+        input_checksum=input_checksum,
+    )
+    package = registry.info(stage.name).package or ""
+    with pipeline.archive.session() as s:
+        new = StageResult(
+            acquisition_id=owner.acquisition_id,
+            run_id=None,
+            parent_id=None,
+            calibration_id=None,
+            frame_index=owner.frame_index,
+            stage=kind,
+            plugin=stage.name,
+            plugin_version=stage.version,
+            plugin_package=package,
+            params=validated.model_dump(mode="json"),
+            params_hash=digest,
+            chain_key=key,
+            input_checksum=input_checksum,
+            output_checksum=stored.output_checksum,
+            record_kind=record.kind,
+            store_path=stored.path,
+            reason=getattr(record, "reason", "") or "",
+            package_version=__version__,
+            host=socket.gethostname(),
+            duration_s=duration,
+            created_at=utcnow(),
+        )
+        try:
+            with s.begin_nested():
+                s.add(new)
+                s.flush()
+                for position, (role, rid, _sum, acquisition_id) in enumerate(inputs):
+                    s.add(
+                        StageResultInput(
+                            result_id=new.id,
+                            position=position,
+                            role=role,
+                            input_id=rid,
+                            acquisition_id=acquisition_id,
+                        )
+                    )
+                s.flush()
+        except SQLIntegrityError:
+            # another process stored the same result meanwhile: use its row
+            existing = s.scalar(
+                select(StageResult).where(
+                    StageResult.acquisition_id == owner.acquisition_id,
+                    StageResult.chain_key == key,
+                )
+            )
+            if existing is None:
+                raise
+            return StoredComparison(existing.id, record, True, stage.name, stage.version)
+        result_id = new.id
+    return StoredComparison(result_id, record, False, stage.name, stage.version)
 
 
 def stored_comparison(
@@ -124,98 +238,36 @@ def stored_comparison(
     Returns
     -------
     StoredComparison
+        Its ``record`` a :class:`~rasterserver.records_comparison.ComparisonRecord`.
 
     Raises
     ------
     InputError
         A visit without geometry, a plugin of another kind, invalid parameters.
     """
-    registry = pipeline.registry
-    stage = registry.get(plugin) if plugin else registry.default_for(COMPARISON_STAGE)
-    if stage.stage != COMPARISON_STAGE:
-        raise InputError(f"plugin {stage.name!r} implements {stage.stage!r}, not a comparison")
-    validated = coerce_params(stage, params)
-    digest = params_hash(validated)
-    if a.visit is None or b.visit is None:
-        bad = a if a.visit is None else b
-        raise InputError(f"acquisition {bad.uid} cannot be compared: {bad.reason}")
-    inputs = _inputs(a, b)
-    key = comparison_key(stage.name, stage.version, digest, [i[:3] for i in inputs])
-    with pipeline.archive.session() as s:
-        row = s.scalar(
-            select(StageResult).where(
-                StageResult.acquisition_id == a.acquisition_id, StageResult.chain_key == key
-            )
-        )
-    if row is not None:
-        record = pipeline.derived.read(row.store_path, expected_checksum=row.output_checksum)
-        if not isinstance(record, ComparisonRecord):
-            raise InputError(f"result {row.id} holds {row.record_kind!r}, not a comparison")
-        return StoredComparison(row.id, record, True, stage.name, stage.version)
-    began = time.perf_counter()
-    record = run_stage(stage, pack(a.visit, b.visit), validated)
-    duration = time.perf_counter() - began
-    input_checksum = hashlib.sha256("".join(i[2] for i in inputs).encode()).hexdigest()
-    stored = pipeline.derived.write(
-        a.uid,
-        record,
-        stage=COMPARISON_STAGE,
-        plugin=stage.name,
-        plugin_version=stage.version,
-        params=validated.model_dump(mode="json"),
-        params_hash=digest,
-        chain_key=key,
-        input_checksum=input_checksum,
-    )
-    package = registry.info(stage.name).package or ""
-    with pipeline.archive.session() as s:
-        new = StageResult(
-            acquisition_id=a.acquisition_id,
-            run_id=None,
-            parent_id=None,
-            calibration_id=None,
-            frame_index=a.frame_index,
-            stage=COMPARISON_STAGE,
-            plugin=stage.name,
-            plugin_version=stage.version,
-            plugin_package=package,
-            params=validated.model_dump(mode="json"),
-            params_hash=digest,
-            chain_key=key,
-            input_checksum=input_checksum,
-            output_checksum=stored.output_checksum,
-            record_kind=record.kind,
-            store_path=stored.path,
-            reason=record.reason,
-            package_version=__version__,
-            host=socket.gethostname(),
-            duration_s=duration,
-            created_at=utcnow(),
-        )
-        try:
-            with s.begin_nested():
-                s.add(new)
-                s.flush()
-                for position, (role, rid, _sum, acquisition_id) in enumerate(inputs):
-                    s.add(
-                        StageResultInput(
-                            result_id=new.id,
-                            position=position,
-                            role=role,
-                            input_id=rid,
-                            acquisition_id=acquisition_id,
-                        )
-                    )
-                s.flush()
-        except SQLIntegrityError:
-            # another process stored the same comparison meanwhile: use its row
-            existing = s.scalar(
-                select(StageResult).where(
-                    StageResult.acquisition_id == a.acquisition_id, StageResult.chain_key == key
-                )
-            )
-            if existing is None:
-                raise
-            return StoredComparison(existing.id, record, True, stage.name, stage.version)
-        result_id = new.id
-    return StoredComparison(result_id, record, False, stage.name, stage.version)
+
+    def make() -> Record:
+        assert a.visit is not None and b.visit is not None
+        return pack(a.visit, b.visit)
+
+    return _stored(pipeline, COMPARISON_STAGE, [("a.", a), ("b.", b)], make, plugin, params)
+
+
+def stored_asymmetry(
+    pipeline: Pipeline,
+    visit: ArchivedVisit,
+    *,
+    plugin: str | None = None,
+    params: Mapping[str, Any] | None = None,
+) -> StoredComparison:
+    """The asymmetry map of one visit: the stored one, or computed now and stored.
+
+    Parameters and errors as :func:`stored_comparison`; the ``record`` is an
+    :class:`~rasterserver.records_comparison.AsymmetryRecord`.
+    """
+
+    def make() -> Record:
+        assert visit.visit is not None
+        return pack_visit(visit.visit)
+
+    return _stored(pipeline, ASYMMETRY_STAGE, [("", visit)], make, plugin, params)

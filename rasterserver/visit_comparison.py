@@ -43,7 +43,7 @@ from rasterserver.comparison import (
 from rasterserver.errors import InputError, NotFoundError
 from rasterserver.pair_comparison import asymmetry_of, distance_of, registration_of
 from rasterserver.records_surface import MeshRecord
-from rasterserver.stored_comparison import StoredComparison, stored_comparison
+from rasterserver.stored_comparison import StoredComparison, stored_asymmetry, stored_comparison
 from rasterserver.trends import REPEATABILITY_SOURCE, TrendVisit, trends, write_trends
 
 if TYPE_CHECKING:
@@ -212,19 +212,16 @@ def _compared(
     return stored, reg, distance_of(stored.record, a.visit.mesh)
 
 
-def _asymmetry(
-    v: ArchivedVisit, stored: StoredComparison | None, side: str
-) -> tuple[DistanceMap | None, dict[str, Any]]:
-    """A visit's asymmetry map from a stored comparison it is part of, and its entry
-    (statistics, or the reason it was refused)."""
+def _asymmetry(pipeline: Pipeline, v: ArchivedVisit) -> tuple[DistanceMap | None, dict[str, Any]]:
+    """A visit's asymmetry map (stored, or computed and stored now) and its entry
+    (statistics and provenance, or the reason it was refused)."""
     if v.visit is None:
         return None, {"refused": v.reason}
-    if stored is None:
-        return None, {"refused": "not part of a stored comparison"}
-    amap = asymmetry_of(stored.record, side, v.visit.mesh)
+    stored = stored_asymmetry(pipeline, v)
+    amap = asymmetry_of(stored.record, v.visit.mesh)
     if amap is None:
-        return None, {"refused": getattr(stored.record, f"{side}_asymmetry_reason")}
-    return amap, {"statistics": amap.statistics()}
+        return None, {"refused": stored.record.reason, "provenance": stored.provenance()}
+    return amap, {"statistics": amap.statistics(), "provenance": stored.provenance()}
 
 
 def _pair(pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
@@ -310,7 +307,7 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
         raise InputError("the acquisitions belong to different patients")
     a, b = (load_visit(pipeline, i.uid) for i in infos)
     stored, reg, dmap = _compared(pipeline, a, b)
-    (map_a, entry_a), (map_b, entry_b) = _asymmetry(a, stored, "a"), _asymmetry(b, stored, "b")
+    (map_a, entry_a), (map_b, entry_b) = _asymmetry(pipeline, a), _asymmetry(pipeline, b)
     change = None
     if map_a is not None and map_b is not None:
         change = asymmetry_change(map_a, map_b, reg).statistics()
@@ -525,17 +522,10 @@ def compare_visits(
             log(f"compared pair {k} of {len(pairs)}")
         if len(entries) == 1 and "refused" in entries[0]:
             raise ComparisonRefusedError(entries[0]["refused"])
-        # each visit's asymmetry map comes from a stored comparison it is part of
-        holder: dict[str, tuple[StoredComparison, str]] = {}
-        for entry in entries:
-            if "_stored" in entry:
-                holder.setdefault(entry["a"], (entry["_stored"][0], "a"))
-                holder.setdefault(entry["b"], (entry["_stored"][0], "b"))
         asymmetry: dict[str, Any] = {}
         maps: dict[str, DistanceMap] = {}
         for v in visits:
-            stored, side = holder.get(v.uid, (None, "a"))
-            amap, asymmetry[v.uid] = _asymmetry(v, stored, side)
+            amap, asymmetry[v.uid] = _asymmetry(pipeline, v)
             if amap is None:
                 continue
             maps[v.uid] = amap

@@ -14,8 +14,13 @@ from rasterserver.archive import Archive
 from rasterserver.catalog.models import StageResult, StageResultInput
 from rasterserver.config import Settings
 from rasterserver.errors import InputError, NotFoundError
-from rasterserver.records_comparison import ComparisonRecord
-from rasterserver.stored_comparison import COMPARISON_STAGE, stored_comparison
+from rasterserver.records_comparison import AsymmetryRecord, ComparisonRecord
+from rasterserver.stored_comparison import (
+    ASYMMETRY_STAGE,
+    COMPARISON_STAGE,
+    stored_asymmetry,
+    stored_comparison,
+)
 from rasterserver.visit_comparison import compare_two, load_visit
 
 PATIENT = "P-STORED"
@@ -72,6 +77,7 @@ def test_a_comparison_is_stored_once_and_reused(archived) -> None:
     report = pipeline.verify()
     assert report.problems == []
     assert report.frames_checked == len(pipeline.results(first)) + len(pipeline.results(second))
+    assert made.record.trunk.size == made.record.distance.size > 500
 
 
 def test_other_parameters_make_another_result(archived) -> None:
@@ -128,3 +134,30 @@ def test_trends_show_an_unprocessed_visit_as_a_gap(archived) -> None:
     assert rows[0][2] is not None and rows[1][2] is not None
     assert rows[2][2] is None  # not processed: a gap, not a 404 for the whole patient
 
+
+
+def test_a_visits_asymmetry_map_is_stored_once(archived) -> None:
+    pipeline, (first, _second, _third) = archived
+    visit = load_visit(pipeline, first)
+    made = stored_asymmetry(pipeline, visit)
+    assert isinstance(made.record, AsymmetryRecord) and not made.record.refused
+    assert made.plugin == "asymmetry.mirror-icp" and not made.reused
+    assert len(made.record.trunk) == len(made.record.asymmetry) > 500
+    again = stored_asymmetry(pipeline, load_visit(pipeline, first))
+    assert again.reused and again.result_id == made.result_id
+    with pipeline.archive.session() as s:
+        row = s.get(StageResult, made.result_id)
+        assert row is not None and row.stage == ASYMMETRY_STAGE
+        roles = list(
+            s.scalars(
+                select(StageResultInput.role)
+                .where(StageResultInput.result_id == made.result_id)
+                .order_by(StageResultInput.position)
+            )
+        )
+    assert roles == ["analysis", "mesh"]
+    # a report of the two visits reuses it and stores the other visit's
+    two = compare_two(pipeline, first, _second)
+    assert two.document["asymmetry"][first]["provenance"]["reused"] is True
+    assert two.document["asymmetry"][_second]["provenance"]["reused"] is False
+    assert pipeline.verify().problems == []
