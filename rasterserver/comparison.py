@@ -684,14 +684,17 @@ def asymmetry_fit(
         )
     mirror_trunk = _submesh(mirrored, trunk_mask(visit, mesh.vertices, margin=margin))
     # The landmark plane is within a few millimetres of the plane of best symmetry, so both
-    # passes use mirror_distance; a scoliotic back differs from its mirror image by up to a
-    # centimetre or two (that is what the map shows), and the robust fine pass keeps those
-    # parts from tilting the plane; for the same reason the fit is judged at the coarse
-    # distance.
+    # passes use mirror_distance, whose cut-off already keeps the most asymmetric parts (a
+    # scoliotic back differs from its mirror image by up to a centimetre or two: that is what
+    # the map shows) out of the fit; for the same reason the fit is judged at the coarse
+    # distance. Least squares, not the robust kernel: with the back's broad asymmetry Tukey's
+    # weights keep changing and ICP runs to its iteration limit (4 times slower) for a plane
+    # that differs by a few hundredths of a millimetre in the map's median.
     mirror = replace(
         thresholds,
         coarse_distance=thresholds.mirror_distance,
         fine_distance=thresholds.mirror_distance,
+        robust_scale=None,
     )
     transform, fitness, rmse = _icp(
         mirror_trunk, trunk, np.eye(4), mirror, judge=thresholds.coarse_distance
