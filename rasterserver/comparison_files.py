@@ -133,8 +133,36 @@ def write_distance_png(
     """
     fig = _draw_distance(dmap, title=title, limit=limit, landmarks=landmarks)
     with output_file(path, what="distance map picture") as temp:
-        fig.savefig(temp, format="png", bbox_inches="tight")
+        fig.savefig(temp, format="png")
     return Path(path)
+
+
+def _on_grid(
+    vertices: np.ndarray, values: np.ndarray
+) -> tuple[np.ma.MaskedArray, tuple[float, float, float, float]] | None:
+    """The values as an image when the vertices' (x, y) lie on a square lattice (a mesh
+    made from a height-field grid, as the pipeline's are), with the image's extent; None
+    otherwise."""
+    if len(vertices) < 4:
+        return None
+    xs = np.unique(np.round(vertices[:, 0], 6))
+    steps = np.diff(xs)
+    if steps.size == 0:
+        return None
+    step = float(steps.min())
+    if step <= 0:
+        return None
+    x0, y0 = float(vertices[:, 0].min()), float(vertices[:, 1].min())
+    fj = (vertices[:, 0] - x0) / step
+    fi = (vertices[:, 1] - y0) / step
+    j, i = np.rint(fj).astype(np.int64), np.rint(fi).astype(np.int64)
+    if max(np.abs(fj - j).max(), np.abs(fi - i).max()) > 1e-3 or max(i.max(), j.max()) > 4000:
+        return None
+    picture = np.full((i.max() + 1, j.max() + 1), np.nan)
+    picture[i, j] = values
+    half = step / 2.0
+    extent = (x0 - half, x0 + step * j.max() + half, y0 - half, y0 + step * i.max() + half)
+    return np.ma.masked_invalid(picture), extent
 
 
 def _draw_distance(
@@ -150,14 +178,31 @@ def _draw_distance(
 
     vertices, _normals, values, triangles = _measured(dmap)
     lim = colour_limit(values) if limit is None else float(limit)
-    fig = Figure(figsize=(5.0, 6.4), dpi=110)
+    fig = Figure(figsize=(5.6, 5.8), dpi=110)
     FigureCanvasAgg(fig)
+    # fixed margins rather than bbox_inches="tight", which draws the figure twice
+    fig.subplots_adjust(left=0.14, right=0.9, bottom=0.09, top=0.94)
     ax = fig.add_subplot(1, 1, 1)
-    if len(triangles):
+    grid = _on_grid(vertices, values)
+    if grid is not None and len(triangles):
+        # the mesh of a height field: drawing it as an image is ten times faster than
+        # Gouraud-shading its tens of thousands of triangles, and looks the same
+        picture, extent = grid
+        image = ax.imshow(
+            picture,
+            cmap="RdBu_r",
+            vmin=-lim,
+            vmax=lim,
+            extent=extent,
+            origin="lower",
+            interpolation="bilinear",
+        )
+    elif len(triangles):
         tri = Triangulation(vertices[:, 0], vertices[:, 1], triangles)
         image = ax.tripcolor(
             tri, values, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="gouraud", rasterized=True
         )
+    if len(triangles):
         bar = fig.colorbar(image, ax=ax, shrink=0.8, extend="both")
         bar.set_label(f"{dmap.what}; + posterior")
     else:
@@ -193,6 +238,6 @@ def distance_png(
     """
     buffer = io.BytesIO()
     _draw_distance(dmap, title=title, limit=limit, landmarks=landmarks).savefig(
-        buffer, format="png", bbox_inches="tight"
+        buffer, format="png"
     )
     return buffer.getvalue()

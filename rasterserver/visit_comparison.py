@@ -286,8 +286,9 @@ class TwoVisits:
 
 
 def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
-    """Compare two stored acquisitions of one patient in memory (nothing processed, nothing
-    written): the earlier is A, the later B.
+    """Compare two stored acquisitions of one patient (nothing processed; no files written):
+    the earlier is A, the later B. The comparison and the asymmetry maps are stored stage
+    results, computed and stored on the first request and reused after.
 
     Raises
     ------

@@ -113,8 +113,10 @@ def get_comparison(
     """The comparison of two acquisitions of one patient: the later visit (B) registered onto
     the earlier (A), the distance map's and the asymmetry maps' statistics.
 
-    Computed from the stored analyses, surfaces and meshes (nothing is processed or stored);
-    either order of the uids gives the same answer.
+    Computed from the stored analyses, surfaces and meshes, which are not processed here. The
+    comparison and each visit's asymmetry map are stage results: the first read computes and
+    stores them (derived data, keyed by the results compared; `provenance` says whether they
+    were reused), later reads reuse them. Either order of the uids gives the same answer.
     """
     result, refs = _compare(uid_a, uid_b, svc, caller, note)
     return json_response(result.document | {"acquisitions": refs})
