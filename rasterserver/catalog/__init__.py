@@ -32,3 +32,6 @@ __all__ = [
 # The HTTP API's tables (accounts, tokens, audit) must be in Base.metadata wherever the
 # schema is compared or created, so they are imported with the catalogue.
 from rasterserver.catalog import auth_models as auth_models
+
+# Processing jobs and their tasks (migration 0012), for the same reason.
+from rasterserver.catalog import job_models as job_models
