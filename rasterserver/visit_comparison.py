@@ -388,6 +388,45 @@ def _trends_plot(table: list[dict[str, Any]], path: Path) -> None:
         fig.savefig(temp, format="png", bbox_inches="tight")
 
 
+def _frames_section(visits: Sequence[ArchivedVisit]) -> list[str]:
+    """The landmark frames of the visits: VP, DL, DR, DM and the body-fixed axes (world mm of
+    each visit's calibration), the frames the registrations start from."""
+    e = html.escape
+    out = [
+        "<h2>Landmark frames</h2><p>Each visit's landmarks and body-fixed frame (Drerup &amp; "
+        "Hierholzer 1987: origin DM; axes transverse, vertical DM → VP, sagittal), in the world "
+        "frame of its calibration (mm): the registration of a later visit starts by putting its "
+        "frame onto the earlier one's.</p>",
+        "<table><tr><th>visit</th><th>VP</th><th>DL</th><th>DR</th><th>DM</th>"
+        "<th>transverse</th><th>vertical</th><th>sagittal</th></tr>",
+    ]
+
+    def point(p: Any) -> str:
+        if p is None or not np.all(np.isfinite(p)):
+            return "–"
+        return "(" + ", ".join(f"{v:.1f}" for v in p) + ")"
+
+    def axis(a: Any) -> str:
+        if not np.all(np.isfinite(a)):
+            return "–"
+        return "(" + ", ".join(f"{v:+.3f}" for v in a) + ")"
+
+    for v in visits:
+        if v.visit is None:
+            out.append(
+                f"<tr><td>{v.acquired_at:%Y-%m-%d}</td><td colspan='7' style='text-align:left'>"
+                f"{e(v.reason)}</td></tr>"
+            )
+            continue
+        shape = v.visit.shape
+        cells = "".join(f"<td>{point(shape.landmark(n))}</td>" for n in ("VP", "DL", "DR", "DM"))
+        axes = np.asarray(shape.frame_axes, dtype=float)
+        cells += "".join(f"<td>{axis(axes[k])}</td>" for k in range(3))
+        out.append(f"<tr><td>{v.acquired_at:%Y-%m-%d}</td>{cells}</tr>")
+    out.append("</table>")
+    return out
+
+
 def _report(
     folder: Path,
     visits: Sequence[ArchivedVisit],
@@ -452,6 +491,7 @@ def _report(
             parts.append(f"<img src='{e(entry['file'])}' alt='asymmetry {e(uid)}'>")
         else:
             parts.append(f"<p>{e(uid)}: {e(entry.get('refused', ''))}</p>")
+    parts += _frames_section(visits)
     parts.append("</body></html>")
     (folder / "report.html").write_text("\n".join(parts), encoding="utf-8")
 

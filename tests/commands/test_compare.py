@@ -55,7 +55,9 @@ def test_two_acquisitions(patient, tmp_path: Path) -> None:
     trends = (out / "trends.csv").read_text().splitlines()
     assert trends[0].startswith("parameter,unit,visit,date,value,change,sdc,flagged")
     assert any(line.startswith("surface_rotation_rms_deg,deg,") for line in trends)
-    assert "Timeline" in (out / "report.html").read_text()
+    report = (out / "report.html").read_text()
+    assert "Timeline" in report and "Landmark frames" in report
+    assert report.count("<td>(") >= 2 * 7  # VP, DL, DR, DM and three axes for both visits
     # a second command (a fresh process) finds the comparison stored and reuses it
     again = run_installed("compare", first, second, "-o", str(tmp_path / "again"), archive=root)
     assert again.returncode == 0, describe(again)
