@@ -151,7 +151,8 @@ def measure(case: Case, folder: Path) -> dict[str, object]:
         res = calibrate_station(frames, control, raster=true.raster_definition,
                                 reference=default_station())
     except InputError as exc:
-        return {"seed": case.seed, "refused": str(exc), "light_ratio": ratio}
+        return {"seed": case.seed, "refused": str(exc), "light_ratio": ratio,
+                "layout": "default" if case.layout is None else "irregular"}
     seconds = time.perf_counter() - t0
     xyz = {i: p for k in control.configurations for pp in control.plates[k]
            for i, p in zip(pp.ids, pp.xyz, strict=True)}
@@ -181,6 +182,9 @@ def run(seeds: dict[str, tuple[int, ...]]) -> str:
                               for k, v in out.items()}, flush=True)
                 results.setdefault(group, []).append(out)
 
+    n_all = sum(len(rows) for rows in results.values())
+    n_default = sum(r.get("layout") == "default" for rows in results.values() for r in rows)
+
     def cell(rows: list[dict[str, object]], key: str, digits: int = 3) -> str:
         values = [float(r[key]) for r in rows]  # type: ignore[arg-type]
         return f"{statistics.median(values):.{digits}f} / {max(values):.{digits}f}"
@@ -192,9 +196,10 @@ def run(seeds: dict[str, tuple[int, ...]]) -> str:
         "the plates (albedo 0.75, 5 % mottling, dark mounting holes of the holes' size where "
         "other configurations' columns stand), plates on columns that show beyond their top "
         "and bottom edges, plate sides in view, uneven light (a lamp at a random place, "
-        "see below). A quarter of the stations use the default hole pattern, "
-        "the others an irregular seven-point layout drawn at random and given in the "
-        "control-point file. Every station is random (camera turned σ 0.3°, moved σ 8 mm, "
+        "see below). Each station draws the default hole pattern with probability 1/4, "
+        "else an irregular seven-point layout at random, given in the control-point file "
+        f"({n_default} of {n_all} stations had the default pattern). Every station is "
+        "random (camera turned σ 0.3°, moved σ 8 mm, "
         "f σ 1 %, principal point σ 4 px, k1 in [-0.1, 0]; projector turned σ 0.8°, moved "
         "σ 20 mm, f σ 1 %, c_v σ 10, k1 in [-0.03, 0]); six frames with `RenderSettings()` "
         "(3 x 3 supersampling, shot + read noise, 8 bit); nominal design as the reference. "
