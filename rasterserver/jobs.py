@@ -1,47 +1,79 @@
-"""Process many acquisitions: in this process, or on a Dask cluster.
+"""Process many acquisitions with one coordinator loop, on one engine: here or on Dask.
 
-Stages are pure, so only the computing is shipped: the driver (this process) plans each
-acquisition (catalogue lookups, reading the raw frame or a stored intermediate result), sends
-the input record, the resolved chain and the station data to a worker, and stores what comes
-back (derived files, provenance rows). Workers never touch the archive or the catalogue, which
-is what lets them run on machines that cannot reach either.
+The coordinator (this process) plans each acquisition (catalogue lookups, reading the raw
+frame or a stored intermediate result), hands the input record, the resolved chain and the
+station data to the *engine*, and stores what comes back (derived files, provenance rows).
+The computing is pure, so it can run anywhere; workers never touch the archive or the
+catalogue. There is one loop (:func:`run_tasks`) whatever the engine; engines differ only in
+where :func:`rasterserver.pipeline.compute` runs:
 
-Where the work runs:
+* :class:`InProcess`: here, at once (one acquisition, or a machine where a cluster does not
+  pay: see BENCHMARKS.md, "Processing jobs").
+* :class:`OnDask`: on a Dask cluster: a ``LocalCluster`` started around the job, or the
+  scheduler at ``--scheduler`` / ``RASTERSERVER_DASK_SCHEDULER``. A worker that dies
+  mid-task has its task rerun by the scheduler on another worker (Dask's own retry, up to
+  ``distributed.scheduler.allowed-failures``); storing is keyed by chain key, so a task
+  computed twice is stored once.
 
-* ``dask=False``: one acquisition after the other, here.
-* ``dask=True`` with a ``client``: that client's cluster.
-* ``dask=True`` and ``RASTERSERVER_DASK_SCHEDULER`` (or ``scheduler``) set: that scheduler.
-* ``dask=True`` otherwise: a ``LocalCluster`` with one single-threaded worker process per
-  core, started and stopped around the job.
-
-At most ``max_in_flight`` acquisitions are planned ahead of the results coming back, so a job
+At most ``in_flight`` acquisitions are planned ahead of the results coming back, so a job
 over thousands of acquisitions holds only a few frames in memory. One acquisition failing
 (no calibration, a frame of the wrong size) is recorded and the job goes on.
+
+:func:`process_many` runs a list of uids and returns their outcomes (no job row);
+:mod:`rasterserver.processing_jobs` runs the same loop over a job's task rows.
 """
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import logging
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from rasterserver.archive import Archive
 from rasterserver.errors import RasterServerError
-from rasterserver.pipeline import DEFAULT_TARGET, Pipeline, Plan, ProcessResult, compute
+from rasterserver.pipeline import (
+    DEFAULT_TARGET,
+    Computation,
+    Pipeline,
+    Plan,
+    ProcessResult,
+    compute,
+)
 from rasterserver.registry import Registry
 
 if TYPE_CHECKING:
     from distributed import Client
 
-__all__ = ["JobOutcome", "Progress", "dask_client", "process_many"]
+__all__ = [
+    "LOCAL_CLUSTER_MIN",
+    "Engine",
+    "InProcess",
+    "JobOutcome",
+    "OnDask",
+    "Progress",
+    "dask_client",
+    "open_engine",
+    "process_many",
+    "quiet_dask_logs",
+    "run_tasks",
+]
 
 log = logging.getLogger(__name__)
 
 #: Called with (done, total) after each acquisition.
 Progress = Callable[[int, int], None]
+
+#: From how many acquisitions a job asked for without ``--dask``/``--scheduler`` starts a
+#: ``LocalCluster``; None: never. Measured on the 2-core development machine (BENCHMARKS.md,
+#: "Processing jobs"): the coordinator's own work (planning, reading frames, writing derived
+#: files, committing rows) is most of each acquisition's time, so two local worker processes
+#: beside it were slower than computing in the coordinator. Change it when the coordinator's
+#: share drops (issue 16, throughput).
+LOCAL_CLUSTER_MIN: int | None = None
 
 
 @dataclass(frozen=True)
@@ -130,6 +162,101 @@ class JobOutcome:
         return cls(uid, "failed", error=f"{type(exc).__name__}: {exc}", exit_code=1)
 
 
+# --- engines ------------------------------------------------------------------------------------
+
+
+class Engine:
+    """Where :func:`rasterserver.pipeline.compute` runs; the coordinator loop is the same.
+
+    Attributes
+    ----------
+    name : str
+        ``"in-process"``, ``"local-cluster"`` or the scheduler's address (stored with a job).
+    in_flight : int
+        Acquisitions the coordinator keeps submitted ahead of the results.
+    """
+
+    name: str = ""
+    in_flight: int = 1
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Start computing what ``plan`` has not stored; a future of its :class:`Computation`."""
+        raise NotImplementedError
+
+
+class InProcess(Engine):
+    """Compute here, at once: the future returned is already done."""
+
+    name = "in-process"
+
+    def __init__(self, pipeline: Pipeline) -> None:
+        self.pipeline = pipeline
+        self.in_flight = 1
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Compute now; the future holds the result or the exception."""
+        future: cf.Future[Computation] = cf.Future()
+        try:
+            assert plan.input_record is not None
+            future.set_result(
+                compute(
+                    plan.input_record, plan.to_compute, plan.context,
+                    registry=self.pipeline.registry,
+                )
+            )
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+
+
+class OnDask(Engine):
+    """Compute on the cluster of a Dask ``client`` (workers use their own plugin registry).
+
+    Parameters
+    ----------
+    client : distributed.Client
+        A connected client.
+    name : str
+        What to call the engine (``"local-cluster"`` or the scheduler's address).
+    in_flight : int, optional
+        Acquisitions submitted ahead; by default twice the cluster's worker threads, so that
+        every worker has the next acquisition waiting while the coordinator stores one.
+    """
+
+    def __init__(self, client: Client, *, name: str, in_flight: int | None = None) -> None:
+        self.client = client
+        self.name = name
+        if in_flight is None:
+            threads = sum(client.nthreads().values()) or 1
+            in_flight = max(4, 2 * threads)
+        self.in_flight = max(1, in_flight)
+        # concurrent.futures futures: the loop waits on them as on the in-process ones
+        self._executor = client.get_executor(pure=False)
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Send the plan's input record, steps and context to a worker."""
+        return self._executor.submit(compute, plan.input_record, plan.to_compute, plan.context)
+
+
+def quiet_dask_logs() -> None:
+    """Keep Dask's INFO lines (cluster started, worker joined, ...) off the user's terminal.
+
+    Its warnings and errors still show. With ``--verbose`` (root logger at INFO) nothing is
+    changed. Worker processes of a ``LocalCluster`` read the environment variable.
+    """
+    if logging.getLogger().isEnabledFor(logging.INFO):
+        return
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    for name in ("distributed", "dask"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    try:
+        import dask
+
+        dask.config.set({"logging.distributed": "warning"})
+    except ImportError:  # pragma: no cover - dask is a dependency
+        pass
+
+
 @contextmanager
 def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -> Iterator[Client]:
     """A Dask client for the scheduler at ``scheduler``, or for a new ``LocalCluster``.
@@ -145,6 +272,7 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
     ------
     distributed.Client
     """
+    quiet_dask_logs()
     from distributed import Client, LocalCluster
 
     if scheduler:
@@ -165,6 +293,211 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
         yield client
 
 
+def engine_name(
+    count: int,
+    *,
+    dask: bool | None = None,
+    scheduler: str | None = None,
+    default_scheduler: str | None = None,
+) -> str:
+    """Which engine a job of ``count`` acquisitions runs on: ``"in-process"``,
+    ``"local-cluster"`` or a scheduler address.
+
+    An explicit ``scheduler`` wins; ``dask=False`` computes here; ``dask=True`` uses
+    ``default_scheduler`` (``RASTERSERVER_DASK_SCHEDULER``) or a ``LocalCluster``. Unsaid
+    (``dask=None``): one acquisition is computed here; more go to ``default_scheduler`` if
+    one is set, else to a ``LocalCluster`` only from :data:`LOCAL_CLUSTER_MIN` acquisitions.
+    """
+    if scheduler:
+        return scheduler
+    if dask is False:
+        return "in-process"
+    if dask is True:
+        return default_scheduler or "local-cluster"
+    if count <= 1:
+        return "in-process"
+    if default_scheduler:
+        return default_scheduler
+    if LOCAL_CLUSTER_MIN is not None and count >= LOCAL_CLUSTER_MIN:
+        return "local-cluster"
+    return "in-process"
+
+
+@contextmanager
+def open_engine(
+    name: str,
+    pipeline: Pipeline,
+    *,
+    client: Client | None = None,
+    n_workers: int | None = None,
+    in_flight: int | None = None,
+) -> Iterator[Engine]:
+    """The engine called ``name`` (see :func:`engine_name`), started and stopped here.
+
+    Parameters
+    ----------
+    name : str
+        ``"in-process"``, ``"local-cluster"`` or a scheduler address.
+    pipeline : Pipeline
+        The coordinator's pipeline (the in-process engine uses its registry).
+    client : distributed.Client, optional
+        Use this client's cluster (``name`` is then only a label).
+    n_workers : int, optional
+        Workers of a local cluster.
+    in_flight : int, optional
+        Acquisitions submitted ahead on Dask.
+    """
+    if client is not None:
+        yield OnDask(client, name=name, in_flight=in_flight)
+        return
+    if name == "in-process":
+        yield InProcess(pipeline)
+        return
+    scheduler = None if name == "local-cluster" else name
+    with dask_client(scheduler=scheduler, n_workers=n_workers) as own:
+        yield OnDask(own, name=name, in_flight=in_flight)
+
+
+# --- the coordinator loop ----------------------------------------------------------------------
+
+
+#: What :func:`run_tasks` asks ``stop`` for: None to go on, ``"paused"`` to finish what is in
+#: flight and stop, ``"cancelled"`` to drop what is in flight and stop.
+StopReason = Literal["paused", "cancelled"] | None
+
+
+class JobStoppedError(RasterServerError):
+    """The job was paused or cancelled while this acquisition was being computed."""
+
+    exit_code = 4
+
+
+@dataclass
+class _Task:
+    index: int
+    uid: str
+    targets: list[str]
+    outcome: JobOutcome | None = None
+
+    def add(self, step: JobOutcome) -> bool:
+        """Merge ``step``; whether the task is over (failed, or no target left)."""
+        self.outcome = step if self.outcome is None else self.outcome.then(step)
+        # a failure ends the task: the next target would fail the same way (no frame, no
+        # calibration)
+        return step.status == "failed" or not self.targets
+
+
+def run_tasks(
+    pipeline: Pipeline,
+    tasks: Iterable[tuple[int, str]],
+    *,
+    engine: Engine,
+    finished: Callable[[int, JobOutcome], None],
+    targets: Sequence[str] = (DEFAULT_TARGET,),
+    options: Mapping[str, Any] | None = None,
+    stop: Callable[[], StopReason] | None = None,
+    wait_s: float = 0.5,
+) -> StopReason:
+    """Process ``tasks`` (index, uid) through ``targets`` on ``engine``: the coordinator loop.
+
+    For each acquisition and target: :meth:`Pipeline.plan` here, the computing on the
+    engine, :meth:`Pipeline.commit` here; the next target is planned after the previous one
+    is stored, so it reuses the stages they share. ``finished(index, outcome)`` is called
+    once per task, after its results are committed, in the order tasks finish.
+
+    Parameters
+    ----------
+    pipeline : Pipeline
+        The coordinator's pipeline.
+    tasks : iterable of (int, str)
+        Read lazily, as room frees up (at most ``engine.in_flight`` tasks are in flight).
+    engine : Engine
+        Where the computing runs.
+    finished : callable
+        Called with (index, outcome) when a task is over.
+    targets : sequence of str, optional
+        Last stage kinds, one chain each, in order.
+    options : Mapping, optional
+        ``chain``, ``params``, ``calibration`` for :meth:`Pipeline.plan`.
+    stop : callable, optional
+        Asked between tasks and every ``wait_s`` while waiting: ``"paused"`` stops starting
+        tasks and finishes those in flight; ``"cancelled"`` drops those in flight too (their
+        runs are marked failed, nothing of them stored).
+    wait_s : float, optional
+        Longest wait for a result before asking ``stop`` again.
+
+    Returns
+    -------
+    StopReason
+        None when every task ran; else why the loop stopped (tasks not started are left).
+    """
+    options = dict(options or {})
+    ask = stop or (lambda: None)
+    source = iter(tasks)
+    in_flight: dict[cf.Future[Computation], tuple[_Task, Plan]] = {}
+    stopping: StopReason = None
+
+    def close(task: _Task, step: JobOutcome) -> bool:
+        over = task.add(step)
+        if over:
+            assert task.outcome is not None
+            finished(task.index, task.outcome)
+        return over
+
+    def advance(task: _Task) -> None:
+        # plan the task's next target: stored ones are committed here, the first that needs
+        # computing goes to the engine
+        while task.targets:
+            target = task.targets.pop(0)
+            try:
+                plan = pipeline.plan(task.uid, until=target, **options)
+            except Exception as exc:
+                close(task, JobOutcome.failed(task.uid, exc))
+                return
+            if plan.input_record is None:  # everything stored already
+                if close(task, _commit(pipeline, plan, pipeline.compute(plan))):
+                    return
+                continue
+            in_flight[engine.submit(plan)] = (task, plan)
+            return
+
+    while True:
+        if stopping is None:
+            stopping = ask()
+        while stopping is None and len(in_flight) < engine.in_flight:
+            item = next(source, None)
+            if item is None:
+                break
+            index, uid = item
+            advance(_Task(index, uid, list(targets)))
+            stopping = ask()
+        if stopping == "cancelled":
+            for future, (_task, plan) in in_flight.items():
+                future.cancel()
+                pipeline.fail(plan.run_id, JobStoppedError("the job was cancelled"))
+            in_flight.clear()
+        if not in_flight:
+            return stopping
+        done, _ = cf.wait(list(in_flight), timeout=wait_s, return_when=cf.FIRST_COMPLETED)
+        for future in done:
+            task, plan = in_flight.pop(future)
+            try:
+                computation = future.result()
+            except Exception as exc:
+                pipeline.fail(plan.run_id, exc)
+                close(task, JobOutcome.failed(task.uid, exc))
+                continue
+            if not close(task, _commit(pipeline, plan, computation)):
+                advance(task)
+
+
+def _commit(pipeline: Pipeline, plan: Plan, computation: Computation) -> JobOutcome:
+    try:
+        return JobOutcome.done(pipeline.commit(plan, computation))
+    except Exception as exc:
+        return JobOutcome.failed(plan.uid, exc)
+
+
 def process_many(
     archive: Archive,
     uids: Sequence[str],
@@ -177,11 +510,14 @@ def process_many(
     client: Client | None = None,
     scheduler: str | None = None,
     n_workers: int | None = None,
-    max_in_flight: int = 16,
+    max_in_flight: int | None = None,
     progress: Progress | None = None,
     registry: Registry | None = None,
 ) -> list[JobOutcome]:
     """Process ``uids`` through the chain; stored results are reused, failures recorded.
+
+    No job row: for a job that survives its process, see :mod:`rasterserver.processing_jobs`
+    (the same loop, :func:`run_tasks`).
 
     Parameters
     ----------
@@ -195,19 +531,20 @@ def process_many(
         Last stage kind, or several (``("mesh", "analysis")``): one chain each, in order; the
         later ones reuse what the earlier ones stored (the surface both start from).
     dask : bool, optional
-        Compute on a Dask cluster (see the module docstring for which one).
+        Compute on Dask: ``scheduler``, else the archive settings' ``dask_scheduler``, else a
+        ``LocalCluster`` started and stopped here.
     client : distributed.Client, optional
         Use this client (implies ``dask``).
     scheduler : str, optional
-        Scheduler address; defaults to the archive settings' ``dask_scheduler``.
+        Scheduler address (implies ``dask``).
     n_workers : int, optional
         Workers of a local cluster started here.
     max_in_flight : int, optional
-        Acquisitions planned but not yet stored, at most.
+        Acquisitions planned but not yet stored, at most, on Dask.
     progress : Progress, optional
-        Called with (done, total) after each acquisition.
+        Called with (done, total) at the start and after each acquisition.
     registry : Registry, optional
-        Where the driver finds plugins (workers use their own).
+        Where the coordinator finds plugins (workers use their own).
 
     Returns
     -------
@@ -216,115 +553,30 @@ def process_many(
     """
     pipeline = Pipeline(archive, registry=registry)
     targets = [until] if isinstance(until, str) else list(dict.fromkeys(until))
-    options = {"chain": chain, "params": params, "calibration": calibration}
     total = len(uids)
     report = progress or (lambda _done, _total: None)
-    report(0, total)
-    if not (dask or client is not None):
-        outcomes = []
-        for uid in uids:
-            outcome: JobOutcome | None = None
-            for target in targets:
-                try:
-                    step = JobOutcome.done(pipeline.process(uid, until=target, **options))
-                except Exception as exc:
-                    step = JobOutcome.failed(uid, exc)
-                outcome = step if outcome is None else outcome.then(step)
-                if step.status == "failed":
-                    break  # the next target would fail the same way (no frame, no calibration)
-            assert outcome is not None
-            outcomes.append(outcome)
-            report(len(outcomes), total)
-        return outcomes
-    passes: list[list[JobOutcome]] = []
-    for k, target in enumerate(targets):
-        step_options = {**options, "until": target}
+    outcomes: dict[int, JobOutcome] = {}
 
-        def step_report(done: int, _total: int, k: int = k) -> None:
-            report(min(total, (k * total + done) // len(targets)), total)
-
-        if client is not None:
-            passes.append(
-                _on_dask(pipeline, client, uids, step_options, max_in_flight, step_report)
-            )
-            continue
-        address = scheduler or archive.settings.dask_scheduler
-        with dask_client(scheduler=address, n_workers=n_workers) as own:
-            passes.append(_on_dask(pipeline, own, uids, step_options, max_in_flight, step_report))
-    merged = passes[0]
-    for later in passes[1:]:
-        merged = [a.then(b) for a, b in zip(merged, later, strict=True)]
-    return merged
-
-
-def _on_dask(
-    pipeline: Pipeline,
-    client: Client,
-    uids: Sequence[str],
-    options: Mapping[str, Any],
-    max_in_flight: int,
-    report: Progress,
-) -> list[JobOutcome]:
-    from distributed import as_completed
-
-    total = len(uids)
-    outcomes: dict[str, JobOutcome] = {}
-    pending = iter(uids)
-    plans: dict[str, Plan] = {}
-    uid_of: dict[str, str] = {}  # future key -> acquisition
-    futures = as_completed()
-
-    def finish(uid: str, outcome: JobOutcome) -> None:
-        outcomes[uid] = outcome
+    def finished(index: int, outcome: JobOutcome) -> None:
+        outcomes[index] = outcome
         report(len(outcomes), total)
 
-    def submit_next() -> bool:
-        # plan until one acquisition needs computing (or none is left)
-        for uid in pending:
-            try:
-                plan = pipeline.plan(uid, **options)
-            except Exception as exc:
-                finish(uid, JobOutcome.failed(uid, exc))
-                continue
-            if plan.input_record is None:  # everything stored already
-                _commit(pipeline, plan, None, finish)
-                continue
-            future = client.submit(
-                compute, plan.input_record, plan.to_compute, plan.context, pure=False
-            )
-            uid_of[future.key] = uid
-            plans[uid] = plan
-            futures.add(future)
-            return True
-        return False
-
-    for _ in range(max(1, max_in_flight)):
-        if not submit_next():
-            break
-    for future in futures:
-        uid = uid_of.pop(future.key)
-        plan = plans.pop(uid)
-        try:
-            computation = future.result()
-        except Exception as exc:
-            pipeline.fail(plan.run_id, exc)
-            finish(uid, JobOutcome.failed(uid, exc))
-        else:
-            _commit(pipeline, plan, computation, finish)
-        future.release()
-        submit_next()
-    return [outcomes[uid] for uid in uids]
-
-
-def _commit(
-    pipeline: Pipeline,
-    plan: Plan,
-    computation: Any,
-    finish: Callable[[str, JobOutcome], None],
-) -> None:
-    try:
-        result = pipeline.commit(plan, computation or pipeline.compute(plan))
-    except Exception as exc:
-        finish(plan.uid, JobOutcome.failed(plan.uid, exc))
-    else:
-        finish(plan.uid, JobOutcome.done(result))
+    name = engine_name(
+        total,
+        dask=bool(dask or client is not None),
+        scheduler=scheduler,
+        default_scheduler=archive.settings.dask_scheduler,
+    )
+    report(0, total)
+    with open_engine(
+        name, pipeline, client=client, n_workers=n_workers, in_flight=max_in_flight
+    ) as engine:
+        run_tasks(
+            pipeline,
+            enumerate(uids),
+            engine=engine,
+            finished=finished,
+            targets=targets,
+            options={"chain": chain, "params": params, "calibration": calibration},
+        )
+    return [outcomes[i] for i in range(total)]

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import json
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from rasterserver.commands.common import open_archive, progress_bar
+from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError, RasterServerError
-from rasterserver.jobs import JobOutcome, process_many
-from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, parse_stage_options, resolve_chain
+
+if TYPE_CHECKING:
+    from rasterserver.jobs import JobOutcome
+
+# The pipeline and the jobs (NumPy, the plugins, Dask) are imported when the command runs:
+# `--help` and the other commands start without them.
 
 
 class ProcessingFailedError(RasterServerError):
@@ -54,6 +58,11 @@ def process(
         list[str] | None,
         typer.Argument(help="Acquisition uids (see `rasterserver list`).", show_default=False),
     ] = None,
+    every: Annotated[
+        bool,
+        typer.Option("--all", help="Every acquisition with a raster frame (narrowed by the "
+                     "options below)."),
+    ] = False,
     patient: Annotated[str | None, typer.Option(help="All acquisitions of this patient.")] = None,
     all_unprocessed: Annotated[
         bool,
@@ -62,6 +71,24 @@ def process(
             help="Every acquisition (of --patient, if given) without a successful run.",
         ),
     ] = False,
+    since: Annotated[
+        str | None,
+        typer.Option(metavar="TIME", help="Acquired at or after this time (ISO 8601 with "
+                     "zone, or a date: 00:00 UTC).", show_default=False),
+    ] = None,
+    before: Annotated[
+        str | None,
+        typer.Option(metavar="TIME", help="Acquired before this time.", show_default=False),
+    ] = None,
+    station: Annotated[
+        str | None, typer.Option(help="Taken at this station.", show_default=False)
+    ] = None,
+    from_plugin: Annotated[
+        str | None,
+        typer.Option(metavar="PLUGIN[@VERSION]", help="Whose stored results came from this "
+                     "plugin (of this algorithm version): reprocess what a fixed plugin "
+                     "made, e.g. peaks.first-moment@1.", show_default=False),
+    ] = None,
     stage: Annotated[
         list[str] | None,
         typer.Option(help="KIND=PLUGIN: use another plugin for a stage; repeatable."),
@@ -83,60 +110,89 @@ def process(
         ),
     ] = None,
     dask: Annotated[
-        bool,
+        bool | None,
         typer.Option(
             "--dask/--no-dask",
-            help="Compute on Dask: RASTERSERVER_DASK_SCHEDULER if set, else a local cluster.",
+            help="Compute on Dask (RASTERSERVER_DASK_SCHEDULER if set, else a local cluster), "
+            "or here. Default: here for one acquisition; for more, on "
+            "RASTERSERVER_DASK_SCHEDULER if set, else here (a local cluster is slower on a "
+            "small machine: see docs/jobs.md).",
+            show_default=False,
         ),
-    ] = False,
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(metavar="ADDRESS", help="Dask scheduler to compute on, e.g. "
+                     "tcp://10.0.0.5:8786 (overrides RASTERSERVER_DASK_SCHEDULER).",
+                     show_default=False),
+    ] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress display.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line.")] = False,
 ) -> None:
     """Process acquisitions: every stage's result is stored with its provenance.
 
+    The request is stored as a job (its id is printed on stderr first): if this command is
+    stopped (Ctrl-C pauses the job; kill -9, a reboot) `rasterserver jobs resume ID` finishes
+    it, and `rasterserver jobs pause|cancel ID` stops it from another terminal. Selection
+    options combine: uids named, plus those matching every filter given.
+
     Stored results of the same computation (same frame, plugins, versions, parameters and
     calibration) are reused, not recomputed; other plugins, parameters or calibrations add
-    results beside the old ones. An unknown plugin, stage or calibration is refused before
-    any work. If an acquisition fails, the others are still processed and each failure is
-    listed; the exit code is the failures' (3 for an unknown acquisition, 2 for a frame that
-    does not fit its calibration, ...) when they agree, else 1.
+    results beside the old ones. An unknown plugin, stage, patient, station or calibration is
+    refused before any work. If an acquisition fails, the others are still processed and
+    each failure is listed; the exit code is the failures' (3 for an unknown acquisition, 2
+    for a frame that does not fit its calibration, ...) when they agree, else 1; 4 when the
+    job was paused or cancelled by another command.
 
     Runs that a killed process left "running" are marked interrupted when their acquisition
     is processed again (and see `rasterserver runs reap`).
     """
+    from rasterserver.commands.jobs import job_progress
+    from rasterserver.errors import ConflictError
+    from rasterserver.pipeline import DEFAULT_TARGETS, parse_stage_options, resolve_chain
+    from rasterserver.processing_jobs import Selection, create_job, job_outcomes, run_job
+
     chain = parse_stage_options(stage or [])
     wanted = parse_calibration(calibration)
     targets = list(until or DEFAULT_TARGETS)
+    plugin, _, version = (from_plugin or "").partition("@")
+    if from_plugin is not None and (not plugin.strip() or (version == "" and "@" in from_plugin)):
+        raise InputError(f"--from-plugin {from_plugin!r}: expected PLUGIN or PLUGIN@VERSION")
+    selection = Selection(
+        uids=tuple(uids or ()),
+        all=every,
+        unprocessed=all_unprocessed,
+        patient=patient,
+        since=parse_datetime(since, "--since"),
+        before=parse_datetime(before, "--before"),
+        station=station,
+        plugin=plugin.strip() or None,
+        plugin_version=version.strip() or None,
+    )
+    if not selection.uids and not selection.filtered:
+        raise InputError(
+            "name acquisitions, or use --all, --all-unprocessed, --patient, --since/--before, "
+            "--station or --from-plugin"
+        )
     for target in targets:
         # a misspelt plugin or stage is the request's fault, not each acquisition's: refuse
         # it once (exit 3 or 2) before any work
         resolve_chain(chain, until=target)
     with open_archive(ctx) as archive:
-        if wanted is not None:
-            archive.calibration(*wanted)  # an unknown station or version: exit 3, before work
-        pipeline = Pipeline(archive)
-        selected = list(uids or [])
-        if all_unprocessed:
-            selected += pipeline.unprocessed(patient=patient)
-        elif patient is not None:
-            selected += [
-                a.uid for a in reversed(archive.acquisitions(patient=patient, limit=1_000_000))
-            ]
-        if not selected:
-            if uids or patient or all_unprocessed:
-                typer.echo("nothing to process", err=True)
-                return
-            raise InputError("name acquisitions, or use --patient or --all-unprocessed")
-        selected = list(dict.fromkeys(selected))  # each once, in the order given
-        with progress_bar("processing") as progress:
-            outcomes = process_many(
-                archive,
-                selected,
-                chain=chain,
-                calibration=wanted,
-                until=targets,
-                dask=dask,
-                progress=progress,
-            )
+        job, count = create_job(
+            archive, selection, chain=chain, calibration=wanted, targets=targets
+        )
+        if not count:
+            typer.echo("nothing to process", err=True)
+            return
+        typer.echo(
+            f"job {job.id}: {count} acquisition(s); if stopped, `rasterserver jobs resume "
+            f"{job.id}` finishes it",
+            err=True,
+        )
+        with job_progress(enabled=not quiet) as progress:
+            status = run_job(archive, job.id, dask=dask, scheduler=scheduler, progress=progress)
+        outcomes = job_outcomes(archive, job.id)
     for outcome in outcomes:
         if as_json:
             typer.echo(json.dumps(outcome.to_dict()))
@@ -147,6 +203,13 @@ def process(
             )
         else:
             typer.echo(f"{outcome.uid}\tfailed\t{outcome.error}")
+    if status.job.state in ("paused", "cancelled"):
+        raise ConflictError(
+            f"job {job.id} was {status.job.state} by another command: {status.left} of "
+            f"{count} acquisition(s) not processed"
+            + (f"; `rasterserver jobs resume {job.id}` continues it"
+               if status.job.state == "paused" else "")
+        )
     failed = [o for o in outcomes if o.status == "failed"]
     if failed:
         raise ProcessingFailedError(

@@ -1,0 +1,769 @@
+"""Processing jobs that survive their process: catalogue rows, paused, cancelled, resumed.
+
+A job is created (:func:`create_job`) with its selection, its chain (plugins, versions,
+parameters, calibration) and one task row per acquisition the selection resolved to, in one
+transaction: it exists whole or not at all. A coordinator (:func:`run_job`: the
+``rasterserver process`` or ``jobs resume`` command, or a thread of the HTTP server) takes the
+job by writing itself as its ``runner``, runs the pending tasks through the one loop of
+:func:`rasterserver.jobs.run_tasks`, and marks each task done with the job's counts in one
+transaction after the task's results are committed.
+
+Why nothing is lost or duplicated:
+
+* a coordinator killed mid-job leaves the job ``running`` under a runner that is gone; it is
+  reported as interrupted and :func:`run_job` (``jobs resume``) takes it again and runs the
+  tasks still ``pending``;
+* a task whose results were committed but not yet marked done is redone: every stage result
+  is keyed by its chain key (unique per acquisition), so the redo finds them stored and
+  computes nothing;
+* a worker killed mid-task: Dask reruns the task elsewhere; the coordinator stores the one
+  result it receives.
+
+Pause and cancel are requests written to the row (:func:`pause_job`, :func:`cancel_job`) from
+any process; the coordinator reads the state between tasks (and at least every half second)
+and stops: after the tasks in flight are stored (paused), or dropping them (cancelled).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import getpass
+import logging
+import time
+import uuid
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from sqlalchemy import exists, func, or_, select, update
+
+from rasterserver.archive import Archive
+from rasterserver.catalog.job_models import JOB_STATES, ProcessingJob, ProcessingTask
+from rasterserver.catalog.models import Acquisition, Frame, PipelineRun, StageResult
+from rasterserver.errors import ConflictError, InputError, NotFoundError, RasterServerError
+from rasterserver.jobs import JobOutcome, StopReason, engine_name, open_engine, run_tasks
+from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, resolve_chain
+from rasterserver.registry import Registry
+from rasterserver.runner import current_runner, describe_runner, runner_gone
+
+__all__ = [
+    "JobStatus",
+    "Selection",
+    "cancel_job",
+    "create_job",
+    "find_job",
+    "job_outcomes",
+    "job_status",
+    "list_jobs",
+    "pause_job",
+    "resolve_selection",
+    "run_job",
+]
+
+log = logging.getLogger(__name__)
+
+#: Tasks read from the catalogue at a time by a coordinator (memory stays bounded).
+_PAGE = 500
+#: Seconds between two reads of the job's state by a coordinator (pause, cancel).
+_POLL_S = 0.25
+
+
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+def to_utc(value: dt.datetime) -> dt.datetime:
+    """``value`` in UTC (the catalogue gives aware UTC times; a naive one is taken as UTC)."""
+    return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
+
+
+# --- selection ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which acquisitions a job processes: named ones, and those matching every filter given.
+
+    Attributes
+    ----------
+    uids : tuple of str
+        Named acquisitions, first, in this order.
+    all : bool
+        Every acquisition with a raster frame (narrowed by the filters).
+    unprocessed : bool
+        Only those without a successful pipeline run.
+    patient : str, optional
+        Only this patient's.
+    since, before : datetime, optional
+        Only those acquired at or after ``since`` and before ``before`` (UTC).
+    station : str, optional
+        Only those taken at this station.
+    plugin, plugin_version : str, optional
+        Only those with a stored result of this plugin (of this algorithm version): the
+        acquisitions a fixed plugin's old results came from.
+    """
+
+    uids: tuple[str, ...] = ()
+    all: bool = False
+    unprocessed: bool = False
+    patient: str | None = None
+    since: dt.datetime | None = None
+    before: dt.datetime | None = None
+    station: str | None = None
+    plugin: str | None = None
+    plugin_version: str | None = None
+
+    @property
+    def filtered(self) -> bool:
+        """Whether anything besides named uids is selected."""
+        return bool(
+            self.all or self.unprocessed or self.patient or self.since or self.before
+            or self.station or self.plugin
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, without the unset filters."""
+        out: dict[str, Any] = {}
+        for key, value in asdict(self).items():
+            if value in (None, False, ()):
+                continue
+            if isinstance(value, dt.datetime):
+                value = value.isoformat()
+            out[key] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    def describe(self) -> str:
+        """One line for ``jobs list`` and ``jobs show``."""
+        parts = []
+        if self.uids:
+            parts.append(f"{len(self.uids)} named")
+        if self.all:
+            parts.append("all")
+        if self.unprocessed:
+            parts.append("unprocessed")
+        for key in ("patient", "station"):
+            if getattr(self, key):
+                parts.append(f"{key} {getattr(self, key)}")
+        if self.since:
+            parts.append(f"since {self.since.isoformat()}")
+        if self.before:
+            parts.append(f"before {self.before.isoformat()}")
+        if self.plugin:
+            version = f" {self.plugin_version}" if self.plugin_version else ""
+            parts.append(f"results of {self.plugin}{version}")
+        return ", ".join(parts) or "nothing"
+
+
+def resolve_selection(archive: Archive, selection: Selection) -> list[tuple[str, int | None]]:
+    """The acquisitions ``selection`` names now: (uid, id or None for an unknown uid).
+
+    Named uids come first, in their order; then the filtered ones, oldest first. Each once.
+
+    Raises
+    ------
+    NotFoundError
+        An unknown patient or station (an unknown uid is kept: its task fails, as with
+        ``process``).
+    InputError
+        ``since`` not before ``before``.
+    """
+    if selection.since and selection.before and selection.since >= selection.before:
+        raise InputError("the date range is empty: --since must be before --before")
+    found: dict[str, int | None] = {}
+    with archive.session() as s:
+        uids = list(dict.fromkeys(selection.uids))
+        known: dict[str, int] = {}
+        for start in range(0, len(uids), _PAGE):
+            chunk = uids[start : start + _PAGE]
+            known.update(
+                (uid, acquisition_id)
+                for uid, acquisition_id in s.execute(
+                    select(Acquisition.uid, Acquisition.id).where(Acquisition.uid.in_(chunk))
+                )
+            )
+        for uid in uids:
+            found[uid] = known.get(uid)
+        if selection.filtered:
+            has_raster = exists().where(
+                Frame.acquisition_id == Acquisition.id, Frame.role == "raster"
+            )
+            query = select(Acquisition.uid, Acquisition.id).where(has_raster)
+            if selection.unprocessed:
+                query = query.where(
+                    ~exists().where(
+                        PipelineRun.acquisition_id == Acquisition.id,
+                        PipelineRun.status == "done",
+                    )
+                )
+            if selection.patient:
+                query = query.where(
+                    Acquisition.patient_id == archive.patient(selection.patient, s).id
+                )
+            if selection.station:
+                query = query.where(
+                    Acquisition.station_id == archive.station(selection.station, s).id
+                )
+            if selection.since:
+                query = query.where(Acquisition.acquired_at >= selection.since)
+            if selection.before:
+                query = query.where(Acquisition.acquired_at < selection.before)
+            if selection.plugin:
+                made = exists().where(
+                    StageResult.acquisition_id == Acquisition.id,
+                    StageResult.plugin == selection.plugin,
+                )
+                if selection.plugin_version:
+                    made = made.where(StageResult.plugin_version == selection.plugin_version)
+                query = query.where(made)
+            query = query.order_by(Acquisition.acquired_at, Acquisition.id)
+            for uid, acquisition_id in s.execute(query):
+                found.setdefault(uid, acquisition_id)
+    return list(found.items())
+
+
+# --- creating and finding jobs -------------------------------------------------------------------
+
+
+def create_job(
+    archive: Archive,
+    selection: Selection,
+    *,
+    chain: Mapping[str, str] | None = None,
+    params: Mapping[str, Mapping[str, Any]] | None = None,
+    calibration: tuple[str, int | None] | None = None,
+    targets: Sequence[str] = DEFAULT_TARGETS,
+    owner: str | None = None,
+    origin: str = "cli",
+    registry: Registry | None = None,
+) -> tuple[ProcessingJob, int]:
+    """Store a ``queued`` job over the acquisitions ``selection`` resolves to, with its tasks.
+
+    The chain is resolved for each target first (an unknown plugin or stage is refused
+    before anything is stored), and stored with the plugin versions and parameters.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive.
+    selection : Selection
+        What to process.
+    chain, params, calibration
+        As for :meth:`rasterserver.pipeline.Pipeline.plan`.
+    targets : sequence of str, optional
+        Last stage kinds (default: the mesh and the analysis).
+    owner : str, optional
+        Who started it (default: this process's user).
+    origin : str, optional
+        ``"cli"`` or ``"http"``.
+    registry : Registry, optional
+        Where plugins are found.
+
+    Returns
+    -------
+    (ProcessingJob, int)
+        The job row and its number of tasks (0: nothing selected, and nothing stored).
+    """
+    targets = list(dict.fromkeys(targets)) or list(DEFAULT_TARGETS)
+    resolved = {
+        target: [
+            {**step.describe(), "params": step.params}
+            for step in resolve_chain(chain, params=params, until=target, registry=registry)
+        ]
+        for target in targets
+    }
+    if calibration is not None:
+        archive.calibration(*calibration)  # unknown station or version: refused now
+    acquisitions = resolve_selection(archive, selection)
+    job = ProcessingJob(
+        id=uuid.uuid4().hex,
+        origin=origin,
+        owner=(owner or _user())[:100],
+        selection=selection.to_dict(),
+        chain={
+            "chain": dict(chain or {}),
+            "params": {k: dict(v) for k, v in (params or {}).items()},
+            "calibration": list(calibration) if calibration else None,
+            "resolved": resolved,
+        },
+        targets=targets,
+        engine="",
+        state="queued",
+        total=len(acquisitions),
+        done=0,
+        failed=0,
+        runner="",
+        error="",
+        resumed_count=0,
+        created_at=_now(),
+    )
+    if not acquisitions:
+        return job, 0
+    with archive.session() as s:
+        s.add(job)
+        s.flush()
+        # one INSERT of many rows: a job of 10,000 acquisitions is created in one go
+        s.execute(
+            ProcessingTask.__table__.insert(),
+            [
+                {
+                    "job_id": job.id, "position": position, "uid": uid,
+                    "acquisition_id": acquisition_id, "state": "pending", "attempts": 0,
+                    "computed": 0, "reused": 0, "reason": "", "error": "", "exit_code": 0,
+                }
+                for position, (uid, acquisition_id) in enumerate(acquisitions)
+            ],
+        )
+    return job, len(acquisitions)
+
+
+def _user() -> str:
+    try:
+        return getpass.getuser()
+    except Exception:  # no user name in a bare container: say so rather than fail
+        return "unknown"
+
+
+def find_job(archive: Archive, job_id: str) -> ProcessingJob:
+    """The job ``job_id``, or one whose id starts with it (at least 6 characters, unique).
+
+    Raises
+    ------
+    NotFoundError
+        No such job, or the prefix is too short or names several.
+    """
+    job_id = job_id.strip().lower()
+    with archive.session() as s:
+        job = s.get(ProcessingJob, job_id) if job_id else None
+        if job is None and 6 <= len(job_id) < 32 and job_id.isalnum():
+            matches = list(
+                s.scalars(select(ProcessingJob).where(ProcessingJob.id.like(f"{job_id}%")).limit(2))
+            )
+            if len(matches) > 1:
+                raise NotFoundError(f"job id {job_id!r} is ambiguous: give more of it")
+            job = matches[0] if matches else None
+    if job is None:
+        raise NotFoundError(f"unknown job {job_id!r}: see `rasterserver jobs list`")
+    return job
+
+
+def list_jobs(
+    archive: Archive, *, state: str | None = None, limit: int = 100, offset: int = 0
+) -> list[ProcessingJob]:
+    """Jobs, newest first, optionally of one stored state.
+
+    Raises
+    ------
+    InputError
+        An unknown state.
+    """
+    if state is not None and state not in JOB_STATES:
+        raise InputError(f"unknown job state {state!r}; states: {', '.join(JOB_STATES)}")
+    query = select(ProcessingJob).order_by(ProcessingJob.created_at.desc(), ProcessingJob.id)
+    if state is not None:
+        query = query.where(ProcessingJob.state == state)
+    with archive.session() as s:
+        return list(s.scalars(query.limit(limit).offset(offset)))
+
+
+# --- status --------------------------------------------------------------------------------------
+
+
+@dataclass
+class JobStatus:
+    """A job as a user sees it: its row, whether its coordinator is gone, rate and ETA.
+
+    Attributes
+    ----------
+    job : ProcessingJob
+        The row.
+    interrupted : bool
+        Stored ``queued``/``running`` but its coordinator's process is gone: resumable.
+    left : int
+        Tasks not finished.
+    rate : float or None
+        Tasks finished per second by the current (or last) coordinator.
+    eta_s : float or None
+        Seconds to the end at that rate, while running.
+    """
+
+    job: ProcessingJob
+    interrupted: bool = False
+    left: int = 0
+    rate: float | None = None
+    eta_s: float | None = None
+    failures: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def state(self) -> str:
+        """The stored state, ``interrupted`` when its coordinator is gone."""
+        return "interrupted" if self.interrupted else self.job.state
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (``jobs show --json``)."""
+        job = self.job
+
+        def when(value: dt.datetime | None) -> str | None:
+            return None if value is None else to_utc(value).isoformat()
+
+        return {
+            "id": job.id,
+            "state": self.state,
+            "origin": job.origin,
+            "owner": job.owner,
+            "selection": job.selection,
+            "targets": job.targets,
+            "chain": job.chain,
+            "engine": job.engine,
+            "total": job.total,
+            "done": job.done,
+            "failed": job.failed,
+            "left": self.left,
+            "rate_per_s": self.rate,
+            "eta_s": self.eta_s,
+            "runner": describe_runner(job.runner) if job.runner else "",
+            "error": job.error,
+            "created_at": when(job.created_at),
+            "started_at": when(job.started_at),
+            "progress_at": when(job.progress_at),
+            "finished_at": when(job.finished_at),
+            "failures": self.failures,
+        }
+
+
+def _gone(job: ProcessingJob) -> bool:
+    return job.state in ("queued", "running") and bool(job.runner) and runner_gone(job.runner)
+
+
+def job_status(archive: Archive, job: ProcessingJob, *, failures: int = 0) -> JobStatus:
+    """What :class:`JobStatus` says of ``job``, with up to ``failures`` failed tasks."""
+    left = job.total - job.done - job.failed
+    status = JobStatus(job, interrupted=_gone(job), left=left)
+    if job.resumed_at is not None and job.progress_at is not None:
+        spent = (to_utc(job.progress_at) - to_utc(job.resumed_at)).total_seconds()
+        finished = job.done + job.failed - job.resumed_count
+        if spent > 0 and finished > 0:
+            status.rate = finished / spent
+            if job.state == "running" and not status.interrupted:
+                status.eta_s = left / status.rate
+    if failures:
+        with archive.session() as s:
+            rows = s.scalars(
+                select(ProcessingTask)
+                .where(ProcessingTask.job_id == job.id, ProcessingTask.state == "failed")
+                .order_by(ProcessingTask.position)
+                .limit(failures)
+            )
+            status.failures = [
+                {"uid": t.uid, "error": t.error, "exit_code": t.exit_code} for t in rows
+            ]
+    return status
+
+
+def job_outcomes(archive: Archive, job_id: str, *, limit: int | None = None) -> list[JobOutcome]:
+    """The outcomes of a job's finished tasks, in the selection's order."""
+    query = (
+        select(ProcessingTask)
+        .where(ProcessingTask.job_id == job_id, ProcessingTask.state != "pending")
+        .order_by(ProcessingTask.position)
+    )
+    if limit is not None:
+        query = query.limit(limit)
+    with archive.session() as s:
+        return [
+            JobOutcome(
+                t.uid, "done" if t.state == "done" else "failed", t.computed, t.reused,
+                t.reason, t.error, exit_code=t.exit_code,
+            )
+            for t in s.scalars(query)
+        ]
+
+
+# --- pause, cancel -------------------------------------------------------------------------------
+
+
+def pause_job(archive: Archive, job_id: str) -> ProcessingJob:
+    """Ask job ``job_id`` to stop after the acquisitions in flight; it can be resumed.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown job.
+    ConflictError
+        The job is not queued or running.
+    """
+    return _request(archive, job_id, "paused", ("queued", "running"))
+
+
+def cancel_job(archive: Archive, job_id: str) -> ProcessingJob:
+    """Stop job ``job_id`` for good: what is in flight is dropped, pending tasks never run.
+
+    Results already stored stay (they are valid, and a later job reuses them).
+
+    Raises
+    ------
+    NotFoundError
+        Unknown job.
+    ConflictError
+        The job is finished or cancelled already.
+    """
+    return _request(archive, job_id, "cancelled", ("queued", "running", "paused", "failed"))
+
+
+def _request(archive: Archive, job_id: str, state: str, allowed: Sequence[str]) -> ProcessingJob:
+    job = find_job(archive, job_id)
+    if job.state == "failed" and state == "cancelled" and job.done + job.failed >= job.total:
+        allowed = ()  # a finished job is not cancelled after the fact
+    with archive.session() as s:
+        values: dict[str, Any] = {"state": state}
+        if state == "cancelled":
+            values["finished_at"] = _now()
+        changed = s.execute(
+            update(ProcessingJob)
+            .where(ProcessingJob.id == job.id, ProcessingJob.state.in_(allowed))
+            .values(**values)
+        ).rowcount
+    if not changed:
+        current = find_job(archive, job.id)
+        verb = "pause" if state == "paused" else "cancel"
+        raise ConflictError(
+            f"job {job.id} is {current.state}: only a {' or '.join(allowed) or 'running'} job "
+            f"can be {state}" + (f" (nothing to {verb})" if current.state == state else "")
+        )
+    return find_job(archive, job.id)
+
+
+# --- running -------------------------------------------------------------------------------------
+
+
+def _take(archive: Archive, job_id: str, engine: str, *, force: bool) -> ProcessingJob:
+    """Make this process the job's coordinator, or say why it cannot be."""
+    job = find_job(archive, job_id)
+    left = job.total - job.done - job.failed
+    if job.state == "cancelled":
+        raise ConflictError(f"job {job.id} was cancelled; start a new job to process its "
+                            "acquisitions")
+    if job.state == "done" or (job.state == "failed" and left == 0):
+        raise ConflictError(
+            f"job {job.id} is finished ({job.done} done, {job.failed} failed): nothing left to "
+            "resume; process the failed acquisitions again with a new job"
+        )
+    if job.state in ("running", "queued") and job.runner:
+        mine = job.runner == current_runner()
+        if not (mine or force or runner_gone(job.runner)):
+            raise ConflictError(
+                f"job {job.id} is {job.state} in process {describe_runner(job.runner)}, which "
+                "is alive or on another host; if it has stopped, resume with --force"
+            )
+    now = _now()
+    with archive.session() as s:
+        changed = s.execute(
+            update(ProcessingJob)
+            .where(ProcessingJob.id == job.id, ProcessingJob.state == job.state,
+                   ProcessingJob.runner == job.runner)
+            .values(
+                state="running", runner=current_runner(), engine=engine, error="",
+                started_at=func.coalesce(ProcessingJob.started_at, now),
+                resumed_at=now, resumed_count=ProcessingJob.done + ProcessingJob.failed,
+                progress_at=now, finished_at=None,
+            )
+        ).rowcount
+    if not changed:  # another coordinator took it in between
+        raise ConflictError(f"job {job.id} was taken by another process meanwhile")
+    return find_job(archive, job.id)
+
+
+def _check_chain(job: ProcessingJob, registry: Registry | None) -> dict[str, Any]:
+    """The job's plan options, after checking its plugins are still the versions it began
+    with (results of a job are one computation, not a mixture)."""
+    chain = job.chain
+    options = {
+        "chain": chain.get("chain") or None,
+        "params": chain.get("params") or None,
+        "calibration": tuple(chain["calibration"]) if chain.get("calibration") else None,
+    }
+    for target, stored in chain.get("resolved", {}).items():
+        now = resolve_chain(options["chain"], params=options["params"], until=target,
+                            registry=registry)
+        then = [(s["plugin"], s["version"], s["params_hash"]) for s in stored]
+        here = [(s.plugin, s.version, s.params_hash) for s in now]
+        if then != here:
+            changed = sorted({f"{p} {v}" for p, v, _h in here} - {f"{p} {v}" for p, v, _h in then})
+            raise ConflictError(
+                f"job {job.id} was created with other plugin versions or defaults than are "
+                f"installed now ({', '.join(changed) or 'parameters'}); start a new job"
+            )
+    return options
+
+
+def run_job(
+    archive: Archive,
+    job_id: str,
+    *,
+    dask: bool | None = None,
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    force: bool = False,
+    progress: Callable[[JobStatus], None] | None = None,
+    registry: Registry | None = None,
+    client: Any = None,
+) -> JobStatus:
+    """Run (or resume) job ``job_id`` here until its tasks are done, or it is paused or
+    cancelled.
+
+    Parameters
+    ----------
+    archive : Archive
+        The archive.
+    job_id : str
+        The job (or a unique prefix of its id).
+    dask, scheduler, n_workers
+        Where to compute: see :func:`rasterserver.jobs.engine_name`.
+    force : bool, optional
+        Take a job whose coordinator cannot be checked (another host) as stopped.
+    progress : callable, optional
+        Called with the job's status after each task (and once at the start).
+    registry : Registry, optional
+        Where plugins are found.
+    client : distributed.Client, optional
+        Compute on this client's cluster.
+
+    Returns
+    -------
+    JobStatus
+        The job at the end: ``done``, ``failed``, ``paused`` or ``cancelled``.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown job.
+    ConflictError
+        The job is finished or cancelled, runs in a live process, or was created with other
+        plugin versions than are installed.
+    KeyboardInterrupt
+        After pausing the job (it can be resumed).
+    """
+    job = find_job(archive, job_id)
+    options = _check_chain(job, registry)
+    left = job.total - job.done - job.failed
+    name = engine_name(left, dask=dask if client is None else True, scheduler=scheduler,
+                       default_scheduler=archive.settings.dask_scheduler)
+    job = _take(archive, job.id, name if client is None else "client", force=force)
+    me = job.runner
+    pipeline = Pipeline(archive, registry=registry)
+    last_poll = 0.0
+    counts = {"done": job.done, "failed": job.failed}
+    resumed = (job.resumed_at, job.resumed_count)
+
+    def report() -> None:
+        if progress is None:
+            return
+        now = _now()
+        job.done, job.failed, job.progress_at = counts["done"], counts["failed"], now
+        job.resumed_at, job.resumed_count = resumed
+        progress(job_status(archive, job))
+
+    def pending() -> Iterator[tuple[int, str]]:
+        after = -1
+        while True:
+            with archive.session() as s:
+                rows = list(
+                    s.execute(
+                        select(ProcessingTask.position, ProcessingTask.uid)
+                        .where(ProcessingTask.job_id == job.id,
+                               ProcessingTask.state == "pending",
+                               ProcessingTask.position > after)
+                        .order_by(ProcessingTask.position)
+                        .limit(_PAGE)
+                    )
+                )
+            if not rows:
+                return
+            for position, uid in rows:
+                with archive.session() as s:
+                    s.execute(
+                        update(ProcessingTask)
+                        .where(ProcessingTask.job_id == job.id,
+                               ProcessingTask.position == position)
+                        .values(attempts=ProcessingTask.attempts + 1)
+                    )
+                yield position, uid
+            after = rows[-1][0]
+
+    def finished(position: int, outcome: JobOutcome) -> None:
+        state = "done" if outcome.status == "done" else "failed"
+        now = _now()
+        with archive.session() as s:
+            # only if still pending: the task is counted once whatever happens
+            marked = s.execute(
+                update(ProcessingTask)
+                .where(ProcessingTask.job_id == job.id, ProcessingTask.position == position,
+                       ProcessingTask.state == "pending")
+                .values(state=state, computed=outcome.computed, reused=outcome.reused,
+                        reason=outcome.reason[:10_000], error=outcome.error[:10_000],
+                        exit_code=outcome.exit_code, finished_at=now)
+            ).rowcount
+            if marked:
+                column = ProcessingJob.done if state == "done" else ProcessingJob.failed
+                s.execute(
+                    update(ProcessingJob)
+                    .where(ProcessingJob.id == job.id)
+                    .values({column.key: column + 1, "progress_at": now})
+                )
+                counts[state] += 1
+        report()
+
+    def stop() -> StopReason:
+        nonlocal last_poll
+        if time.monotonic() - last_poll < _POLL_S:
+            return None
+        last_poll = time.monotonic()
+        with archive.session() as s:
+            state, runner = s.execute(
+                select(ProcessingJob.state, ProcessingJob.runner)
+                .where(ProcessingJob.id == job.id)
+            ).one()
+        if state == "cancelled":
+            return "cancelled"
+        if state != "running" or runner != me:
+            return "paused"  # paused, or taken over (--force elsewhere): let go
+        return None
+
+    report()
+    try:
+        with open_engine(name, pipeline, client=client, n_workers=n_workers) as engine:
+            stopped = run_tasks(pipeline, pending(), engine=engine, finished=finished,
+                                targets=job.targets, options=options, stop=stop)
+    except KeyboardInterrupt:
+        _finish(archive, job.id, me, state="paused")
+        raise
+    except Exception as exc:
+        # the job as a whole failed (the catalogue went away, a bug): its pending tasks stay
+        # and can be resumed
+        message = str(exc) if isinstance(exc, RasterServerError) else (
+            f"{type(exc).__name__}: {exc}")
+        _finish(archive, job.id, me, state="failed", error=message[:2000])
+        raise
+    if stopped is None:
+        with archive.session() as s:
+            done, failed, total = s.execute(
+                select(ProcessingJob.done, ProcessingJob.failed, ProcessingJob.total)
+                .where(ProcessingJob.id == job.id)
+            ).one()
+        _finish(archive, job.id, me, state="done" if failed == 0 and done == total
+                else "failed")
+    return job_status(archive, find_job(archive, job.id), failures=20)
+
+
+def _finish(archive: Archive, job_id: str, runner: str, *, state: str, error: str = "") -> None:
+    """Store the job's end state if this process still runs it."""
+    try:
+        with archive.session() as s:
+            s.execute(
+                update(ProcessingJob)
+                .where(ProcessingJob.id == job_id, ProcessingJob.runner == runner,
+                       or_(ProcessingJob.state == "running", ProcessingJob.state == "queued"))
+                .values(state=state, error=error,
+                        finished_at=None if state == "paused" else _now())
+            )
+    except Exception:  # the original error matters more
+        log.exception("could not record the end of job %s", job_id)
