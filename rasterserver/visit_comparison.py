@@ -25,7 +25,7 @@ import json
 import os
 import secrets
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -200,36 +200,44 @@ def _landmarks(visit: Visit) -> dict[str, Any]:
 
 
 def _compared(
-    pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit
+    pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit, plugins: Mapping[str, str]
 ) -> tuple[StoredComparison, Registration, DistanceMap]:
     """The stored comparison of B onto A (computed and stored when new), its registration and
     distance map; ComparisonRefusedError with why not."""
     if a.visit is None or b.visit is None:
         bad = a if a.visit is None else b
         raise ComparisonRefusedError(f"acquisition {bad.uid}: {bad.reason}")
-    stored = stored_comparison(pipeline, a, b)
+    stored = stored_comparison(pipeline, a, b, plugin=plugins.get("comparison"))
     reg = registration_of(stored.record)
     return stored, reg, distance_of(stored.record, a.visit.mesh)
 
 
-def _asymmetry(pipeline: Pipeline, v: ArchivedVisit) -> tuple[DistanceMap | None, dict[str, Any]]:
+def _asymmetry(
+    pipeline: Pipeline, v: ArchivedVisit, plugins: Mapping[str, str]
+) -> tuple[DistanceMap | None, dict[str, Any]]:
     """A visit's asymmetry map (stored, or computed and stored now) and its entry
     (statistics and provenance, or the reason it was refused)."""
     if v.visit is None:
         return None, {"refused": v.reason}
-    stored = stored_asymmetry(pipeline, v)
+    stored = stored_asymmetry(pipeline, v, plugin=plugins.get("asymmetry"))
     amap = asymmetry_of(stored.record, v.visit.mesh)
     if amap is None:
         return None, {"refused": stored.record.reason, "provenance": stored.provenance()}
     return amap, {"statistics": amap.statistics(), "provenance": stored.provenance()}
 
 
-def _pair(pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit, folder: Path) -> dict[str, Any]:
+def _pair(
+    pipeline: Pipeline,
+    a: ArchivedVisit,
+    b: ArchivedVisit,
+    folder: Path,
+    plugins: Mapping[str, str],
+) -> dict[str, Any]:
     from rasterserver.comparison_files import write_distance_ply, write_distance_png
 
     entry: dict[str, Any] = {"a": a.uid, "b": b.uid}
     try:
-        stored, reg, dmap = _compared(pipeline, a, b)
+        stored, reg, dmap = _compared(pipeline, a, b, plugins)
     except ComparisonRefusedError as exc:
         return entry | {"refused": str(exc)}
     assert a.visit is not None
@@ -307,8 +315,8 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
     if infos[0].patient_id is None or infos[0].patient_id != infos[1].patient_id:
         raise InputError("the acquisitions belong to different patients")
     a, b = (load_visit(pipeline, i.uid) for i in infos)
-    stored, reg, dmap = _compared(pipeline, a, b)
-    (map_a, entry_a), (map_b, entry_b) = _asymmetry(pipeline, a), _asymmetry(pipeline, b)
+    stored, reg, dmap = _compared(pipeline, a, b, {})
+    (map_a, entry_a), (map_b, entry_b) = _asymmetry(pipeline, a, {}), _asymmetry(pipeline, b, {})
     change = None
     if map_a is not None and map_b is not None:
         change = asymmetry_change(map_a, map_b, reg).statistics()
@@ -502,6 +510,7 @@ def compare_visits(
     out: Path,
     *,
     process: bool = False,
+    plugins: Mapping[str, str] | None = None,
     log: Callable[[str], None] = lambda _line: None,
 ) -> dict[str, Any]:
     """Compare archived acquisitions of one patient and write the files into ``out``.
@@ -516,6 +525,9 @@ def compare_visits(
         The folder to create (it must not exist, or be empty).
     process : bool, optional
         Process acquisitions that have no stored analysis first.
+    plugins : Mapping of str to str, optional
+        The plugin for the ``comparison`` and ``asymmetry`` stage kinds (their defaults when
+        not named).
     log : callable, optional
         Progress lines (no patient data).
 
@@ -538,6 +550,16 @@ def compare_visits(
 
     if len(set(uids)) < 2:
         raise InputError("a comparison needs two different acquisitions")
+    plugins = dict(plugins or {})
+    unknown = sorted(set(plugins) - {"comparison", "asymmetry"})
+    if unknown:
+        raise InputError(
+            f"--stage: {', '.join(unknown)} is not a stage of a comparison (comparison, asymmetry)"
+        )
+    for kind, name in plugins.items():
+        stage = pipeline.registry.get(name)
+        if stage.stage != kind:
+            raise InputError(f"plugin {name!r} implements stage {stage.stage!r}, not {kind!r}")
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"output folder {out}: exists and is not an empty folder")
@@ -559,14 +581,14 @@ def compare_visits(
             pairs.append((visits[0], visits[-1]))
         entries = []
         for k, (a, b) in enumerate(pairs, 1):
-            entries.append(_pair(pipeline, a, b, temp))
+            entries.append(_pair(pipeline, a, b, temp, plugins))
             log(f"compared pair {k} of {len(pairs)}")
         if len(entries) == 1 and "refused" in entries[0]:
             raise ComparisonRefusedError(entries[0]["refused"])
         asymmetry: dict[str, Any] = {}
         maps: dict[str, DistanceMap] = {}
         for v in visits:
-            amap, asymmetry[v.uid] = _asymmetry(pipeline, v)
+            amap, asymmetry[v.uid] = _asymmetry(pipeline, v, plugins)
             if amap is None:
                 continue
             maps[v.uid] = amap

@@ -39,6 +39,14 @@ def compare(
             help="Process acquisitions that have no stored analysis first.",
         ),
     ] = False,
+    stage: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="KIND=PLUGIN: another plugin for the comparison or asymmetry stage "
+            "(see `rasterserver plugins --graph`); repeatable.",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Compare visits of one patient: registration, distance maps, trends, a report.
 
@@ -58,7 +66,7 @@ def compare(
     unprocessed acquisition or patient.
     """
     from rasterserver.errors import InputError
-    from rasterserver.pipeline import Pipeline
+    from rasterserver.pipeline import Pipeline, parse_stage_options
     from rasterserver.visit_comparison import compare_visits, patient_visits
 
     if (patient is None) == (not uids):
@@ -69,7 +77,12 @@ def compare(
         if len(chosen) < 2:
             raise InputError("a comparison needs two acquisitions")
         document = compare_visits(
-            pipeline, chosen, out, process=process, log=lambda line: typer.echo(line, err=True)
+            pipeline,
+            chosen,
+            out,
+            process=process,
+            plugins=parse_stage_options(stage or []),
+            log=lambda line: typer.echo(line, err=True),
         )
     for pair in document["pairs"]:
         if "refused" in pair:

@@ -105,3 +105,38 @@ def test_different_patients_and_unprocessed(patient, tmp_path: Path) -> None:
     done = run_installed("compare", first, _second, "-o", str(busy), archive=root)
     assert done.returncode == 2 and "not an empty folder" in done.stderr
     assert [p.name for p in busy.iterdir()] == ["x"]
+
+
+def test_stage_options_name_the_comparison_plugins(patient, tmp_path: Path) -> None:
+    root, (first, second, _other) = patient
+    chosen = run_installed(
+        "compare",
+        first,
+        second,
+        "-o",
+        str(tmp_path / "ok"),
+        "--stage",
+        "comparison=comparison.landmark-icp",
+        "--stage",
+        "asymmetry=asymmetry.mirror-icp",
+        archive=root,
+    )
+    assert chosen.returncode == 0, describe(chosen)
+    for option, message in (
+        ("numbers=numbers.code-window", "not a stage of a comparison"),
+        ("comparison=mesh.grid", "implements stage 'mesh'"),
+        ("comparison", "KIND=PLUGIN"),
+    ):
+        bad = run_installed(
+            "compare",
+            first,
+            second,
+            "-o",
+            str(tmp_path / "bad"),
+            "--stage",
+            option,
+            archive=root,
+        )
+        assert bad.returncode == 2, describe(bad)
+        assert message in bad.stderr and TRACEBACK not in bad.stderr
+        assert not (tmp_path / "bad").exists()
