@@ -1,29 +1,35 @@
-"""Processing jobs of the HTTP API: a small in-process executor over :func:`process_many`.
+"""Processing jobs of the HTTP API: catalogue jobs (:mod:`rasterserver.processing_jobs`) run
+by threads of the server process.
 
-A POST starts a job and returns at once; the job runs :func:`rasterserver.jobs.process_many`
-(the CLI's ``process``) in a worker thread of the server process that accepted it. Its state
-lives in the catalogue (``api_job``), so any server worker can report status and progress,
-and a restart keeps the history. A job whose process has gone (a restart mid-job) is
-reported as failed: its finished acquisitions' results are stored, the rest can be
-resubmitted and will reuse them.
+A POST creates the job, with its tasks, in the catalogue and returns at once; a worker thread
+of the server that accepted it runs it (:func:`rasterserver.processing_jobs.run_job`, the loop
+``rasterserver process`` runs). Any server worker reports its status and progress from the
+row, and the CLI sees it too (``rasterserver jobs show ID``), and can pause or cancel it. A job
+whose server process has gone (a restart mid-job) is reported as failed, "interrupted", and
+``rasterserver jobs resume ID`` finishes it: its finished acquisitions are not redone.
 """
 
 from __future__ import annotations
 
-import datetime as dt
-import uuid
+import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from sqlalchemy import select, update
-
 from rasterserver.archive import Archive
-from rasterserver.catalog.auth_models import ApiJob
-from rasterserver.errors import NotFoundError
-from rasterserver.jobs import process_many
+from rasterserver.errors import RasterServerError
 from rasterserver.pipeline import DEFAULT_TARGETS
-from rasterserver.runner import current_runner, runner_gone
+from rasterserver.processing_jobs import (
+    JobStatus,
+    Selection,
+    create_job,
+    find_job,
+    job_status,
+    list_jobs,
+    run_job,
+)
+
+log = logging.getLogger(__name__)
 
 
 class JobRunner:
@@ -34,7 +40,7 @@ class JobRunner:
     archive : Archive
         The archive (and its catalogue, where jobs are kept).
     workers : int
-        Jobs run at the same time here (each processes its acquisitions one by one).
+        Jobs run at the same time here.
     """
 
     def __init__(self, archive: Archive, *, workers: int = 1) -> None:
@@ -51,60 +57,38 @@ class JobRunner:
         params: Mapping[str, Mapping[str, Any]] | None = None,
         calibration: tuple[str, int | None] | None = None,
         until: str | Sequence[str] = DEFAULT_TARGETS,
-    ) -> ApiJob:
-        """Queue a job over ``uids`` and return its row (status ``queued``)."""
-        job = ApiJob(id=uuid.uuid4().hex, owner=owner, uids=list(uids), status="queued",
-                     done=0, total=len(uids), runner=current_runner(), error="", outcomes=[])
-        with self.archive.session() as s:
-            s.add(job)
+    ) -> JobStatus:
+        """Store a job over ``uids`` (state ``queued``), start it in a thread, return it.
+
+        A bad chain, parameters or calibration is refused here, before anything is stored.
+        """
+        targets = [until] if isinstance(until, str) else list(until)
+        job, _count = create_job(
+            self.archive, Selection(uids=tuple(uids)), chain=chain, params=params,
+            calibration=calibration, targets=targets, owner=owner, origin="http",
+        )
         job_id = job.id
 
-        def set_state(**values: Any) -> None:
-            with self.archive.session() as s:
-                s.execute(update(ApiJob).where(ApiJob.id == job_id).values(**values))
-
         def run() -> None:
-            set_state(status="running")
             try:
-                outcomes = process_many(
-                    self.archive, list(uids), chain=chain, params=params,
-                    calibration=calibration, until=until,
-                    progress=lambda done, _total: set_state(done=done),
-                )
-                failed = any(o.status == "failed" for o in outcomes)
-                set_state(status="failed" if failed else "done",
-                          outcomes=[o.to_dict() for o in outcomes],
-                          finished_at=dt.datetime.now(dt.UTC))
-            except Exception as exc:  # a bad chain or parameters: the whole job failed
-                set_state(status="failed", error=str(exc)[:2000] or type(exc).__name__,
-                          finished_at=dt.datetime.now(dt.UTC))
+                run_job(self.archive, job_id)
+            except RasterServerError as exc:  # recorded in the row by run_job
+                log.warning("processing job %s stopped: %s", job_id, exc)
+            except Exception:
+                log.exception("processing job %s failed", job_id)
 
         self._pool.submit(run)
-        return job
+        return job_status(self.archive, job)
 
-    def get(self, job_id: str) -> ApiJob:
-        """Return job ``job_id`` or raise :class:`NotFoundError`."""
-        with self.archive.session() as s:
-            job = s.get(ApiJob, job_id)
-        if job is None:
-            raise NotFoundError(f"unknown job {job_id}")
-        return self._checked(job)
+    def get(self, job_id: str) -> JobStatus:
+        """Job ``job_id`` or :class:`~rasterserver.errors.NotFoundError`."""
+        return job_status(self.archive, find_job(self.archive, job_id), failures=0)
 
     def list(self, *, status: str | None = None, limit: int = 100,
-             offset: int = 0) -> list[ApiJob]:
-        """Jobs, newest first, optionally with one status."""
-        query = select(ApiJob).order_by(ApiJob.created_at.desc(), ApiJob.id)
-        if status is not None:
-            query = query.where(ApiJob.status == status)
-        with self.archive.session() as s:
-            return [self._checked(j) for j in s.scalars(query.limit(limit).offset(offset))]
-
-    @staticmethod
-    def _checked(job: ApiJob) -> ApiJob:
-        if job.status in ("queued", "running") and runner_gone(job.runner):
-            job.status = "failed"
-            job.error = "the server process running this job stopped; submit it again"
-        return job
+             offset: int = 0) -> list[JobStatus]:
+        """Jobs, newest first, optionally with one stored state."""
+        return [job_status(self.archive, j)
+                for j in list_jobs(self.archive, state=status, limit=limit, offset=offset)]
 
     def close(self) -> None:
         """Stop accepting jobs; running ones finish."""

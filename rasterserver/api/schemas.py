@@ -216,10 +216,18 @@ class JobOutcomeOut(BaseModel):
 
 class JobOut(BaseModel):
     id: str
-    status: str
-    done: int
+    status: str = Field(description="queued, running, paused, cancelled, done or failed (also "
+                        "when the server running it stopped: see error)")
+    done: int = Field(description="Acquisitions processed to the end.")
+    failed: int = Field(0, description="Acquisitions that failed (each in outcomes).")
+    left: int = Field(0, description="Acquisitions not processed yet.")
     total: int
+    rate_per_s: float | None = Field(None, description="Acquisitions finished per second.")
+    eta_s: float | None = Field(None, description="Seconds left at that rate, while running.")
     created_at: dt.datetime
+    started_at: dt.datetime | None = None
+    progress_at: dt.datetime | None = Field(None, description="When an acquisition last "
+                                            "finished.")
     finished_at: dt.datetime | None
     error: str
     outcomes: list[JobOutcomeOut]

@@ -107,16 +107,19 @@ def test_a_job_whose_process_is_gone_reports_failed(archive: Archive) -> None:
     import socket
 
     from rasterserver.api.jobs import JobRunner
-    from rasterserver.catalog.auth_models import ApiJob
+    from rasterserver.catalog.job_models import ProcessingJob
 
     with archive.session() as s:
-        s.add(ApiJob(id="a" * 32, owner="x", uids=["u"], status="running", done=0, total=1,
-                     runner=f"{socket.gethostname()}:{2**22 + 12345}", error="", outcomes=[]))
+        s.add(ProcessingJob(id="a" * 32, origin="http", owner="x", selection={"uids": ["u"]},
+                            chain={}, targets=["mesh"], engine="", state="running", total=1,
+                            done=0, failed=0, resumed_count=0, error="",
+                            runner=f"{socket.gethostname()}:{2**22 + 12345}"))
     runner = JobRunner(archive)
     try:
         job = runner.get("a" * 32)
-        assert job.status == "failed" and "stopped" in job.error
-        assert [j.id for j in runner.list(status="running")] == ["a" * 32]  # stored as it was
+        # stored as it was (resumable), reported as interrupted
+        assert job.interrupted and job.state == "interrupted" and job.job.state == "running"
+        assert [j.job.id for j in runner.list(status="running")] == ["a" * 32]
         with pytest.raises(NotFoundError):
             runner.get("b" * 32)
     finally:

@@ -9,20 +9,32 @@ from fastapi import Path, Query
 from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router, utc
 from rasterserver.api.errors import scrub_paths
 from rasterserver.api.schemas import JobIn, JobOut, JobOutcomeOut
-from rasterserver.catalog.auth_models import ApiJob
 from rasterserver.errors import InputError
+from rasterserver.processing_jobs import JobStatus, job_outcomes
 
 router = protected_router("jobs")
 
 
-def _job(job: ApiJob, root: object = "") -> JobOut:
+def _job(status: JobStatus, svc: object, root: object = "", *, outcomes: bool = True) -> JobOut:
     # errors are messages of the service, which may name archive files: not where they are
+    job = status.job
+    error = job.error
+    state = status.state
+    if status.interrupted:
+        # reported as failed (clients poll while queued or running); the CLI finishes it
+        state = "failed"
+        error = (f"interrupted: the server process running this job stopped; "
+                 f"`rasterserver jobs resume {job.id}` finishes it")
+    finished = job_outcomes(svc.archive, job.id) if outcomes else []  # type: ignore[attr-defined]
     return JobOut(
-        id=job.id, status=job.status, done=job.done, total=job.total,
-        created_at=utc(job.created_at), finished_at=utc(job.finished_at),  # type: ignore[arg-type]
-        error=scrub_paths(job.error, root),
-        outcomes=[JobOutcomeOut(**(o | {"error": scrub_paths(o.get("error", ""), root)}))
-                  for o in job.outcomes])
+        id=job.id, status=state, done=job.done, failed=job.failed, left=status.left,
+        total=job.total, rate_per_s=status.rate, eta_s=status.eta_s,
+        created_at=utc(job.created_at),  # type: ignore[arg-type]
+        started_at=utc(job.started_at), progress_at=utc(job.progress_at),
+        finished_at=utc(job.finished_at),
+        error=scrub_paths(error, root),
+        outcomes=[JobOutcomeOut(**(o.to_dict() | {"error": scrub_paths(o.error, root)}))
+                  for o in finished])
 
 
 @router.post("/jobs", name="start_job", response_model=JobOut, status_code=202)
@@ -42,19 +54,20 @@ def start_job(body: JobIn, svc: ServicesDep, caller: CallerDep, note: NoteDep) -
     job = svc.jobs.submit(uids, owner=caller.name, chain=body.chain or None,
                           params=body.params or None, calibration=calibration,
                           until=body.until)
-    note.detail = f"job {job.id}"
-    return _job(job, svc.settings.archive)
+    note.detail = f"job {job.job.id}"
+    return _job(job, svc, svc.settings.archive)
 
 
 @router.get("/jobs", name="list_jobs", response_model=list[JobOut])
 def list_jobs(svc: ServicesDep, page: PageDep,
               status: Annotated[str | None, Query(max_length=16)] = None) -> list[JobOut]:
-    """Processing jobs, newest first."""
-    return [_job(j, svc.settings.archive) for j in svc.jobs.list(status=status, limit=page.limit,
-                                             offset=page.offset)]
+    """Processing jobs, newest first (their outcomes: ``GET /jobs/{id}``)."""
+    jobs = svc.jobs.list(status=status, limit=page.limit, offset=page.offset)
+    return [_job(j, svc, svc.settings.archive, outcomes=False) for j in jobs]
 
 
 @router.get("/jobs/{job_id}", name="get_job", response_model=JobOut)
 def get_job(job_id: Annotated[str, Path(max_length=32)], svc: ServicesDep) -> JobOut:
-    """A job's status, progress (acquisitions done of total) and outcomes."""
-    return _job(svc.jobs.get(job_id), svc.settings.archive)
+    """A job's status, progress (acquisitions done, failed and left of total, rate, ETA) and
+    the outcomes of its finished acquisitions. The same job as `rasterserver jobs show ID`."""
+    return _job(svc.jobs.get(job_id), svc, svc.settings.archive)
