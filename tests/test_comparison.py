@@ -183,3 +183,50 @@ def test_colour_limit_is_symmetric_whole_and_has_a_floor() -> None:
     assert colour_limit(np.array([np.nan, 0.1, -0.2])) == 2.0
     assert colour_limit(np.linspace(-7.2, 3.0, 1000)) == 8.0
     assert colour_limit(np.array([])) == 2.0
+
+
+def _scene_mesh(params: BackParameters) -> MeshRecord:
+    """The simulator's true surface (trunk and arms) as one mesh."""
+    scene = make_back(params)
+    vertices, triangles, n = [], [], 0
+    for o in scene.objects:
+        vertices.append(np.asarray(o.mesh.vertices, dtype=float))
+        triangles.append(np.asarray(o.mesh.triangles) + n)
+        n += len(vertices[-1])
+    v = np.vstack(vertices)
+    return MeshRecord(vertices=v, triangles=np.vstack(triangles).astype(np.int32), normals=0 * v)
+
+
+def test_a_local_change_is_mapped_within_half_a_millimetre_of_the_truth() -> None:
+    from rasterserver.comparison import _signed_distances
+
+    a = first()
+    main = BASE.curves[0]
+    hump = BASE.with_primary_curve(rotation=main.rotation + 3.0)  # the rib hump rises
+    c = visit(hump, 4, "hump")
+    dmap = distance_map(a, c, register(a, c))
+    # the true change along A's normals: distance to C's true surface minus to A's
+    to_c = _signed_distances(dmap.vertices, dmap.normals, _scene_mesh(hump), limit=60.0)
+    to_a = _signed_distances(dmap.vertices, dmap.normals, _scene_mesh(BASE), limit=60.0)
+    truth = to_c - to_a
+    ok = np.isfinite(truth) & np.isfinite(dmap.distance)
+    assert ok.sum() > 0.9 * len(truth)
+    assert np.percentile(np.abs(truth[ok]), 99) > 2.0  # there is a change to find
+    error = dmap.distance[ok] - truth[ok]
+    assert float(np.sqrt(np.mean(error**2))) <= 0.5
+
+
+def test_trend_flags_against_the_simulated_truth() -> None:
+    from rasterserver.trends import TrendVisit, trends
+
+    a = first()
+    again = visit(BASE, 5, "again")  # the same back, other sensor noise
+    wider = BASE.with_primary_curve(lateral_deviation=BASE.curves[0].lateral_deviation + 5.0)
+    grown = visit(wider, 6, "grown")
+
+    def flagged(x: Visit, y: Visit) -> set[str]:
+        table = trends([TrendVisit(v.label, None, v.shape.parameter_table()) for v in (x, y)])
+        return {row["parameter"] for row in table if row["first_to_last"]["flagged"]}
+
+    assert flagged(a, again) == set()  # noise only: nothing flagged
+    assert "lateral_deviation_max_mm" in flagged(a, grown)  # +5 mm: flagged
