@@ -42,6 +42,7 @@ import json  # noqa: E402
 import multiprocessing as mp  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -107,17 +108,53 @@ def _match(
     return np.where(err < tol, order[jj], -1), np.where(err < tol, kp - kg[jj], np.inf)
 
 
-def run_scene(seed: int) -> dict[str, Any]:
-    """Render scene ``seed``, run stages 1-4, score against the truth."""
-    from rasterserver_plugins.line_numbering import CodeWindowNumbering
-    from rasterserver_plugins.line_search import HierarchicalLineSearch
-    from rasterserver_plugins.line_sequence import HierarchicalLineOrder
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks
+@dataclass
+class Frame:
+    """One rendered scene with the truth the scoring needs (small enough to cache)."""
 
-    from rasterserver.records import Image
+    seed: int
+    code: str
+    posture: str
+    waistband: bool
+    hair_albedo: float
+    image: np.ndarray
+    line_number: np.ndarray  # (H, W) per-pixel true line number
+    object_index: np.ndarray  # (H, W) per-pixel object
+    names: list[str]
+    lr_column: np.ndarray
+    lr_row: np.ndarray
+    lr_number: np.ndarray
+    lr_object: np.ndarray
+    lr_on_back: np.ndarray  # crossing on the trunk at or below the vertebra prominens
+    render_s: float
+
+    @property
+    def line_rows(self) -> Any:
+        from rasterserver.simulator.ground_truth import LineRows
+
+        return LineRows(self.lr_column, self.lr_number, self.lr_row, self.lr_object)
+
+    def save(self, path: Path) -> None:
+        """Write the frame to ``path`` (npz)."""
+        arrays = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
+        meta = {k: v for k, v in self.__dict__.items() if not isinstance(v, np.ndarray)}
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, meta=np.array(json.dumps(meta)), **arrays)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> Frame:
+        """Read a frame written by :meth:`save`."""
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+        return cls(**meta, **arrays)
+
+
+def render_scene(seed: int) -> Frame:
+    """Render scene ``seed`` (body, station and code from the seed) with its truth."""
     from rasterserver.simulator.body import clinic_station, make_body, random_body
     from rasterserver.simulator.render import render
-    from rasterserver.stage import StageContext, run_stage
 
     backs = _sibling("numbering_backs")
     code = CODES[seed % len(CODES)]
@@ -127,29 +164,74 @@ def run_scene(seed: int) -> dict[str, Any]:
     scene = make_body(params)
     rendering = render(scene, station, settings=backs._settings(seed).replace(threads=1), seed=seed)
     t_render = time.perf_counter() - t0
+    lr = rendering.line_rows
+    names = list(rendering.object_names)
+    h = rendering.line_number.shape[0]
+    trunk = names.index("trunk") if "trunk" in names else -99
+    # the back proper: trunk crossings at or below the vertebra prominens (the neck above it
+    # is often under hair and in the head's shadow)
+    vp_y = float(scene.landmarks["vertebra_prominens"][1])
+    rr = np.clip(np.rint(lr.row).astype(np.int64), 0, h - 1)
+    on_back = (lr.object_index == trunk) & (rendering.points[rr, lr.column, 1] >= vp_y)
+    return Frame(
+        seed=seed,
+        code=code,
+        posture=str(params.arm_posture),
+        waistband=params.waistband is not None,
+        hair_albedo=float(params.hair_albedo),
+        image=rendering.image,
+        line_number=rendering.line_number,
+        object_index=rendering.object_index,
+        names=names,
+        lr_column=lr.column,
+        lr_row=lr.row,
+        lr_number=lr.number,
+        lr_object=lr.object_index,
+        lr_on_back=on_back,
+        render_s=round(t_render, 3),
+    )
+
+
+def score_frame(frame: Frame) -> dict[str, Any]:
+    """Run stages 1-4 on ``frame`` and score them against its truth."""
+    from rasterserver_plugins.line_numbering import CodeWindowNumbering
+    from rasterserver_plugins.line_search import HierarchicalLineSearch
+    from rasterserver_plugins.line_sequence import HierarchicalLineOrder
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+    from rasterserver.records import Image
+    from rasterserver.simulator.body import clinic_station
+    from rasterserver.stage import StageContext, run_stage
+
+    backs = _sibling("numbering_backs")
+    station = clinic_station(frame.seed, frame.code)
     ctx = StageContext(calibration=station, raster=station.raster_definition)
-    image = rendering.image
+    image = frame.image
     t = time.perf_counter()
     peaks = run_stage(FirstMomentPeaks, Image(image))
     t_peaks = time.perf_counter() - t
     t = time.perf_counter()
     g_col, g_row = generic_peaks(image)
     t_generic = time.perf_counter() - t
+    t = time.perf_counter()
     lines = run_stage(HierarchicalLineSearch, peaks)
+    t_lines = time.perf_counter() - t
+    t = time.perf_counter()
     ordered = run_stage(HierarchicalLineOrder, lines)
+    t_order = time.perf_counter() - t
     t = time.perf_counter()
     result = run_stage(CodeWindowNumbering, ordered, context=ctx)
     t_numbers = time.perf_counter() - t
 
-    lr = rendering.line_rows
-    names = rendering.object_names
+    lr = frame.line_rows
+    names = frame.names
     truth = backs._truth_numbers(result.col, result.row, lr)
     # the per-pixel truth must agree (a peak off its line's pixels has no truth)
-    h = rendering.line_number.shape[0]
+    h = frame.line_number.shape[0]
     r_pix = np.clip(np.rint(result.row).astype(np.int64), 0, h - 1)
-    pixel = rendering.line_number[r_pix, result.col]
+    pixel = frame.line_number[r_pix, result.col]
     truth = np.where(pixel == truth, truth, -1)
-    obj = rendering.object_index[r_pix, result.col]
+    obj = frame.object_index[r_pix, result.col]
     on_line = truth >= 0
     numbered = result.number >= 0
     wrong = numbered & on_line & (result.number != truth)
@@ -164,11 +246,7 @@ def run_scene(seed: int) -> dict[str, Any]:
     trunk = names.index("trunk") if "trunk" in names else -99
     on_trunk = lr.object_index == trunk
     good = numbered & on_line & (idx >= 0) & (result.number == truth)
-    # the back proper: trunk crossings at or below the vertebra prominens (the neck above it
-    # is often under hair and in the head's shadow)
-    vp_y = float(scene.landmarks["vertebra_prominens"][1])
-    rr = np.clip(np.rint(lr.row).astype(np.int64), 0, h - 1)
-    on_back = on_trunk & (rendering.points[rr, lr.column, 1] >= vp_y)
+    on_back = frame.lr_on_back
     covered = np.zeros(len(lr), dtype=bool)
     covered[idx[good]] = True
     headarm = np.isin(
@@ -182,13 +260,15 @@ def run_scene(seed: int) -> dict[str, Any]:
     for k, n in enumerate(names):
         sel = rec & (obj == k)
         by_obj[n] = [int(sel.sum()), float(np.sum(err[sel] ** 2))]
+    dropped = int(getattr(peaks, "n_dropped", 0) or 0)
     return {
-        "seed": seed,
-        "code": code,
-        "posture": params.arm_posture,
-        "waistband": params.waistband is not None,
-        "hair_albedo": params.hair_albedo,
+        "seed": frame.seed,
+        "code": frame.code,
+        "posture": frame.posture,
+        "waistband": frame.waistband,
+        "hair_albedo": frame.hair_albedo,
         "peaks": int(result.n_peaks),
+        "dropped_peaks": dropped,
         "true_peaks": int(on_line.sum()),
         "numbered_peaks": int(numbered.sum()),
         "wrong_peaks": int(wrong.sum()),
@@ -214,10 +294,33 @@ def run_scene(seed: int) -> dict[str, Any]:
         "ms": {
             "peaks": round(1e3 * t_peaks, 3),
             "generic": round(1e3 * t_generic, 3),
+            "lines": round(1e3 * t_lines, 3),
+            "order": round(1e3 * t_order, 3),
             "numbers": round(1e3 * t_numbers, 3),
         },
-        "render_s": round(t_render, 3),
+        "render_s": frame.render_s,
     }
+
+
+_CACHE: Path | None = None
+
+
+def run_scene(seed: int) -> dict[str, Any]:
+    """Render scene ``seed`` (or read it from the frame cache), run stages 1-4, score."""
+    if _CACHE is None:
+        return score_frame(render_scene(seed))
+    path = _CACHE / f"scene-{seed}.npz"
+    if path.exists():
+        frame = Frame.load(path)
+    else:
+        frame = render_scene(seed)
+        frame.save(path)
+    return score_frame(frame)
+
+
+def _init(cache: Path | None) -> None:
+    global _CACHE
+    _CACHE = cache
 
 
 def _safe(seed: int) -> dict[str, Any]:
@@ -300,11 +403,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/bodies-tune.jsonl"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
+    ap.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="folder of rendered frames: read when present, written when not (for tuning)",
+    )
     args = ap.parse_args(argv)
     if args.summary is not None:
         print(json.dumps(summary(args.summary), indent=2))
         return 0
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.cache is not None:
+        args.cache.mkdir(parents=True, exist_ok=True)
     done = set()
     if args.out.exists():
         done = {json.loads(x)["seed"] for x in args.out.read_text().splitlines() if x.strip()}
@@ -312,7 +423,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(done)} scenes done, {len(todo)} to go", flush=True)
     start = time.time()
     with (
-        mp.get_context("spawn").Pool(args.workers, maxtasksperchild=40) as pool,
+        mp.get_context("spawn").Pool(
+            args.workers, initializer=_init, initargs=(args.cache,), maxtasksperchild=40
+        ) as pool,
         args.out.open("a") as fh,
     ):
         for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):

@@ -611,12 +611,18 @@ def _locally_contradicted(
 
 
 def _column_order_conflicts(
-    col: np.ndarray, row: np.ndarray, number: np.ndarray, *, tolerance: float = 0.3
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    *,
+    tolerance: float = 0.3,
+    max_multiple: int = 3,
 ) -> np.ndarray:
-    """Peaks whose number breaks the order of their column: two numbered peaks one line
-    spacing apart (the gap within ``tolerance`` of the local spacing) whose numbers do not
-    differ by exactly one, or any two close peaks numbered out of order. Both are refused:
-    the image cannot tell which of the two is wrong."""
+    """Peaks whose number breaks the order of their column: two consecutive numbered peaks
+    one line spacing apart (within ``tolerance`` spacings) whose numbers do not differ by
+    exactly one, or ``m`` spacings apart (``2 <= m <= max_multiple``) whose numbers differ by
+    more than ``m``, or any two close peaks numbered out of order. Both are refused: the image cannot tell which of
+    the two is wrong."""
     n = col.size
     out = np.zeros(n, dtype=bool)
     if n < 2:
@@ -642,8 +648,15 @@ def _column_order_conflicts(
     ref_cell = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
     ref = ref_cell[inv]
     ref = np.where(np.isnan(ref), float(np.median(gap[one])), ref)
-    adjacent = np.abs(gap / ref - 1.0) <= tolerance
-    conflict = (adjacent & (k != 1)) | ((k <= 0) & (gap < 1.5 * ref))
+    # One spacing apart, the numbers must differ by one. Two or three spacings apart (lines
+    # between unnumbered), they must not differ by more: a line picked up across a depth
+    # step of a whole spacing shows as a pair two spacings apart numbered three apart. (They
+    # may differ by less: the surface stretches the spacing towards a silhouette.)
+    steps = gap / ref
+    m = np.rint(steps)
+    near = (m <= max_multiple) & (np.abs(steps - m) <= tolerance)
+    conflict = (near & (m == 1) & (k != 1)) | (near & (m >= 2) & (k > m))
+    conflict |= (k <= 0) & (gap < 1.5 * ref)
     out[a[conflict]] = True
     out[b[conflict]] = True
     return out
@@ -690,11 +703,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Everything else is left unnumbered with the reason.
 
     Version 2: geometric checks, linking, reliability weights, area ratio from the raster.
+    Version 3: the column order check also judges numbered peaks two or three spacings apart
+    (a line continued across a depth step of a whole spacing).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "2"
+    version: ClassVar[str] = "3"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

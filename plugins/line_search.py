@@ -168,6 +168,46 @@ def _smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
     return (total[hi + 1] - total[lo]) / (hi - lo + 1)
 
 
+def _step_cuts(a: np.ndarray, linked: np.ndarray, half: int, ratio: float) -> np.ndarray:
+    """Links (by position ``k``: between ``k - 1`` and ``k``) across which the peak area
+    steps by more than ``ratio``: the mean of the ``half`` peaks before against the ``half``
+    after, same chain, only the strongest link of a step.
+
+    A raster line keeps its kind along its length and the skin's shading changes slowly, so
+    a sharp step of the area marks a change of surface (skin to clothing at a waistband, a
+    hand on the hip) where the depth may step by a whole line spacing and the chain may run
+    from one raster line onto the next.
+    """
+    n = a.size
+    if n < 2 * half or half < 1:
+        return np.zeros(n, dtype=bool)
+    idx = np.arange(n)
+    first = np.where(linked, 0, idx)
+    np.maximum.accumulate(first, out=first)
+    ends = np.ones(n, dtype=bool)
+    ends[:-1] = ~linked[1:]
+    last = np.where(ends, idx, n)
+    last = np.minimum.accumulate(last[::-1])[::-1]
+    total = np.zeros(n + 1)
+    np.cumsum(a, out=total[1:])
+    lo = np.maximum(idx - half, first)  # before k: lo .. k - 1
+    hi = np.minimum(idx + half - 1, last)  # from k: k .. hi
+    n_before = idx - lo
+    n_after = hi - idx + 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        before = (total[idx] - total[lo]) / n_before
+        after = (total[hi + 1] - total[idx]) / n_after
+        jump = np.abs(np.log(before / after))
+    # both sides need ``half`` peaks: a short run at a chain's end says nothing
+    full = linked & (n_before >= half) & (n_after >= half) & np.isfinite(jump)
+    jump = np.where(full, jump, 0.0)
+    prev_j = np.zeros(n)
+    prev_j[1:] = jump[:-1]
+    next_j = np.zeros(n)
+    next_j[:-1] = jump[1:]
+    return full & (jump > np.log(ratio)) & (jump >= prev_j) & (jump > next_j)
+
+
 def _side_max(
     a: np.ndarray, head: np.ndarray, at: np.ndarray, step: int, window: int
 ) -> np.ndarray:
@@ -204,6 +244,8 @@ def search_lines(
     smooth: int = 2,
     min_seed: int = 8,
     min_length: int = 3,
+    step_ratio: float | None = 1.6,
+    step_half: int = 3,
 ) -> np.ndarray:
     """Line id of every peak (-1: in no line), by hierarchical line search.
 
@@ -233,6 +275,12 @@ def search_lines(
         Least number of peaks of a new line started at any level but the last.
     min_length : int
         Least number of peaks of a line; shorter ones are dropped (-1).
+    step_ratio : float or None
+        A link across which the mean area of the ``step_half`` peaks on either side changes
+        by more than this factor is cut (a change of surface, see :func:`_step_cuts`);
+        None keeps such links.
+    step_half : int
+        Peaks on each side of a link compared for an area step.
 
     Returns
     -------
@@ -249,9 +297,11 @@ def search_lines(
     linked = np.zeros(n, dtype=bool)
     linked[1:] = head[1:] == head[:-1]
     linked &= ~_corner_cuts(r, linked, corner)
-    # Chains cut at corners are separate chains from here on.
-    head = perm[np.maximum.accumulate(np.where(linked, 0, np.arange(n)))]
     a = area[perm].astype(np.float64)
+    if step_ratio is not None:
+        linked &= ~_step_cuts(a, linked, step_half, step_ratio)
+    # Chains cut at corners and area steps are separate chains from here on.
+    head = perm[np.maximum.accumulate(np.where(linked, 0, np.arange(n)))]
     if smooth > 0:
         a = _smooth_along(a, linked, smooth)
     label = np.full(n, -1, dtype=np.int64)
@@ -364,11 +414,14 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
     Mutual-nearest-neighbour links between adjacent columns form chains; sharp corners cut
     them; lines are seeded at falling area thresholds and grow by dilation, and a run that
     would join two lines is split at its intensity minimum when that is pronounced.
+
+    Version 2: chains are also cut where the peak area steps sharply (a change of surface,
+    skin to clothing, where the depth may step by a whole line spacing).
     """
 
     name: ClassVar[str] = "lines.hierarchical"
     stage: ClassVar[str] = "lines"
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     input_type = Peaks
     output_type = Lines
 
@@ -393,6 +446,12 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
         smooth: int = Field(2, ge=0, description="Half-width of the area's running mean.")
         min_seed: int = Field(8, ge=1, description="Least peaks of a line started early.")
         min_length: int = Field(3, ge=1, description="Least peaks of a line.")
+        step_ratio: float | None = Field(
+            2.0,
+            gt=1,
+            description="Area step along a chain that cuts it (a change of surface); None: off.",
+        )
+        step_half: int = Field(3, ge=1, description="Peaks each side compared for a step.")
 
     def run(self, data: Peaks, params: Params, context: StageContext) -> Lines:
         """Search the lines of ``data``; no peaks give no lines."""
@@ -408,6 +467,8 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
             smooth=params.smooth,
             min_seed=params.min_seed,
             min_length=params.min_length,
+            step_ratio=params.step_ratio,
+            step_half=params.step_half,
         )
         return Lines(
             col=data.col,

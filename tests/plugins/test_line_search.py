@@ -94,6 +94,30 @@ def test_intensity_minimum_cuts_a_smooth_line() -> None:
     assert np.all(ids[:50] == ids[0]) and np.all(ids[70:] == ids[-1])
 
 
+def test_area_step_cuts_a_smooth_line() -> None:
+    # Smooth and continuous, but the area doubles at column 60 and stays there: a change of
+    # surface (skin to clothing), where the depth may step by a whole line spacing.
+    col = np.arange(120)
+    row = 200.0 + 0.3 * col
+    area = np.where(col < 60, 100.0, 230.0)
+    lines = _lines(_peaks(col, row, area))
+    ids = lines.line_id[np.argsort(lines.col)]
+    assert ids[0] >= 0 and ids[-1] >= 0 and ids[0] != ids[-1]
+    assert np.all(ids[:58] == ids[0]) and np.all(ids[62:] == ids[-1])
+    # the step cut can be switched off
+    off = run_stage(HierarchicalLineSearch, _peaks(col, row, area), params={"step_ratio": None})
+    assert np.unique(off.line_id).tolist() == [0]
+
+
+def test_moderate_area_change_keeps_one_line() -> None:
+    # shading and light/heavy-like changes below the step ratio do not cut
+    col = np.arange(120)
+    row = 200.0 + 0.3 * col
+    area = np.where(col < 60, 100.0, 170.0)
+    lines = _lines(_peaks(col, row, area))
+    assert np.unique(lines.line_id).tolist() == [0]
+
+
 def test_gradual_shading_keeps_one_line() -> None:
     col = np.arange(300)
     row = 150.0 + 0.02 * (col - 150.0) ** 2 / 10.0
@@ -129,6 +153,10 @@ def test_empty_and_tiny_inputs() -> None:
     # one row of columns carrying a single line
     row_line = search_lines(np.arange(6), np.full(6, 0.2), np.ones(6))
     assert row_line.tolist() == [0] * 6
+
+
+def test_version_is_bumped() -> None:
+    assert HierarchicalLineSearch.version == "2"
 
 
 def test_output_keeps_the_peaks() -> None:
