@@ -621,8 +621,8 @@ def _column_order_conflicts(
     """Peaks whose number breaks the order of their column: two consecutive numbered peaks
     one line spacing apart (within ``tolerance`` spacings) whose numbers do not differ by
     exactly one, or ``m`` spacings apart (``2 <= m <= max_multiple``) whose numbers differ by
-    more than ``m``, or any two close peaks numbered out of order. Both are refused: the image cannot tell which of
-    the two is wrong."""
+    more than ``m``, or any two close peaks numbered out of order. Both are refused: the
+    image cannot tell which of the two is wrong."""
     n = col.size
     out = np.zeros(n, dtype=bool)
     if n < 2:
