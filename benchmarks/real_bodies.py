@@ -260,7 +260,7 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     for k, n in enumerate(names):
         sel = rec & (obj == k)
         by_obj[n] = [int(sel.sum()), float(np.sum(err[sel] ** 2))]
-    dropped = int(getattr(peaks, "n_dropped", 0) or 0)
+    dropped = int(result.dropped or 0)
     return {
         "seed": frame.seed,
         "code": frame.code,

@@ -809,6 +809,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             height=data.height,
             width=data.width,
             image_shape=data.image_shape,
+            dropped=data.dropped,
             line_id=lid,
             order=data.order,
             line_order=data.line_order,

@@ -477,5 +477,6 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
             height=data.height,
             width=data.width,
             image_shape=data.image_shape,
+            dropped=data.dropped,
             line_id=line_id,
         )

@@ -375,6 +375,7 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
             height=data.height,
             width=data.width,
             image_shape=data.image_shape,
+            dropped=data.dropped,
             line_id=lid,
             order=order,
             line_order=result.order,

@@ -44,13 +44,15 @@ _ONE = np.array([1.0], dtype=np.float32)
 
 @dataclass(frozen=True)
 class PeakArrays:
-    """Per-peak arrays as :func:`detect_peaks` returns them (the fields of :class:`Peaks`)."""
+    """Per-peak arrays as :func:`detect_peaks` returns them (the fields of :class:`Peaks`);
+    ``dropped`` counts the peaks left out because their location cannot be trusted."""
 
     col: np.ndarray
     row: np.ndarray
     area: np.ndarray
     height: np.ndarray
     width: np.ndarray
+    dropped: int = 0
 
     def to_record(self, image_shape: tuple[int, int]) -> Peaks:
         """Wrap the arrays in a :class:`~rasterserver.records_lines.Peaks` record."""
@@ -61,6 +63,7 @@ class PeakArrays:
             height=self.height,
             width=self.width,
             image_shape=np.asarray(image_shape, dtype=np.int64),
+            dropped=self.dropped,
         )
 
 
@@ -71,6 +74,7 @@ def _empty() -> PeakArrays:
         area=np.zeros(0, np.float32),
         height=np.zeros(0, np.float32),
         width=np.zeros(0, np.int16),
+        dropped=0,
     )
 
 
@@ -108,6 +112,11 @@ def detect_peaks(
     min_width: int = 2,
     max_width: int = 25,
     smooth: bool = True,
+    trust: bool = True,
+    min_trust_height: float = 6.0,
+    max_base_step: float = 0.3,
+    max_flank_asymmetry: int = 1,
+    clip_level: float | None = None,
 ) -> PeakArrays:
     """Find the raster-line peaks in every column of ``image``.
 
@@ -134,6 +143,19 @@ def detect_peaks(
         to ``max_width // 2`` pixels each side. Set it to ~2.5 line spacings in pixels.
     smooth : bool
         Smooth the columns with ``[1, 2, 1] / 4`` to find the extrema.
+    trust : bool
+        Drop the peaks whose location cannot be trusted (the next four parameters); their
+        number is returned in ``PeakArrays.dropped``.
+    min_trust_height : float
+        Least height above the bias (DN) of a trusted peak.
+    max_base_step : float
+        Largest difference of the two bounding minima, as a fraction of the height.
+    max_flank_asymmetry : int
+        Largest difference (px) of the lengths of the two flanks above the bias.
+    clip_level : float, optional
+        Grey value at which the sensor clips; a top at or above it over two pixels or more
+        is clipped. By default the largest value of an integer image's type; none for a
+        float image.
 
     Returns
     -------
@@ -148,6 +170,8 @@ def detect_peaks(
         return _empty()
     # Columns as contiguous rows of the transposed image: every pass below then streams
     # through memory, and a flat index walks column by column.
+    if clip_level is None and img.dtype.kind in "iu":
+        clip_level = float(np.iinfo(img.dtype).max)
     if img.dtype in (np.uint8, np.uint16) and img.dtype.isnative:
         t = cv2.transpose(img).astype(np.float32)  # 4x faster than numpy's strided copy
     else:
@@ -211,13 +235,35 @@ def detect_peaks(
     ok &= height >= min_slope * np.maximum(extent[0], 1)
     ok &= height >= min_slope * np.maximum(extent[1], 1)
     ok &= extent[0] + extent[1] + 1 >= min_width
-    m, lo, hi, s0, s1, height = m[ok], lo[ok], hi[ok], s0[ok], s1[ok], height[ok]
+    # Trust: a peak is a line's crossing either way, but its first moment is biased or noisy
+    # when it is dim (noise of a few DN moves it by a tenth of a pixel), when its bounding
+    # minima differ (a neighbouring line or an edge overlaps one flank and the bias cuts it
+    # unevenly), when one flank is much longer than the other, or when its top is clipped.
+    trusted = ok.copy()
+    if trust:
+        base_step = np.abs(tf[lo] - tf[hi]) / np.maximum(height, 1e-6)
+        trusted &= height >= min_trust_height
+        trusted &= base_step <= max_base_step
+        if bias != "none":
+            # without a bias the run spans the whole window: its flanks say nothing
+            flanks = np.abs(extent[0].astype(np.int32) - extent[1])
+            trusted &= flanks <= max_flank_asymmetry
+        if clip_level is not None:
+            # clipped: the top sits at the sensor's ceiling over more than one pixel
+            at_top = (tf[m] >= clip_level) & (
+                (tf[np.maximum(m - 1, 0)] >= clip_level) | (tf[m + 1] >= clip_level)
+            )
+            trusted &= ~at_top
+    dropped = int(np.count_nonzero(ok & ~trusted))
+    m, lo, hi = m[trusted], lo[trusted], hi[trusted]
+    s0, s1, height = s0[trusted], s1[trusted], height[trusted]
     return PeakArrays(
         col=(m // h).astype(np.int32),
         row=(m % h).astype(np.float64) + s1 / s0,
         area=s0.astype(np.float32),
         height=height.astype(np.float32),
         width=(hi - lo + 1).astype(np.int16),
+        dropped=dropped,
     )
 
 
@@ -227,11 +273,15 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
     The seed's peak detection: a peak is a rise then a fall of sufficient height and slope;
     its pixels run from the minimum left of the maximum to the minimum right of it; a bias is
     subtracted and the row is the intensity-weighted mean row, the area the intensity sum.
+
+    Version 2: peaks whose location cannot be trusted (dim, bounding minima far apart, one
+    flank much longer than the other, clipped top) are dropped and counted in the record's
+    ``dropped``.
     """
 
     name: ClassVar[str] = "peaks.first-moment"
     stage: ClassVar[str] = "peaks"
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     input_type = Image
     output_type = Peaks
 
@@ -253,6 +303,19 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
             25, ge=3, description="Largest window around a maximum (px, ~2.5 line spacings)."
         )
         smooth: bool = Field(True, description="Find extrema on [1, 2, 1]-smoothed columns.")
+        trust: bool = Field(True, description="Drop peaks whose location cannot be trusted.")
+        min_trust_height: float = Field(
+            6.0, ge=0, description="Least height above the bias of a trusted peak (DN)."
+        )
+        max_base_step: float = Field(
+            0.3, ge=0, description="Largest difference of the bounding minima / height."
+        )
+        max_flank_asymmetry: int = Field(
+            1, ge=0, description="Largest difference of the two flanks' lengths (px)."
+        )
+        clip_level: float | None = Field(
+            None, description="Grey value at which the sensor clips (default: dtype maximum)."
+        )
 
     def run(self, data: Image, params: Params, context: StageContext) -> Peaks:
         """Detect the peaks of ``data.pixels``; an image without peaks gives empty arrays."""
@@ -266,5 +329,10 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
             min_width=params.min_width,
             max_width=params.max_width,
             smooth=params.smooth,
+            trust=params.trust,
+            min_trust_height=params.min_trust_height,
+            max_base_step=params.max_base_step,
+            max_flank_asymmetry=params.max_flank_asymmetry,
+            clip_level=params.clip_level,
         )
         return found.to_record((int(pixels.shape[0]), int(pixels.shape[1])))

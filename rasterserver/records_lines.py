@@ -15,6 +15,7 @@ Per-peak arrays have one entry per detected peak; per-line arrays (``line_*``,
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import numpy as np
@@ -58,6 +59,10 @@ class Peaks(Record):
         both included (clipped to the detector's window).
     image_shape : numpy.ndarray
         ``(2,)`` int64 ``(rows, columns)`` of the frame.
+    dropped : int, optional
+        Peaks the detector found but dropped because their location cannot be trusted
+        (dim, clipped, asymmetric); None when the detector does not judge trust. Keyword
+        only, carried along by the later line records.
 
     Notes
     -----
@@ -71,6 +76,9 @@ class Peaks(Record):
     height: np.ndarray
     width: np.ndarray
     image_shape: np.ndarray
+    # keyword only and None by default: the subclasses' fields need no default, and a
+    # record without it keeps its content hash
+    dropped: int | None = dataclasses.field(default=None, kw_only=True)
 
     @property
     def n_peaks(self) -> int:

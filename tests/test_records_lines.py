@@ -107,3 +107,15 @@ def test_line_tables_must_match() -> None:
 def test_confidence_range() -> None:
     with pytest.raises(InputError, match="confidence"):
         NumberedLines(**(_numbered_fields() | {"confidence": 1.5}))
+
+
+def test_dropped_count_is_optional_and_keeps_old_hashes() -> None:
+    plain = Peaks(**_peak_fields())
+    assert plain.dropped is None and "dropped" not in plain.to_arrays()
+    counted = Peaks(**_peak_fields(), dropped=3)
+    assert Peaks.from_arrays(counted.to_arrays()).dropped == 3
+    assert counted.content_hash() != plain.content_hash()
+    # a stored record without the field reads back as before, with the same hash
+    assert Peaks.from_arrays(plain.to_arrays()).content_hash() == plain.content_hash()
+    numbered = NumberedLines(**_numbered_fields(), dropped=2)
+    assert NumberedLines.from_arrays(numbered.to_arrays()).dropped == 2

@@ -56,11 +56,53 @@ def test_area_tells_heavy_from_light() -> None:
 
 
 def test_saturated_lines_keep_their_centre() -> None:
+    # judged without the trust test, which drops clipped tops (next test)
     image, cols, rows = synthetic_lines(sigma=1.5, amplitude=600.0)
     assert (image == 255).sum() > 100
-    peaks = _run(image)
+    peaks = _run(image, trust=False)
     err = _match(peaks, cols, rows)
     assert np.sqrt(np.mean(err**2)) < 0.1
+    assert peaks.dropped == 0
+
+
+def test_clipped_peaks_are_dropped_and_counted() -> None:
+    image, _cols, rows = synthetic_lines(sigma=1.5, amplitude=600.0)
+    every = _run(image, trust=False)
+    trusted = _run(image)
+    assert trusted.n_peaks + trusted.dropped == every.n_peaks
+    assert trusted.dropped >= rows.size // 2
+    # lines below the ceiling lose nothing
+    clean, _, clean_rows = synthetic_lines(sigma=1.5, amplitude=120.0)
+    assert _run(clean).dropped == 0 and _run(clean).n_peaks == clean_rows.size
+
+
+def test_dim_and_asymmetric_peaks_are_dropped_and_counted() -> None:
+    # dim lines under noise: the trusted peaks are more accurate than all of them
+    image, cols, rows = synthetic_lines(sigma=1.2, amplitude=9.0, background=20.0, noise=1.5)
+    every = _run(image, trust=False)
+    trusted = _run(image, min_trust_height=6.0)
+    assert trusted.dropped > 0 and trusted.n_peaks + trusted.dropped == every.n_peaks
+
+    def rms(peaks: Peaks) -> float:
+        err = _match(peaks, cols, rows)
+        return float(np.sqrt(np.mean(err[np.abs(err) < 1.0] ** 2)))
+
+    assert rms(trusted) < rms(every)
+
+
+def test_overlapping_neighbour_is_dropped() -> None:
+    # an overlapping neighbour: one flank's bounding minimum is high, the peak is dropped
+    col = np.arange(40, dtype=np.float64)
+    y = np.arange(60, dtype=np.float64)[:, None]
+    pair = (
+        10
+        + 100 * np.exp(-0.5 * ((y - 30) / 1.2) ** 2)
+        + 60 * np.exp(-0.5 * ((y - 34.5) / 1.2) ** 2)
+    )
+    img = np.clip(np.repeat(pair, col.size, axis=1), 0, 255).astype(np.uint8)
+    assert _run(img, trust=False).n_peaks == 2 * col.size
+    kept = _run(img)
+    assert kept.dropped >= col.size and kept.n_peaks + kept.dropped == 2 * col.size
 
 
 def test_simulated_back_accuracy_and_count() -> None:
