@@ -291,7 +291,8 @@ def create_job(
         total=len(acquisitions),
         done=0,
         failed=0,
-        runner="",
+        # the creating process: a job queued by a server that then stopped shows interrupted
+        runner=current_runner(),
         error="",
         resumed_count=0,
         created_at=_now(),
