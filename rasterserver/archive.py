@@ -50,13 +50,15 @@ from rasterserver.catalog.models import (
     Visit,
 )
 from rasterserver.config import Settings
-from rasterserver.documents import calibration_from_document, raster_from_document
 from rasterserver.errors import ConflictError, InputError, NotFoundError
 from rasterserver.frame_fit import check_frames_fit
 from rasterserver.identifiers import PATIENT_MAX, check_name, lookup_key
-from rasterserver.imageio import decode_frame_bytes, read_frame
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
 from rasterserver.times import require_zone
+
+# rasterserver.documents (pydantic models built at import) and rasterserver.imageio (OpenCV)
+# are imported by the methods that check documents and decode frames: `rasterserver list`
+# and the other readers of the catalogue start without them.
 
 if TYPE_CHECKING:
     from rasterserver.repair import RepairReport
@@ -493,6 +495,8 @@ class Archive:
         The definition is checked first (:func:`rasterserver.documents.raster_from_document`;
         ``source`` names it in the message).
         """
+        from rasterserver.documents import raster_from_document
+
         name = check_name(name, "a raster name")
         raster_from_document(definition, source=source)
         digest = canonical_json_sha256(definition)
@@ -569,6 +573,8 @@ class Archive:
         InputError
             The document is refused (:func:`rasterserver.documents.calibration_from_document`).
         """
+        from rasterserver.documents import calibration_from_document
+
         calibration_from_document(parameters, source=source)
         if valid_from is not None:
             require_zone(valid_from, "valid from")
@@ -949,6 +955,8 @@ class Archive:
         dtype: str | None,
         convert_color: bool,
     ) -> np.ndarray:
+        from rasterserver.imageio import decode_frame_bytes, read_frame
+
         limit = self.settings.max_frame_bytes
         if isinstance(source.data, np.ndarray):
             return _validate_array(source.data, source.name or "array", limit)
@@ -1231,6 +1239,8 @@ class Archive:
 def _validate_array(array: np.ndarray, name: str, limit: int) -> np.ndarray:
     """Apply the file decoder's checks to an in-memory array (one set of rules)."""
     from io import BytesIO
+
+    from rasterserver.imageio import decode_frame_bytes
 
     buffer = BytesIO()
     np.save(buffer, np.asarray(array), allow_pickle=False)

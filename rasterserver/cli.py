@@ -14,12 +14,10 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
-import sqlalchemy.exc
 import typer
 import typer.main
 from typer.models import CommandInfo
 
-from rasterserver import __version__
 from rasterserver.commands import COMMAND_MODULES
 from rasterserver.config import Settings
 from rasterserver.errors import InputError, RasterServerError, UnavailableError
@@ -42,6 +40,10 @@ app = typer.Typer(
 
 def _version(value: bool) -> None:
     if value:
+        # read here, not at import: the version comes from the installed metadata, which
+        # every other command would pay for at start
+        from rasterserver import __version__
+
         typer.echo(f"rasterserver {__version__}")
         raise typer.Exit()
 
@@ -177,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _one_line(exc: BaseException) -> str:
+    # SQLAlchemy is imported on this error path only: `--help` and light commands start
+    # without it
+    import sqlalchemy.exc
+
     if isinstance(exc, sqlalchemy.exc.StatementError) and exc.orig is not None:
         exc = exc.orig  # its own text, without the SQL and parameters (patient data)
     first = (str(exc).strip().splitlines() or [""])[0]
@@ -189,6 +195,8 @@ def _environment_error(exc: Exception) -> RasterServerError | None:
     The catalogue's URL (password hidden) or the file the operating system names is given,
     with its reason; never the SQL or its parameters, which may hold patient data.
     """
+    import sqlalchemy.exc
+
     if isinstance(exc, sqlalchemy.exc.ArgumentError):  # incl. an unknown dialect
         return InputError(f"the catalogue URL is not usable: {_one_line(exc)}")
     if isinstance(exc, sqlalchemy.exc.OperationalError | sqlalchemy.exc.InterfaceError):

@@ -28,7 +28,6 @@ import colorsys
 import dataclasses
 import json
 from dataclasses import dataclass
-from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -36,9 +35,13 @@ import cv2
 import numpy as np
 
 from rasterserver.errors import InputError
+from rasterserver.export_choices import ExportFormat, ExportFrame, ExportWhat
 from rasterserver.output_files import check_output, output_file
 from rasterserver.records import Record
 from rasterserver.records_surface import MeshRecord, Points, Surface
+
+# ExportFormat, ExportWhat and ExportFrame live in rasterserver.export_choices so that the
+# command line can build its options without NumPy and OpenCV; they are re-exported here.
 
 if TYPE_CHECKING:
     from rasterserver.catalog.models import StageResult
@@ -64,34 +67,9 @@ MESH_FORMATS = ("ply", "obj", "stl")
 _GOLDEN = 0.618033988749895
 
 
-class ExportFormat(StrEnum):
-    """File format of an export."""
-
-    ply = "ply"
-    obj = "obj"
-    stl = "stl"
-    csv = "csv"
-
-
-class ExportWhat(StrEnum):
-    """Which stored result to export."""
-
-    mesh = "mesh"
-    points = "points"
-    smoothed = "smoothed"
-
-
 _STAGE_OF = {ExportWhat.mesh: "mesh", ExportWhat.points: "points", ExportWhat.smoothed: "surface"}
 
 SIDECAR_FORMAT = "rasterserver.export/1"
-
-
-class ExportFrame(StrEnum):
-    """Coordinate frame of an export (see the module docstring)."""
-
-    station = "station"
-    patient = "patient"
-
 
 _FRAME_AXES = {
     ExportFrame.station: "X to the patient's right, Y down (gravity), Z anterior (away from "

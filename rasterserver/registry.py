@@ -9,6 +9,7 @@ listed as broken with the reason and never affects the others.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import re
 import threading
@@ -34,6 +35,17 @@ STAGE_GROUP = "rasterserver.stages"
 """The entry-point group stage plugins register in."""
 
 BUILTIN_DISTRIBUTION = "rasterserver"
+
+#: The modules of rasterserver that define the built-in record kinds. A miss in
+#: :meth:`Registry.record_type` imports these (NumPy only) before it loads every plugin
+#: (SciPy, open3d, ...): ``verify`` reads stored results of built-in kinds and should not pay
+#: for the plugins.
+CORE_RECORD_MODULES = (
+    "rasterserver.records_lines",
+    "rasterserver.records_surface",
+    "rasterserver.records_analysis",
+    "rasterserver.records_comparison",
+)
 """Distribution of the built-in stages; preferred by :meth:`Registry.default_for` on a tie."""
 
 logger = logging.getLogger(__name__)
@@ -457,8 +469,10 @@ class Registry:
 
         A record class is known once its module is imported, which a fresh process may not
         have done when it reads a stored result (``verify`` reads files no stage has run for).
-        The plugins decide, not import order: on a miss every plugin is loaded, which imports
-        the record classes its stages take and give.
+        The plugins decide, not import order: on a miss rasterserver's own record modules
+        (:data:`CORE_RECORD_MODULES`, the built-in kinds) are imported, and if the kind is
+        still unknown every plugin is loaded, which imports the record classes its stages take
+        and give.
 
         Parameters
         ----------
@@ -474,6 +488,11 @@ class Registry:
         NotFoundError
             When no installed plugin takes or gives records of that kind.
         """
+        known = record_types()
+        if kind in known:
+            return known[kind]
+        for module in CORE_RECORD_MODULES:
+            importlib.import_module(module)
         known = record_types()
         if kind in known:
             return known[kind]

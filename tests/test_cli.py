@@ -181,12 +181,13 @@ def test_an_archive_folder_that_is_a_file_is_a_message(
 def test_a_bug_is_said_to_be_one_without_a_traceback(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    import rasterserver.commands.plugins as plugins_command
+    # the registry class itself: the plugins command imports it when it runs
+    from rasterserver.registry import Registry
 
     def broken(*_args: object, **_kwargs: object) -> None:
         raise ZeroDivisionError("division by zero")
 
-    monkeypatch.setattr(plugins_command.Registry, "discover", broken)
+    monkeypatch.setattr(Registry, "discover", broken)
     assert main(["plugins"]) == 1
     err = capsys.readouterr().err
     assert "unexpected failure" in err and "ZeroDivisionError: division by zero" in err

@@ -5,20 +5,17 @@ one-page report."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from rasterserver.analysis import (
-    WORLD_FRAME,
-    Analysis,
-    acquisition_analysis,
-    analyse_frames,
-    ordered_parameters,
-    parameter_label,
-)
 from rasterserver.commands.common import open_archive
-from rasterserver.records_analysis import LANDMARKS
+
+if TYPE_CHECKING:
+    from rasterserver.analysis import Analysis
+
+# The analysis (NumPy, SciPy, the plugins) is imported inside the commands that run it, so
+# that every other command starts without it.
 
 _JSON_HELP = (
     "Print one JSON object (rasterserver.back-shape/1): landmarks (VP, DL, DR, DM, SP as "
@@ -46,6 +43,9 @@ def format_analysis(document: dict[str, Any], *, heading: str) -> str:
     -------
     str
     """
+    from rasterserver.analysis import WORLD_FRAME, ordered_parameters, parameter_label
+    from rasterserver.records_analysis import LANDMARKS
+
     lines = [heading]
     lines.append(
         f"landmarks ({document['frame']['unit']}, {WORLD_FRAME['name']} frame: X to "
@@ -164,6 +164,7 @@ def analyse(
     never guessed; a frame in which nothing was found is named on stderr and left out of the
     mean.
     """
+    from rasterserver.analysis import analyse_frames
     from rasterserver.commands.reconstruct import load_raster, load_station
     from rasterserver.imageio import read_frame
     from rasterserver.pipeline import parse_stage_options
@@ -218,6 +219,8 @@ def show(
     Exits 2 with the reason when the analysis found nothing (a calibration without gravity,
     no back in view).
     """
+    from rasterserver.analysis import acquisition_analysis
+
     _check_report(report)
     with open_archive(ctx) as archive:
         from rasterserver.pipeline import Pipeline

@@ -10,16 +10,16 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import cv2
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError, NotFoundError, RasterServerError
-from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
 
 if TYPE_CHECKING:
     from rasterserver.optics import Station
+
+# OpenCV, NumPy and the calibration are imported when a command runs, not at start.
 
 __all__ = ["CalibrationRejectedError", "register"]
 
@@ -125,10 +125,13 @@ def calibrate(
     ] = False,
 ) -> None:
     """Calibrate camera and projector from the six control-point frames."""
+    import cv2
+
     from rasterserver.calibration import calibrate_station, load_control_points, load_frames
     from rasterserver.calibration.report import Bounds, judge, plot_residuals, text_report
     from rasterserver.documents import load_raster_document
     from rasterserver.optics import default_station
+    from rasterserver.output_files import check_output, output_file
     from rasterserver.raster import default_raster
 
     if station is None and not dry_run:
@@ -244,6 +247,7 @@ def export_calibration(
 ) -> None:
     """Write a stored calibration as its calibration JSON (rasterserver.calibration/1)."""
     from rasterserver.commands.process import parse_calibration
+    from rasterserver.output_files import check_output, output_file
 
     parsed = parse_calibration(which)
     assert parsed is not None

@@ -6,20 +6,18 @@ import datetime as dt
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeRemainingColumn,
-)
 
-from rasterserver.archive import Archive
 from rasterserver.config import Settings
 from rasterserver.times import parse_day, parse_instant
+
+if TYPE_CHECKING:
+    from rasterserver.archive import Archive
+
+# Heavy modules (the archive with SQLAlchemy, HDF5 and NumPy; rich's progress bars) are
+# imported inside the functions that use them, so that `--help` and light commands start fast.
 
 
 def settings(ctx: typer.Context) -> Settings:
@@ -32,6 +30,8 @@ def settings(ctx: typer.Context) -> Settings:
 
 def open_archive(ctx: typer.Context) -> Archive:
     """Open the archive named by the global options; its schema must be current."""
+    from rasterserver.archive import Archive
+
     return Archive(settings(ctx))
 
 
@@ -57,6 +57,15 @@ def progress_bar(description: str, *, enabled: bool = True) -> Iterator[Callable
     if not enabled or not sys.stderr.isatty():
         yield lambda _done, _total: None
         return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
+
     with Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeRemainingColumn(), console=Console(stderr=True), transient=True,

@@ -5,12 +5,11 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
-from alembic.util.exc import CommandError
 
-from rasterserver.catalog import migrate
-from rasterserver.catalog.database import make_engine
 from rasterserver.commands.common import settings
 from rasterserver.errors import InputError
+
+# Alembic and SQLAlchemy are imported by the commands, not at start: `--help` stays fast.
 
 db_app = typer.Typer(
     help="Create or migrate the catalogue's SQL schema (Alembic migrations).",
@@ -24,6 +23,10 @@ def upgrade(
     revision: Annotated[str, typer.Argument(help="Target revision.")] = "head",
 ) -> None:
     """Create the catalogue, or migrate it to the newest schema (safe to repeat)."""
+    from alembic.util.exc import CommandError
+
+    from rasterserver.catalog import migrate
+    from rasterserver.catalog.database import make_engine
     from rasterserver.pseudonym_key import key_file
 
     chosen = settings(ctx)
@@ -47,6 +50,9 @@ def upgrade(
 @db_app.command("current")
 def current(ctx: typer.Context) -> None:
     """Show the catalogue's schema revision and the newest one this version knows."""
+    from rasterserver.catalog import migrate
+    from rasterserver.catalog.database import make_engine
+
     engine = make_engine(settings(ctx).database_url)
     try:
         typer.echo(f"current: {migrate.current_revision(engine) or 'empty'}")

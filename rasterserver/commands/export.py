@@ -8,10 +8,9 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive
-from rasterserver.export import ExportFormat, ExportFrame, ExportWhat, select_export, sidecar_path
-from rasterserver.output_files import check_output
-from rasterserver.pipeline import Pipeline
-from rasterserver.records_surface import MeshRecord
+from rasterserver.export_choices import ExportFormat, ExportFrame, ExportWhat
+
+# The writers (OpenCV, NumPy, open3d) and the pipeline are imported when the command runs.
 
 
 def export(
@@ -48,6 +47,11 @@ def export(
     axes) and the units. Files are replaced whole or not at all; a path that cannot be written
     exits 2 before any work.
     """
+    from rasterserver.export import select_export, sidecar_path
+    from rasterserver.output_files import check_output
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.records_surface import MeshRecord
+
     check_output(out, what="--out")  # before the archive is opened
     check_output(sidecar_path(out), what="the sidecar of --out")
     with open_archive(ctx) as archive:

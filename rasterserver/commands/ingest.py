@@ -7,11 +7,11 @@ from typing import Annotated
 
 import typer
 
-from rasterserver.archive import FrameSource
 from rasterserver.commands.common import open_archive, parse_date, parse_datetime
 from rasterserver.errors import InputError
-from rasterserver.frame_fit import calibration_notice
 from rasterserver.times import TIME_RULE
+
+# The archive (SQLAlchemy, HDF5, NumPy) is imported when a command runs, not at start.
 
 
 def _parse_shape(text: str | None) -> tuple[int, int] | None:
@@ -78,6 +78,9 @@ def ingest(
     A frame whose size differs from the camera of the calibration that applies is refused
     (exit 2); when no calibration applies yet it is stored with a warning saying why.
     """
+    from rasterserver.archive import FrameSource
+    from rasterserver.frame_fit import calibration_notice
+
     roles = role or ["raster"]
     if len(roles) == 1:
         roles = roles * len(files)

@@ -7,7 +7,6 @@ from typing import Annotated
 
 import typer
 
-from rasterserver.catalog.models import ACQUISITION_KINDS
 from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError
 from rasterserver.times import TIME_RULE
@@ -26,6 +25,10 @@ def list_acquisitions(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line.")] = False,
 ) -> None:
     """List acquisitions, newest first."""
+    # imported here, not at start: the catalogue's models load SQLAlchemy, which `--help`
+    # does not need
+    from rasterserver.catalog.models import ACQUISITION_KINDS
+
     if kind is not None and kind not in ACQUISITION_KINDS:
         # an unknown kind would list nothing, as if the archive were empty
         raise InputError(f"--kind must be one of {', '.join(ACQUISITION_KINDS)}, got {kind!r}")

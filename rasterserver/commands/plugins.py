@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from rasterserver.registry import STAGE_GROUP, GraphEdge, PluginInfo, Registry
+if TYPE_CHECKING:
+    from rasterserver.registry import GraphEdge, PluginInfo
+
+#: :data:`rasterserver.registry.STAGE_GROUP`, written out: the registry loads NumPy and
+#: pydantic, which every command's `--help` would pay for (tests/commands/test_cli_imports.py
+#: checks that the two agree).
+STAGE_GROUP = "rasterserver.stages"
 
 _HELP = (
     "List every installed stage plugin: name, stage kind, algorithm version, input and output "
@@ -106,6 +112,8 @@ def plugins(
         bool, typer.Option("--graph", help="Show the stage graph by record kinds.")
     ] = False,
 ) -> None:
+    from rasterserver.registry import Registry
+
     registry = Registry(warn_broken=False).discover()  # listed below instead
     if graph:
         edges = registry.graph()

@@ -3,30 +3,31 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import cv2
 import typer
 
-from rasterserver.documents import load_calibration_document, load_raster_document
 from rasterserver.errors import InputError
-from rasterserver.export import overlay_image, write_points
-from rasterserver.imageio import read_frame
-from rasterserver.optics import Station
-from rasterserver.output_files import check_output, output_file
-from rasterserver.pipeline import parse_stage_options, run_chain
-from rasterserver.raster import Raster
-from rasterserver.records_surface import Points, Surface
-from rasterserver.stage import StageContext
+
+if TYPE_CHECKING:
+    from rasterserver.optics import Station
+    from rasterserver.raster import Raster
+
+# OpenCV, NumPy, pydantic and the stage chain are imported by the functions that use them, so
+# that every other command starts without them.
 
 
 def load_station(path: Path) -> Station:
     """Read and check a calibration JSON file (:mod:`rasterserver.documents`)."""
+    from rasterserver.documents import load_calibration_document
+
     return load_calibration_document(path)
 
 
 def load_raster(path: Path | None, station: Station) -> Raster:
     """The raster named by ``--raster``, else the one the calibration names or holds."""
+    from rasterserver.documents import load_raster_document
+
     if path is None:
         try:
             return station.raster_definition
@@ -79,6 +80,15 @@ def reconstruct(
     reason when nothing could be reconstructed (no raster lines, a frame that does not fit the
     calibration).
     """
+    import cv2
+
+    from rasterserver.export import overlay_image, write_points
+    from rasterserver.imageio import read_frame
+    from rasterserver.output_files import check_output, output_file
+    from rasterserver.pipeline import parse_stage_options, run_chain
+    from rasterserver.records_surface import Points, Surface
+    from rasterserver.stage import StageContext
+
     if out.suffix.lower() != ".ply":
         raise InputError(f"--out {out.name}: the point cloud is written as PLY (.ply)")
     # refuse outputs that cannot be written before the work, not after it

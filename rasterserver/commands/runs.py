@@ -8,8 +8,9 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive
-from rasterserver.pipeline import INTERRUPTED, Pipeline
 from rasterserver.runner import local_host
+
+# The pipeline (NumPy, SQLAlchemy, the registry) is imported when a command runs, not at start.
 
 runs_app = typer.Typer(
     help=(
@@ -35,6 +36,8 @@ def list_runs(
     A run that a killed process of this host left "running" is shown, and stored, as failed
     with an error beginning "interrupted:". Runs of other hosts are shown as stored.
     """
+    from rasterserver.pipeline import Pipeline
+
     with open_archive(ctx) as archive:
         rows = Pipeline(archive).runs(uid)
     for run in rows:
@@ -87,6 +90,8 @@ def reap(
     reprocessing an interrupted acquisition reuses every result it had stored.
     Prints how many runs were marked; exits 0 whether or not there were any.
     """
+    from rasterserver.pipeline import INTERRUPTED, Pipeline
+
     with open_archive(ctx) as archive:
         report = Pipeline(archive).reap(hosts=host or [], dry_run=dry_run)
     verb = "would be marked" if dry_run else "marked"

@@ -14,11 +14,12 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
 
 from rasterserver.errors import InputError
-from rasterserver.output_files import check_output_folder
+
+# NumPy, the simulator and the output files (through the store package: HDF5) are imported by
+# the commands that use them, so that every other command starts without them.
 
 sim_app = typer.Typer(
     help=(
@@ -258,6 +259,7 @@ def back(
     parameters with the applied lateral deviation and rotation per height), back.json (the
     parameters, reusable), calibration.json (the station) and raster.json (the diapositive).
     """
+    from rasterserver.output_files import check_output_folder
     from rasterserver.simulated_visits import progressed
     from rasterserver.simulator.back import BackParameters
     from rasterserver.simulator.back import preset as get_preset
@@ -404,6 +406,9 @@ def calibration_body(
     configuration, plate, lateral, index, x, y, z in world mm; see its "frame" entry),
     calibration.json (the true station) and raster.json.
     """
+    import numpy as np
+
+    from rasterserver.output_files import check_output_folder
     from rasterserver.simulator.calibration_body import (
         REAL_BODY,
         control_points,

@@ -17,7 +17,6 @@ import typer
 from rasterserver.commands.common import open_archive, parse_datetime
 from rasterserver.errors import InputError
 from rasterserver.identifiers import lookup_key
-from rasterserver.output_files import check_output, output_file
 from rasterserver.times import TIME_RULE
 
 users = typer.Typer(
@@ -195,6 +194,7 @@ def audit_export(
 ) -> None:
     """Export the audit trail as a FHIR R4 Bundle of AuditEvent resources (JSON)."""
     from rasterserver.api.audit import audit_events, fhir_bundle
+    from rasterserver.output_files import check_output, output_file
 
     if out is not None:
         check_output(out, what="--out")

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from rasterserver.archive import Problem, VerifyReport
 from rasterserver.commands.common import open_archive, progress_bar
 from rasterserver.errors import InputError, IntegrityError
-from rasterserver.pipeline import Pipeline
+
+if TYPE_CHECKING:
+    from rasterserver.archive import Problem
+
+# The archive and the pipeline are imported when the command runs: `--help` starts without.
 
 
 def verify(
@@ -51,6 +54,9 @@ def verify(
     otherwise (always 5 after a dry run that found problems: it changed nothing), 4 if another
     repair is running.
     """
+    from rasterserver.archive import VerifyReport
+    from rasterserver.pipeline import Pipeline
+
     repair = repair or dry_run
     if min_age is not None and not repair:
         raise InputError("--min-age goes with --repair or --dry-run")
