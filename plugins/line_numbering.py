@@ -435,13 +435,23 @@ def number_lines(
     decided: set[int] = set()
     order = sorted(fits, key=lambda c: (-size[c], c))
 
+    # Each component's contacts, in component order (the order of the sums below): a
+    # fragmented frame has thousands of components, and visiting every component for
+    # every tally made this loop quadratic.
+    partners: dict[int, list[int]] = defaultdict(list)
+    for a, b in votes:
+        if a != b and a in fits and b in fits:
+            partners[b].append(a)
+    for plist in partners.values():
+        plist.sort()
+
     def tally(c: int) -> dict[int, float]:
         """Offsets of ``c`` implied by its contacts with numbered components."""
         out: dict[int, float] = defaultdict(float)
-        for other in fits:
-            if offset[other] < 0 or other == c:
+        for other in partners.get(c, ()):
+            if offset[other] < 0:
                 continue
-            for delta, weight in votes.get((other, c), {}).items():
+            for delta, weight in votes[(other, c)].items():
                 out[offset[other] + delta] += weight
         return out
 
@@ -677,7 +687,8 @@ def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[fl
     if not refused:
         return confidence, ""
     small = [r for r in refused if "fewer than" in r.reason and ";" not in r.reason]
-    other = [r for r in refused if r not in small]
+    small_ids = {id(r) for r in small}  # identity: comparing the dataclasses is quadratic
+    other = [r for r in refused if id(r) not in small_ids]
     parts = [
         f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): {r.reason}"
         for r in other

@@ -47,17 +47,29 @@ def _line_ends(
     s0 = np.zeros(n_lines)
     s1 = np.zeros(n_lines)
     cs, rs = col[order].astype(np.float64), row[order]
-    for line in np.flatnonzero(count > 0):
-        a, b = starts[line], stops[line]
-        c0[line], c1[line] = int(cs[a]), int(cs[b - 1])
-        r0[line], r1[line] = rs[a], rs[b - 1]
-        m = min(fit, b - a)
-        if m >= 3:
-            for lo, hi, out in ((a, a + m, s0), (b - m, b, s1)):
-                x, y = cs[lo:hi], rs[lo:hi]
-                dx = x - x.mean()
-                den = float((dx * dx).sum())
-                out[line] = float((dx * (y - y.mean())).sum() / den) if den > 0 else 0.0
+    has = np.flatnonzero(count > 0)
+    a, b = starts[has], stops[has]
+    c0[has], c1[has] = cs[a].astype(np.int64), cs[b - 1].astype(np.int64)
+    r0[has], r1[has] = rs[a], rs[b - 1]
+    # End slopes by least squares over the first and last ``fit`` peaks of every line at
+    # once: a loop over the (few) positions in the window, not over the lines.
+    m = np.minimum(fit, b - a)
+    ok = m >= 3
+    if np.any(ok):
+        lines, a, b, m = has[ok], a[ok], b[ok], m[ok]
+        for first, out in ((a, s0), (b - m, s1)):
+            k = np.arange(fit)[None, :]
+            inside = k < m[:, None]
+            idx = np.where(inside, first[:, None] + k, first[:, None])
+            x, y = cs[idx], rs[idx]
+            w = inside.astype(np.float64)
+            xm = (x * w).sum(axis=1) / m
+            ym = (y * w).sum(axis=1) / m
+            dx = (x - xm[:, None]) * w
+            den = (dx * dx).sum(axis=1)
+            num = (dx * (y - ym[:, None])).sum(axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[lines] = np.where(den > 0, num / den, 0.0)
     return c0, c1, r0, r1, s0, s1, count
 
 

@@ -1,0 +1,65 @@
+"""Geometric evidence between components: line ends and their slopes, contact votes."""
+
+from __future__ import annotations
+
+import numpy as np
+from rasterserver_plugins.numbering_checks import _line_ends, contact_votes
+
+
+def _sorted(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> tuple[np.ndarray, ...]:
+    order = np.lexsort((row, col))
+    return col[order], row[order], line_id[order]
+
+
+def test_line_ends_and_slopes_match_a_least_squares_fit() -> None:
+    rng = np.random.default_rng(3)
+    cols, rows, ids = [], [], []
+    lengths = [2, 3, 5, 8, 40]  # shorter than 3: no slope; shorter than the window: all
+    for k, n in enumerate(lengths):
+        c = np.arange(10 + 3 * k, 10 + 3 * k + n)
+        r = 50.0 * k + 0.3 * (c - c[0]) + 0.01 * (c - c[0]) ** 2 + rng.normal(0, 0.1, n)
+        cols.append(c)
+        rows.append(r)
+        ids.append(np.full(n, k))
+    col, row, lid = _sorted(np.concatenate(cols), np.concatenate(rows), np.concatenate(ids))
+    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, lid, len(lengths), fit=8)
+    for k, n in enumerate(lengths):
+        c, r = cols[k], rows[k]
+        assert count[k] == n and c0[k] == c[0] and c1[k] == c[-1]
+        assert r0[k] == r[0] and r1[k] == r[-1]
+        m = min(8, n)
+        if m < 3:
+            assert s0[k] == 0.0 and s1[k] == 0.0
+            continue
+        assert np.isclose(s0[k], np.polyfit(c[:m], r[:m], 1)[0], rtol=1e-9, atol=1e-12)
+        assert np.isclose(s1[k], np.polyfit(c[-m:], r[-m:], 1)[0], rtol=1e-9, atol=1e-12)
+
+
+def test_line_ends_of_a_line_without_peaks_are_empty() -> None:
+    col = np.arange(5)
+    row = np.full(5, 10.0)
+    lid = np.zeros(5, dtype=np.int64)
+    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, lid, 2, fit=8)
+    assert np.isnan(r1[1])
+    assert count.tolist() == [5, 0] and c0[1] == -1 and c1[1] == -1 and np.isnan(r0[1])
+    assert s0[0] == 0.0 and s1[0] == 0.0  # a flat line
+
+
+def test_continuation_across_a_gap_votes_for_the_same_number() -> None:
+    # two raster lines 10 px apart, interrupted for 10 columns: components 0 (left) and 1
+    # (right), two levels each; the lines continue, so the offsets must be equal
+    cols, rows, ids = [], [], []
+    for k, (start, stop) in enumerate(((0, 30), (0, 30), (40, 70), (40, 70))):
+        c = np.arange(start, stop)
+        cols.append(c)
+        rows.append(100.0 + 10.0 * (k % 2) + 0.2 * c)
+        ids.append(np.full(c.size, k))
+    col, row, lid = _sorted(np.concatenate(cols), np.concatenate(rows), np.concatenate(ids))
+    order = np.array([0, 1, 0, 1], np.int32)
+    comp = np.array([0, 0, 1, 1], np.int32)
+    votes = contact_votes(col, row, lid, order, comp, min_line=5)
+    assert set(votes[(0, 1)]) == {0} and votes[(0, 1)][0] > 0
+    assert set(votes[(1, 0)]) == {0}
+    # the right part one level lower (a line missing): the vote says so
+    shifted = contact_votes(col, row, lid, np.array([0, 1, 1, 2], np.int32), comp, min_line=5)
+    assert set(shifted[(0, 1)]) == {-1}
