@@ -852,7 +852,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/comparison.json"))
     ap.add_argument("--write", action="store_true", help="replace the section in BENCHMARKS.md")
     ap.add_argument("--summary", type=Path, default=None, help="only rewrite from this JSON")
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="only time the 10-visit report (twice), in this process; prints JSON lines",
+    )
     args = ap.parse_args(argv)
+    if args.report_only:
+        back = backs(1)["tuning"][0]
+        series = [run_task(("series", back, f"S{k}")) for k in range(SERIES_VISITS)]
+        for _ in range(2):
+            load = os.getloadavg()[0]
+            print(json.dumps(time_report(series) | {"load_before": load}), flush=True)
+        return 0
     if args.summary is not None:
         data = json.loads(args.summary.read_text())
         text = markdown({k: data[k] for k in ("tuning", "held-out")}, data["meta"])
