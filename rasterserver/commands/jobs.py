@@ -117,6 +117,8 @@ def list_command(
 
     with open_archive(ctx) as archive:
         statuses = [job_status(archive, j) for j in list_jobs(archive, state=state, limit=limit)]
+    if not statuses and not as_json:
+        typer.echo("no processing jobs" + (f" in state {state}" if state else ""), err=True)
     for status in statuses:
         job = status.job
         if as_json:
