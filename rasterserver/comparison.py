@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from rasterserver.errors import InputError
-from rasterserver.records_analysis import LANDMARKS, BackShape
+from rasterserver.records_analysis import BackShape, landmark_in
 from rasterserver.records_surface import MeshRecord, Surface
 
 __all__ = [
@@ -162,11 +162,7 @@ class BodyFrame:
 
     def landmark(self, name: str) -> np.ndarray | None:
         """World position of landmark ``name``, None when not found."""
-        try:
-            point = self.landmarks[LANDMARKS.index(name)]
-        except ValueError:
-            raise InputError(f"no landmark {name!r}; landmarks: {', '.join(LANDMARKS)}") from None
-        return None if not np.all(np.isfinite(point)) else np.array(point)
+        return landmark_in(self.landmarks, name)
 
     def reason_table(self) -> dict[str, str]:
         """What could not be computed, and why."""

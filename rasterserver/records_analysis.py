@@ -21,7 +21,7 @@ import numpy as np
 from rasterserver.errors import InputError
 from rasterserver.records import Record
 
-__all__ = ["LANDMARKS", "SAGITTAL_POINTS", "BackShape", "combine"]
+__all__ = ["LANDMARKS", "SAGITTAL_POINTS", "BackShape", "combine", "landmark_in"]
 
 LANDMARKS: tuple[str, ...] = ("VP", "DL", "DR", "DM", "SP")
 """Landmark order in :attr:`BackShape.landmarks`: vertebra prominens, left and right lumbar
@@ -41,6 +41,21 @@ def _loads(owner: str, text: str, kind: type) -> Any:
     if not isinstance(value, kind):
         raise InputError(f"BackShape.{owner} must be a JSON {kind.__name__}")
     return value
+
+
+def landmark_in(table: np.ndarray, name: str) -> np.ndarray | None:
+    """Landmark ``name``'s row of a ``(len(LANDMARKS), 3)`` table, None when not found (NaN).
+
+    Raises
+    ------
+    InputError
+        ``name`` is not one of :data:`LANDMARKS`.
+    """
+    try:
+        point = table[LANDMARKS.index(name)]
+    except ValueError:
+        raise InputError(f"no landmark {name!r}; landmarks: {', '.join(LANDMARKS)}") from None
+    return None if not np.all(np.isfinite(point)) else np.array(point)
 
 
 class BackShape(Record):
@@ -147,11 +162,7 @@ class BackShape(Record):
 
     def landmark(self, name: str) -> np.ndarray | None:
         """The world position of landmark ``name`` (one of :data:`LANDMARKS`), None if absent."""
-        try:
-            point = self.landmarks[LANDMARKS.index(name)]
-        except ValueError:
-            raise InputError(f"no landmark {name!r}; landmarks: {', '.join(LANDMARKS)}") from None
-        return None if not np.all(np.isfinite(point)) else np.array(point)
+        return landmark_in(self.landmarks, name)
 
     def sagittal_point(self, name: str) -> np.ndarray | None:
         """The world position of sagittal point ``name`` (see :data:`SAGITTAL_POINTS`)."""
