@@ -136,19 +136,19 @@ def allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
     """The methods the app answers on the path of ``scope``, for an ``Allow`` header: those
     of every route with that path, and OPTIONS (answered here, without a token)."""
     methods = {"OPTIONS"}
-    for route in _routes(app.router.routes):
+    for route in all_routes(app.router.routes):
         match, _ = route.matches(scope)
         if match is not Match.NONE:
             methods |= set(getattr(route, "methods", None) or ())
     return sorted(methods)
 
 
-def _routes(routes: list[Any]) -> Iterator[Any]:
+def all_routes(routes: list[Any]) -> Iterator[Any]:
     """Every route, descending into the routers FastAPI includes (ours have no prefix)."""
     for route in routes:
         inner = getattr(route, "original_router", None)
         if inner is not None:
-            yield from _routes(inner.routes)
+            yield from all_routes(inner.routes)
         else:
             yield route
 

@@ -14,7 +14,6 @@ Requests without a body (GET, HEAD, OPTIONS without ``Content-Length`` or
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from typing import Any
 
 from starlette.routing import Match
@@ -22,20 +21,12 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from rasterserver.api.audit import AuditNote, note_of_scope
 from rasterserver.api.auth import Principal, authenticate, cached_owner
+from rasterserver.api.errors import all_routes
 
 #: Where the gate leaves the caller for :func:`rasterserver.api.auth.authorize`.
 PRINCIPAL_KEY = "rasterserver.principal"
 
 _BODILESS = frozenset({"GET", "HEAD", "OPTIONS"})
-
-
-def _routes(routes: list[Any]) -> Iterator[Any]:
-    for route in routes:
-        inner = getattr(route, "original_router", None)
-        if inner is not None:
-            yield from _routes(inner.routes)
-        else:
-            yield route
 
 
 def may_have_body(scope: Scope) -> bool:
@@ -76,7 +67,7 @@ class AuthGate:
         self._routes = routes
 
     def _route(self, scope: Scope) -> Any:
-        for route in _routes(self._routes):
+        for route in all_routes(self._routes):
             match, _ = route.matches(scope)
             if match is Match.FULL:
                 return route
