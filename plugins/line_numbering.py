@@ -455,11 +455,16 @@ def number_lines(
                 out[offset[other] + delta] += weight
         return out
 
-    def accept(c: int, off: int, how: str) -> None:
-        offset[c] = off
-        reason[c] = ""
+    def settle(c: int, off: int, how: str) -> None:
+        """Number component ``c`` at ``off`` (decided by ``how``: its code, or linked to
+        its neighbours) unless its distance from the station is implausible there."""
+        why = ""
+        if station is not None:
+            mine = valid & (comps == c)
+            why = _plausible_distance(data, mine, levels, off, raster, station, max_depth)
+        offset[c] = offset[c] if why else off
+        reason[c] = why
         decided.add(c)
-        _ = how
 
     for _ in range(6):
         changed = False
@@ -483,15 +488,7 @@ def number_lines(
                     decided.add(c)
                     changed = True
                     continue
-                if station is not None:
-                    mine = valid & (comps == c)
-                    why = _plausible_distance(data, mine, levels, off, raster, station, max_depth)
-                    if why:
-                        reason[c] = why
-                        decided.add(c)
-                        changed = True
-                        continue
-                accept(c, off, "code")
+                settle(c, off, "code")
                 changed = True
                 continue
             # the code alone does not decide: inherit from touching numbered components
@@ -515,15 +512,7 @@ def number_lines(
                     decided.add(c)
                     changed = True
                     continue
-            if station is not None:
-                mine = valid & (comps == c)
-                why = _plausible_distance(data, mine, levels, off, raster, station, max_depth)
-                if why:
-                    reason[c] = why
-                    decided.add(c)
-                    changed = True
-                    continue
-            accept(c, off, "linked")
+            settle(c, off, "linked")
             changed = True
         if not changed:
             break
