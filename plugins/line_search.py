@@ -470,13 +470,4 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
             step_ratio=params.step_ratio,
             step_half=params.step_half,
         )
-        return Lines(
-            col=data.col,
-            row=data.row,
-            area=data.area,
-            height=data.height,
-            width=data.width,
-            image_shape=data.image_shape,
-            dropped=data.dropped,
-            line_id=line_id,
-        )
+        return Lines.extend(data, line_id=line_id)

@@ -368,15 +368,8 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
         lid = data.line_id
         table = np.append(result.order, -1).astype(np.int32)
         order = table[np.where(lid >= 0, lid, -1)]
-        return OrderedLines(
-            col=data.col,
-            row=data.row,
-            area=data.area,
-            height=data.height,
-            width=data.width,
-            image_shape=data.image_shape,
-            dropped=data.dropped,
-            line_id=lid,
+        return OrderedLines.extend(
+            data,
             order=order,
             line_order=result.order,
             line_component=result.component,

@@ -22,10 +22,14 @@ components (offsets index the raster's lines at level 0), with a weight in colum
 from __future__ import annotations
 
 from collections import defaultdict
+from typing import Any
 
 import numpy as np
 
-__all__ = ["contact_votes"]
+from rasterserver.raster import Raster
+from rasterserver.records_lines import OrderedLines
+
+__all__ = ["column_order_conflicts", "contact_votes", "plausible_distance"]
 
 
 def _line_ends(
@@ -171,3 +175,91 @@ def contact_votes(
         votes[(ca, cb)][delta] += w
         votes[(cb, ca)][-delta] += w
     return votes
+
+
+def plausible_distance(
+    data: OrderedLines,
+    mine: np.ndarray,
+    levels: np.ndarray,
+    offset: int,
+    raster: Raster,
+    station: Any,
+    max_depth: float,
+) -> str:
+    """Empty when the points of the lines ``mine``, numbered with ``offset``, lie in the station's
+    working volume (within ``max_depth`` mm of the calibrated distance); else the reason."""
+    lid_all = data.line_id.astype(np.int64)
+    idx = np.flatnonzero((lid_all >= 0) & mine[np.maximum(lid_all, 0)])
+    if idx.size == 0:
+        return ""
+    idx = idx[:: max(1, idx.size // 64)]
+    lid = data.line_id[idx].astype(np.int64)
+    j = offset + levels[lid]
+    if np.any(j < 0) or np.any(j >= raster.n_lines):
+        return "numbers outside the raster"
+    pix = np.column_stack([data.col[idx].astype(np.float64), data.row[idx]])
+    try:
+        pts = station.triangulate(pix, raster.positions[j])
+        centre = np.asarray(station.camera.centre, dtype=np.float64)
+    except Exception:  # a calibration without a usable model: the test is not made
+        return ""
+    good = np.all(np.isfinite(pts), axis=1)
+    if not np.any(good):
+        return "no point reconstructs with these numbers"
+    dist = float(np.median(np.linalg.norm(pts[good] - centre, axis=1)))
+    d0 = float(np.linalg.norm(centre))  # the world origin lies on the calibrated back plane
+    if abs(dist - d0) > max_depth:
+        return f"implausible distance ({dist:.0f} mm from the camera, calibrated {d0:.0f} mm)"
+    return ""
+
+
+def column_order_conflicts(
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    *,
+    tolerance: float = 0.3,
+    max_multiple: int = 3,
+) -> np.ndarray:
+    """Peaks whose number breaks the order of their column: two consecutive numbered peaks
+    one line spacing apart (within ``tolerance`` spacings) whose numbers do not differ by
+    exactly one, or ``m`` spacings apart (``2 <= m <= max_multiple``) whose numbers differ by
+    more than ``m``, or any two close peaks numbered out of order. Both are refused: the
+    image cannot tell which of the two is wrong."""
+    n = col.size
+    out = np.zeros(n, dtype=bool)
+    if n < 2:
+        return out
+    numbered = np.flatnonzero(number >= 0)
+    if numbered.size < 2:
+        return out
+    a, b = numbered[:-1], numbered[1:]
+    same = col[a] == col[b]
+    a, b = a[same], b[same]
+    if a.size == 0:
+        return out
+    gap = row[b] - row[a]
+    k = number[b].astype(np.int64) - number[a].astype(np.int64)
+    one = k == 1
+    if not np.any(one):
+        return out
+    # the local spacing: mean gap of consecutive lines in cells of 32 x 32 px
+    cell = (col[a].astype(np.int64) // 32) * 100000 + (row[a].astype(np.int64) // 32)
+    keys, inv = np.unique(cell, return_inverse=True)
+    total = np.bincount(inv[one], weights=gap[one], minlength=keys.size)
+    cnt = np.bincount(inv[one], minlength=keys.size)
+    ref_cell = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
+    ref = ref_cell[inv]
+    ref = np.where(np.isnan(ref), float(np.median(gap[one])), ref)
+    # One spacing apart, the numbers must differ by one. Two or three spacings apart (lines
+    # between unnumbered), they must not differ by more: a line picked up across a depth
+    # step of a whole spacing shows as a pair two spacings apart numbered three apart. (They
+    # may differ by less: the surface stretches the spacing towards a silhouette.)
+    steps = gap / ref
+    m = np.rint(steps)
+    near = (m <= max_multiple) & (np.abs(steps - m) <= tolerance)
+    conflict = (near & (m == 1) & (k != 1)) | (near & (m >= 2) & (k > m))
+    conflict |= (k <= 0) & (gap < 1.5 * ref)
+    out[a[conflict]] = True
+    out[b[conflict]] = True
+    return out

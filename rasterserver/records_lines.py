@@ -11,12 +11,18 @@ column, then row) and a consumer of a later record never has to join tables::
 
 Per-peak arrays have one entry per detected peak; per-line arrays (``line_*``,
 ``kind_observed``) are indexed by ``line_id`` (``0 .. n_lines - 1``).
+
+A stage builds its record from the previous one with :meth:`Peaks.extend`, which carries
+every field of the earlier record forward, so a field added to :class:`Peaks` (as
+``dropped`` was) reaches the later records without touching the stages::
+
+    Lines.extend(peaks, line_id=line_id)
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
@@ -79,6 +85,40 @@ class Peaks(Record):
     # keyword only and None by default: the subclasses' fields need no default, and a
     # record without it keeps its content hash
     dropped: int | None = dataclasses.field(default=None, kw_only=True)
+
+    @classmethod
+    def extend(cls, earlier: Peaks, **new: Any) -> Self:
+        """This record built from an ``earlier`` stage's record and the ``new`` fields.
+
+        Parameters
+        ----------
+        earlier : Peaks
+            A record of an earlier stage (or of this one): every field it has is carried
+            forward unchanged unless given in ``new``.
+        **new
+            The fields this record adds (or replaces).
+
+        Returns
+        -------
+        Self
+            The new record (validated).
+
+        Raises
+        ------
+        TypeError
+            When ``earlier`` is not a :class:`Peaks` record or a field is missing.
+        """
+        if not isinstance(earlier, Peaks):
+            raise TypeError(
+                f"{cls.__name__}.extend needs a Peaks record, not {type(earlier).__name__}"
+            )
+        carried = {
+            f.name: getattr(earlier, f.name)
+            for f in dataclasses.fields(earlier)
+            if f.init and f.name not in new
+        }
+        own = {f.name for f in dataclasses.fields(cls) if f.init}
+        return cls(**{k: v for k, v in carried.items() if k in own}, **new)
 
     @property
     def n_peaks(self) -> int:

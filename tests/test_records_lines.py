@@ -119,3 +119,29 @@ def test_dropped_count_is_optional_and_keeps_old_hashes() -> None:
     assert Peaks.from_arrays(plain.to_arrays()).content_hash() == plain.content_hash()
     numbered = NumberedLines(**_numbered_fields(), dropped=2)
     assert NumberedLines.from_arrays(numbered.to_arrays()).dropped == 2
+
+
+def test_extend_carries_every_earlier_field_forward() -> None:
+    peaks = Peaks(**_peak_fields(), dropped=5)
+    lines = Lines.extend(peaks, line_id=np.array([0, 1, 0, 1], np.int32))
+    assert lines.dropped == 5 and np.array_equal(lines.row, peaks.row)
+    fields = _numbered_fields()
+    ordered = OrderedLines.extend(
+        lines, **{k: fields[k] for k in ("order", "line_order", "line_component")}
+    )
+    numbered = NumberedLines.extend(
+        ordered,
+        **{k: fields[k] for k in ("number", "line_number", "kind_observed", "confidence", "reason")},
+    )
+    by_hand = NumberedLines(**(fields | {"line_id": lines.line_id}), dropped=5)
+    assert numbered.content_hash() == by_hand.content_hash()
+    # a later record given to an earlier stage's class keeps only that class's fields
+    assert Lines.extend(numbered, line_id=lines.line_id).content_hash() == lines.content_hash()
+
+
+def test_extend_refuses_missing_fields_and_other_records() -> None:
+    peaks = Peaks(**_peak_fields())
+    with pytest.raises(TypeError):
+        Lines.extend(peaks)
+    with pytest.raises(TypeError, match="Peaks record"):
+        Lines.extend(object(), line_id=np.zeros(4, np.int32))  # type: ignore[arg-type]

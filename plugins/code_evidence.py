@@ -1,0 +1,305 @@
+"""Code evidence of a component of ordered lines: where on the raster's code its lines lie.
+
+Reading the kinds robustly: absolute intensity varies along the back (distance, inclination,
+skin), but two neighbouring lines in one column are lit and seen alike, so the ratio of their
+peak areas is the ratio of their line widths: 1.5 for a heavy line over a light one (60:40),
+1 for equal kinds. For each pair of consecutive levels ``k, k + 1`` of a component, a robust
+mean over the columns where they are direct neighbours of ``log(area_k / area_k+1)`` is
+``+λ``, ``0`` or ``-λ`` (``λ = log 1.5``), weighted by how decisively it is read.
+
+Every placement of these differences on the code is scored by the number of differences it
+explains badly (a soft count, so one misread line costs two differences and no more); the
+best must beat the second best by a clear margin. :func:`locally_contradicted` reads the
+same evidence on runs of a numbered component's levels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "CodeFit",
+    "ComponentNumbering",
+    "code_fit",
+    "level_differences",
+    "level_statistics",
+    "locally_contradicted",
+    "observed_kinds",
+    "reliability",
+]
+
+
+def level_differences(
+    col: np.ndarray,
+    area: np.ndarray,
+    line_id: np.ndarray,
+    line_order: np.ndarray,
+    line_component: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust mean log-area ratio of every pair of consecutive levels, per component.
+
+    Parameters
+    ----------
+    col, area, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    line_order, line_component : numpy.ndarray
+        Per-line relative order and component (-1: unordered).
+
+    Returns
+    -------
+    comp, level, ratio, count : numpy.ndarray
+        One entry per (component, level ``k``) with measurements: the robust mean over
+        columns of ``log(area at k / area at k + 1)`` where a line of level ``k`` lies
+        directly above one of level ``k + 1``, and the number of such columns.
+    """
+    comp, level, ratio, count, _ = level_statistics(col, area, line_id, line_order, line_component)
+    return comp, level, ratio, count
+
+
+def level_statistics(
+    col: np.ndarray,
+    area: np.ndarray,
+    line_id: np.ndarray,
+    line_order: np.ndarray,
+    line_component: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`level_differences` plus the spread of the column ratios about their centre.
+
+    Returns
+    -------
+    comp, level, ratio, count, spread : numpy.ndarray
+        As :func:`level_differences`; ``spread`` is the mean absolute deviation of the
+        (clipped) column log ratios from the robust centre: large where the albedo is uneven
+        (hair, naevi, a clothing edge), so that the ratio says little about the line widths.
+    """
+    empty_i = np.zeros(0, dtype=np.int64)
+    empty = (empty_i, empty_i, np.zeros(0), empty_i, np.zeros(0))
+    if col.size < 2 or line_order.size == 0:
+        return empty
+    lid = line_id.astype(np.int64)
+    ok_line = lid >= 0
+    comp_of = np.where(ok_line, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
+    lev_of = np.where(ok_line, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
+    pair = (
+        (col[1:] == col[:-1])
+        & (comp_of[1:] == comp_of[:-1])
+        & (comp_of[:-1] >= 0)
+        & (lev_of[:-1] >= 0)
+        & (lev_of[1:] == lev_of[:-1] + 1)
+    )
+    k = np.flatnonzero(pair)
+    if k.size == 0:
+        return empty
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
+    good = np.isfinite(lr)
+    k, lr = k[good], lr[good]
+    if k.size == 0:
+        return empty
+    comp, level = comp_of[k], lev_of[k]
+    span = int(lev_of.max()) + 2
+    key = comp * span + level
+    # Keys are small (components x levels): count by key directly, no sort.
+    n_keys = int(key.max()) + 1
+    counts = np.bincount(key, minlength=n_keys)
+    # A robust centre without sorting: the mean of the clipped ratios, then twice the mean
+    # of those near the previous centre (silhouette columns and skin spots are outliers).
+    lr = np.clip(lr, -1.0, 1.0)
+    centre = np.bincount(key, weights=lr, minlength=n_keys) / np.maximum(counts, 1)
+    for window in (0.3, 0.15):
+        near = np.abs(lr - centre[key]) <= window
+        total = np.bincount(key[near], weights=lr[near], minlength=n_keys)
+        n_near = np.bincount(key[near], minlength=n_keys)
+        centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
+    spread = np.bincount(key, weights=np.abs(lr - centre[key]), minlength=n_keys)
+    spread /= np.maximum(counts, 1)
+    groups = np.flatnonzero(counts)
+    return groups // span, groups % span, centre[groups], counts[groups], spread[groups]
+
+
+@dataclass(frozen=True)
+class ComponentNumbering:
+    """How one component was numbered.
+
+    Attributes
+    ----------
+    component : int
+        Component index.
+    n_levels : int
+        Number of levels (relative orders) in the component.
+    offset : int
+        Index into the raster's lines of level 0; -1 when refused.
+    cost : float
+        Soft count of badly explained differences of the best placement.
+    margin : float
+        Cost of the second-best placement minus the best's.
+    kinds : numpy.ndarray
+        ``(n_levels,)`` int8 observed kind of each level: 0 light, 1 heavy, -1 unknown.
+    reason : str
+        Why it was refused; empty when numbered.
+    """
+
+    component: int
+    n_levels: int
+    offset: int
+    cost: float
+    margin: float
+    kinds: np.ndarray
+    reason: str
+
+
+def observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: float) -> np.ndarray:
+    """Most likely kind of every level from the differences alone (no code), by Viterbi.
+
+    ``d[k] ≈ (kind[k] - kind[k + 1]) * lam``; the same robust cost as the placement. Levels
+    without a measured difference on either side, or whose two kinds explain the data
+    equally well, are unknown (-1).
+    """
+    n = d.size + 1
+    kinds = np.full(n, -1, dtype=np.int8)
+    if n < 2:
+        return kinds
+    measured = ~np.isnan(d)
+    dd = np.where(measured, d, 0.0)
+    ww = np.where(measured, weight, 0.0)
+    # cost[k, a, b]: level k of kind a followed by level k + 1 of kind b
+    expect = np.array([[0.0, -1.0], [1.0, 0.0]]) * lam
+    u = (dd[:, None, None] - expect[None, :, :]) / (tolerance * lam)
+    cost = np.minimum(u * u, 1.0) * ww[:, None, None]
+    # forward and backward passes give each level's best total cost per kind
+    fwd = np.zeros((n, 2))
+    for k in range(n - 1):
+        fwd[k + 1] = (fwd[k][:, None] + cost[k]).min(axis=0)
+    bwd = np.zeros((n, 2))
+    for k in range(n - 2, -1, -1):
+        bwd[k] = (cost[k] + bwd[k + 1][None, :]).min(axis=1)
+    total = fwd + bwd
+    gap = total[:, 0] - total[:, 1]  # > 0: heavy explains better
+    seen = np.zeros(n, dtype=bool)
+    seen[:-1] |= measured
+    seen[1:] |= measured
+    sure = seen & (np.abs(gap) >= 0.5)
+    kinds[sure] = (gap[sure] > 0).astype(np.int8)
+    return kinds
+
+
+@dataclass(frozen=True)
+class CodeFit:
+    """The code evidence of one component: cost of every placement."""
+
+    cost: np.ndarray  # (offsets,) soft count of badly explained differences; empty if none
+    terms: float  # total weight of the measured differences
+    best: int
+    margin: float
+    reason: str  # why the code alone does not decide; empty when it does
+
+
+def code_fit(
+    n_levels: int,
+    d: np.ndarray,
+    weight: np.ndarray,
+    code: np.ndarray,
+    *,
+    lam: float,
+    tolerance: float,
+    min_lines: int,
+    min_margin: float,
+    max_cost_rate: float,
+) -> CodeFit:
+    n_off = code.size - n_levels + 1
+    if n_off < 1:
+        return CodeFit(np.zeros(0), 0.0, -1, 0.0, f"{n_levels} lines, more than the raster's")
+    measured = (~np.isnan(d)) & (weight > 0)
+    terms = float(weight[measured].sum())
+    if n_levels >= 2:
+        windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), n_levels)
+        expected = (windows[:, :-1] - windows[:, 1:]) * lam  # (offsets, n_levels - 1)
+        u = (np.where(measured, d, 0.0)[None, :] - expected) / (tolerance * lam)
+        cost = (np.minimum(u * u, 1.0) * np.where(measured, weight, 0.0)[None, :]).sum(axis=1)
+    else:
+        cost = np.zeros(n_off)
+    order = np.argsort(cost, kind="stable")
+    best = int(order[0])
+    best_cost = float(cost[best])
+    margin = float(cost[order[1]] - best_cost) if n_off > 1 else float("inf")
+    if n_levels < min_lines:
+        reason = f"{n_levels} lines, fewer than {min_lines}"
+    elif int(measured.sum()) < min_lines - 1 or terms < 0.5 * (min_lines - 1):
+        reason = (
+            f"only {int(measured.sum())} reliable neighbour intensity ratios "
+            f"(weight {terms:.1f}; uneven albedo or too few columns)"
+        )
+    elif best_cost > max_cost_rate * terms:
+        reason = f"best code placement explains too little ({best_cost:.1f} of {terms:.0f} bad)"
+    elif margin < min_margin - 1e-9:
+        reason = f"ambiguous code placement (margin {margin:.2f} < {min_margin:g})"
+    else:
+        reason = ""
+    return CodeFit(cost, terms, best, margin, reason)
+
+
+def reliability(
+    count: np.ndarray, spread: np.ndarray, lam: float, correlation: float
+) -> np.ndarray:
+    """How decisively each level difference is read, in [0, 1].
+
+    The standard error of the robust centre (spread over the square root of the number of
+    independent columns; neighbouring columns see the same albedo texture, hence
+    ``correlation``) against half the heavy/light step ``lam / 2``: z <= 1 is worthless,
+    z >= 3 full weight.
+    """
+    n_eff = np.maximum(count / correlation, 1.0)
+    se = np.maximum(1.25 * spread / np.sqrt(n_eff), 0.01)
+    z = 0.5 * lam / se
+    return np.clip((z - 1.0) / 2.0, 0.0, 1.0)
+
+
+def locally_contradicted(
+    d: np.ndarray,
+    w: np.ndarray,
+    code: np.ndarray,
+    offset: int,
+    span: int,
+    lam: float,
+    tolerance: float,
+    min_margin: float,
+    max_cost_rate: float,
+) -> np.ndarray:
+    """Levels of a numbered component where a run of ``span`` levels contradicts the
+    component's placement: it reads, on its own, uniquely and cleanly as another placement,
+    or the component's placement explains it far worse (over twice ``max_cost_rate``) than
+    another. Line sequence analysis then put those lines one or more levels off (a clothing
+    edge, a fold), and the component's single offset would number them wrongly."""
+    n_levels = d.size + 1
+    if n_levels < span + 2:
+        return np.zeros(0, dtype=np.int64)
+    bad = np.zeros(n_levels, dtype=bool)
+    windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), span)
+    expected = (windows[:, :-1] - windows[:, 1:]) * lam
+    for start in range(0, n_levels - span + 1, 2):
+        dd = d[start : start + span - 1]
+        ww = w[start : start + span - 1]
+        measured = ~np.isnan(dd) & (ww > 0)
+        terms = float(ww[measured].sum())
+        if terms < 0.5 * (span - 1):
+            continue
+        u = (np.where(measured, dd, 0.0)[None, :] - expected) / (tolerance * lam)
+        cost = (np.minimum(u * u, 1.0) * np.where(measured, ww, 0.0)[None, :]).sum(axis=1)
+        here = offset + start
+        if not 0 <= here < cost.size:
+            continue
+        order = np.argsort(cost, kind="stable")
+        best = int(order[0])
+        if best == here:
+            continue
+        excess = float(cost[here] - cost[best])
+        local_margin = float(cost[order[1]] - cost[best])
+        # another placement reads cleanly and uniquely here, or the component's placement
+        # explains this run of lines far worse than the component as a whole allows
+        clean_elsewhere = cost[best] <= max_cost_rate * terms and local_margin >= min_margin
+        poorly_explained = cost[here] > 2.0 * max_cost_rate * terms
+        if excess >= min_margin and (clean_elsewhere or poorly_explained):
+            bad[start : start + span] = True
+    return np.flatnonzero(bad)
