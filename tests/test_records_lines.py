@@ -131,7 +131,9 @@ def test_extend_carries_every_earlier_field_forward() -> None:
     )
     numbered = NumberedLines.extend(
         ordered,
-        **{k: fields[k] for k in ("number", "line_number", "kind_observed", "confidence", "reason")},
+        **{
+            k: fields[k] for k in ("number", "line_number", "kind_observed", "confidence", "reason")
+        },
     )
     by_hand = NumberedLines(**(fields | {"line_id": lines.line_id}), dropped=5)
     assert numbered.content_hash() == by_hand.content_hash()
