@@ -45,12 +45,13 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from rasterserver_plugins.curvature import fit_quadric_at
-from rasterserver_plugins.level_frame import LevelGrid, bilinear
-from rasterserver_plugins.spinal_midline import SpinalMidline
-from rasterserver_plugins.symmetry_line import SymmetryLine
-from rasterserver_plugins.trunk import Trunk
 from scipy.signal import savgol_filter
+
+from .curvature import fit_quadric_at
+from .level_frame import LevelGrid, bilinear
+from .spinal_midline import SpinalMidline
+from .symmetry_line import SymmetryLine
+from .trunk import Trunk
 
 __all__ = [
     "PARAMETER_UNITS",
@@ -385,7 +386,7 @@ def back_parameters(
     profile = None
     if line is not None and vp is not None and dm is not None:
         profile = sagittal_profile(grid, line, vp, dm)
-    if profile is None:
+    if profile is None or line is None or vp is None:  # (line and vp: for the type checker)
         missing(sagittal, "needs the symmetry line from VP to DM")
     else:
         a, idx = profile.inclination, profile.points

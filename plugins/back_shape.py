@@ -30,24 +30,25 @@ from typing import ClassVar
 
 import numpy as np
 from pydantic import Field
-from rasterserver_plugins.back_parameters import PARAMETER_UNITS, back_parameters
-from rasterserver_plugins.body_frame import body_frame
-from rasterserver_plugins.curvature import surface_curvature
-from rasterserver_plugins.landmarks import (
+
+from rasterserver.records_analysis import LANDMARKS, SAGITTAL_POINTS, BackShape
+from rasterserver.records_surface import Surface
+from rasterserver.stage import Stage, StageContext, StageParams
+
+from .back_parameters import PARAMETER_UNITS, back_parameters
+from .body_frame import body_frame
+from .curvature import surface_curvature
+from .landmarks import (
     Landmark,
     find_dimples,
     find_sacrum_point,
     find_vertebra_prominens,
     midpoint,
 )
-from rasterserver_plugins.level_frame import LevelFrame
-from rasterserver_plugins.spinal_midline import line_normals, spinal_midline
-from rasterserver_plugins.symmetry_line import find_symmetry_line
-from rasterserver_plugins.trunk import find_trunk
-
-from rasterserver.records_analysis import LANDMARKS, SAGITTAL_POINTS, BackShape
-from rasterserver.records_surface import Surface
-from rasterserver.stage import Stage, StageContext, StageParams
+from .level_frame import LevelFrame
+from .spinal_midline import line_normals, spinal_midline
+from .symmetry_line import find_symmetry_line
+from .trunk import find_trunk
 
 __all__ = ["NO_VERTICAL", "BackShapeAnalysis", "analyse_back"]
 
@@ -82,8 +83,8 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
     except ValueError as exc:
         return BackShape.empty(f"the calibration's gravity is unusable: {exc}")
     if surface.z.size == 0 or not np.isfinite(surface.z).any():
-        why = f": {surface.reason}" if surface.reason else ""
-        return BackShape.empty(f"no surface to analyse{why}")
+        detail = f": {surface.reason}" if surface.reason else ""
+        return BackShape.empty(f"no surface to analyse{detail}")
     grid = level.level_grid(surface.x0, surface.y0, surface.spacing, surface.z)
     curv = surface_curvature(grid.z, grid.spacing, sigma=sigma)
     trunk = find_trunk(grid.z, grid.spacing)
@@ -106,7 +107,7 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
             reasons[lm.name] = lm.reason
 
     frame = None
-    if vp.found and dl.found and dr.found:
+    if vp.point is not None and dl.point is not None and dr.point is not None:
         frame = body_frame(vp.point, dl.point, dr.point, dm.point)
         if frame is None:
             reasons["frame"] = "VP, DL and DR are degenerate (in line)"
@@ -114,16 +115,17 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
         reasons["frame"] = "needs VP, DL and DR"
 
     line = midline = None
-    if vp.found and dm.found:
-        line = find_symmetry_line(grid, curv, vp.point, dm.point, trunk.reference_half_width())
+    top, bottom = vp.point, dm.point
+    if top is not None and bottom is not None:
+        line = find_symmetry_line(grid, curv, top, bottom, trunk.reference_half_width())
         if not line.found:
             reasons["symmetry_line"] = line.reason
             line = None
     else:
         reasons["symmetry_line"] = "needs VP and DM"
-    if line is not None:
-        normals = line_normals(grid, line, vp.point, dm.point)
-        midline = spinal_midline(line, normals, vp.point, dm.point)
+    if line is not None and top is not None and bottom is not None:
+        normals = line_normals(grid, line, top, bottom)
+        midline = spinal_midline(line, normals, top, bottom)
     else:
         reasons["midline"] = "needs the symmetry line"
 

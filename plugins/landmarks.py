@@ -36,11 +36,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from rasterserver_plugins.curvature import Curvature
-from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.symmetry_line import curvature_features, profile_asymmetry
-from rasterserver_plugins.trunk import Trunk
 from scipy.ndimage import maximum_filter, median_filter
+
+from .curvature import Curvature
+from .level_frame import LevelGrid
+from .symmetry_line import curvature_features, profile_asymmetry
+from .trunk import Trunk
 
 __all__ = [
     "Landmark",

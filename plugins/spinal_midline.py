@@ -38,9 +38,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from rasterserver_plugins.curvature import fit_quadric_at
-from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.symmetry_line import SymmetryLine
+
+from .curvature import fit_quadric_at
+from .level_frame import LevelGrid
+from .symmetry_line import SymmetryLine
 
 __all__ = [
     "ROTATION_SCALE",

@@ -38,9 +38,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from rasterserver_plugins.curvature import Curvature
-from rasterserver_plugins.level_frame import LevelGrid, bilinear
 from scipy.ndimage import gaussian_filter1d
+
+from .curvature import Curvature
+from .level_frame import LevelGrid, bilinear
 
 __all__ = ["SymmetryLine", "curvature_features", "find_symmetry_line", "profile_asymmetry"]
 

@@ -37,8 +37,14 @@ REPORT_FORMATS = ("png", "pdf")
 _PAGE_INCHES = (16.5, 9.0)
 _DPI = 110
 _MARKERS = {"VP": "^", "DL": "o", "DR": "o", "DM": "s", "SP": "D"}
-_SYMMETRY = {"color": "black", "linestyle": "--", "linewidth": 1.2, "label": "symmetry line"}
-_MIDLINE = {"color": "#c00000", "linewidth": 1.8, "label": "spinal midline"}
+# keyword arguments of Axes.plot
+_SYMMETRY: dict[str, Any] = {
+    "color": "black",
+    "linestyle": "--",
+    "linewidth": 1.2,
+    "label": "symmetry line",
+}
+_MIDLINE: dict[str, Any] = {"color": "#c00000", "linewidth": 1.8, "label": "spinal midline"}
 
 
 def _relief(surface: Surface, shape: BackShape) -> np.ndarray:
@@ -59,10 +65,12 @@ def _relief(surface: Surface, shape: BackShape) -> np.ndarray:
     return -(z - (coef[0] * xx + coef[1] * yy + coef[2]))
 
 
-def _extent(x0: float, y0: float, spacing: float, shape: tuple[int, ...]) -> list[float]:
+def _extent(
+    x0: float, y0: float, spacing: float, shape: tuple[int, ...]
+) -> tuple[float, float, float, float]:
     ny, nx = shape[:2]
     half = spacing / 2
-    return [x0 - half, x0 + (nx - 1) * spacing + half, y0 + (ny - 1) * spacing + half, y0 - half]
+    return x0 - half, x0 + (nx - 1) * spacing + half, y0 + (ny - 1) * spacing + half, y0 - half
 
 
 def _overlay(ax: Axes, shape: BackShape, *, labels: bool) -> None:
@@ -110,7 +118,7 @@ def _map_panel(
     ax: Axes,
     image: np.ndarray,
     shape: BackShape,
-    extent: list[float],
+    extent: tuple[float, float, float, float],
     *,
     cmap: str,
     limits: tuple[float, float],
@@ -223,11 +231,14 @@ def _table_panel(ax: Axes, document: dict[str, Any]) -> None:
 
 def _figure(analysis: Analysis, header: Sequence[str]) -> Figure:
     from matplotlib.figure import Figure
+    from matplotlib.layout_engine import ConstrainedLayoutEngine
 
     document = analysis.document()
     shown = analysis.shown_frame()
     shape = analysis.combined if len(analysis.frames) == 1 else shown.shape
-    figure = Figure(figsize=_PAGE_INCHES, dpi=_DPI, layout="constrained")
+    # constrained layout, leaving the bottom strip to the footer
+    layout = ConstrainedLayoutEngine(rect=(0.0, 0.025, 1.0, 0.975))
+    figure = Figure(figsize=_PAGE_INCHES, dpi=_DPI, layout=layout)
     grid = figure.add_gridspec(1, 6, width_ratios=[3.0, 3.0, 1.25, 1.25, 1.25, 3.6])
     relief_ax = figure.add_subplot(grid[0])
     axes = [relief_ax] + [figure.add_subplot(grid[k], sharey=relief_ax) for k in range(1, 5)]
@@ -338,8 +349,6 @@ def _figure(analysis: Analysis, header: Sequence[str]) -> Figure:
     figure.suptitle(
         "\n".join(line for line in heading if line), fontsize=10, x=0.01, ha="left", linespacing=1.4
     )
-    # constrained layout leaves the bottom strip to the footer
-    figure.get_layout_engine().set(rect=(0.0, 0.025, 1.0, 0.975))
     figure.text(0.01, 0.006, _footer(document), fontsize=7, ha="left", va="bottom")
     return figure
 

@@ -26,6 +26,7 @@ from rasterserver.comparison import DistanceMap
 from rasterserver.output_files import output_file
 
 if TYPE_CHECKING:
+    from matplotlib.cm import ScalarMappable
     from matplotlib.figure import Figure
 
 __all__ = ["colour_limit", "distance_png", "write_distance_ply", "write_distance_png"]
@@ -188,7 +189,7 @@ def _draw_distance(
         # the mesh of a height field: drawing it as an image is ten times faster than
         # Gouraud-shading its tens of thousands of triangles, and looks the same
         picture, extent = grid
-        image = ax.imshow(
+        image: ScalarMappable = ax.imshow(
             picture,
             cmap="RdBu_r",
             vmin=-lim,

@@ -44,6 +44,8 @@ from rasterserver.records_surface import MeshRecord, Points, Surface
 # command line can build its options without NumPy and OpenCV; they are re-exported here.
 
 if TYPE_CHECKING:
+    import open3d as o3d
+
     from rasterserver.catalog.models import StageResult
     from rasterserver.pipeline import Pipeline
 
@@ -219,10 +221,14 @@ def _in_patient_frame(pipeline: Pipeline, chosen: StoredExport) -> StoredExport:
         chosen,
         record=to_frame(chosen.record, origin, axes),
         frame=ExportFrame.patient,
-        origin=tuple(float(v) for v in origin),  # type: ignore[arg-type]
-        axes=tuple(tuple(float(v) for v in a) for a in axes),
+        origin=_triple(origin),
+        axes=tuple(_triple(a) for a in axes),
         frame_source=a_row.id,
     )
+
+
+def _triple(v: np.ndarray) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def to_frame(
@@ -322,17 +328,25 @@ def write_points(points: Points, path: Path, *, fmt: Literal["ply", "csv"] = "pl
 def _write_ply_points(points: Points, path: Path) -> None:
     import open3d as o3d  # here, not at the top: the CLI starts a second faster without it
 
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points.xyz)))
+    cloud = o3d.t.geometry.PointCloud(_tensor(np.ascontiguousarray(points.xyz)))
     for name, values, dtype in (
         ("number", points.number, np.int32),
         ("col", points.col, np.int32),
         ("row", points.row, np.float64),
         ("area", points.area, np.float32),
     ):
-        cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(values, dtype=dtype)[:, None])
+        cloud.point[name] = _tensor(np.ascontiguousarray(values, dtype=dtype)[:, None])
     # open3d picks the writer from the suffix, which a temporary name keeps
-    if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
+    if not o3d.t.io.write_point_cloud(path, cloud, write_ascii=False):
         raise OSError(f"open3d could not write {path.name}")
+
+
+def _tensor(array: np.ndarray) -> o3d.core.Tensor:
+    """An open3d tensor holding a copy of ``array`` (its dtype, on the CPU)."""
+    import open3d as o3d
+
+    # open3d's generated stubs drop the defaults (None) of dtype and device
+    return o3d.core.Tensor(array)  # type: ignore[call-overload]
 
 
 def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"] = "ply") -> Path:
@@ -370,7 +384,7 @@ def write_mesh(mesh: MeshRecord, path: Path, *, fmt: Literal["ply", "obj", "stl"
     o3d_mesh: Any = mesh.to_open3d()
     o3d_mesh.compute_triangle_normals()
     with output_file(path) as temp:
-        if not o3d.io.write_triangle_mesh(str(temp), o3d_mesh, write_ascii=False):
+        if not o3d.io.write_triangle_mesh(temp, o3d_mesh, write_ascii=False):
             raise OSError(f"open3d could not write {path}")
     return path
 

@@ -65,14 +65,14 @@ def _camera_shape(sha256: str, parameters: object, label: str, station: str) -> 
         from rasterserver.documents import calibration_from_document
 
         try:
-            shape = calibration_from_document(parameters, source=f"calibration {label}")
+            calibration = calibration_from_document(parameters, source=f"calibration {label}")
         except InputError as exc:
             # stored before documents were checked: it would fail every acquisition later
             raise InputError(
                 f"{exc}; frames are checked against it, so store a corrected calibration of "
                 f"station {station!r} (a new version) first"
             ) from None
-        shape = shape.camera.shape
+        shape = calibration.camera.shape
         if len(_SHAPES) >= _MAX_CACHED:
             _SHAPES.clear()
         _SHAPES[sha256] = shape

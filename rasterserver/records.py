@@ -32,11 +32,14 @@ import reprlib
 import types
 import typing
 from collections.abc import Mapping
-from typing import Any, ClassVar, Literal, Self, dataclass_transform
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self, cast, dataclass_transform
 
 import numpy as np
 
 from rasterserver.errors import InputError
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 __all__ = ["Image", "Record", "record_type", "record_types"]
 
@@ -77,9 +80,15 @@ def _classify(owner: type, name: str, hint: Any) -> tuple[_FieldKind, bool]:
         hint, optional = rest[0], True
     if hint is np.ndarray or typing.get_origin(hint) is np.ndarray:
         return "array", optional
-    for kind, py_type in (("bool", bool), ("int", int), ("float", float), ("str", str)):
+    scalars: tuple[tuple[_FieldKind, type], ...] = (
+        ("bool", bool),
+        ("int", int),
+        ("float", float),
+        ("str", str),
+    )
+    for kind, py_type in scalars:
         if hint is py_type:
-            return kind, optional  # type: ignore[return-value]
+            return kind, optional
     raise TypeError(
         f"{owner.__name__}.{name}: record fields must be numpy arrays, bool, int, float or str "
         f"(optionally | None), not {hint!r}"
@@ -113,7 +122,8 @@ class Record:
             raise TypeError(f"record class {cls.__qualname__} has an empty kind")
         hints = typing.get_type_hints(cls)
         specs = []
-        for f in dataclasses.fields(cls):
+        # The dataclass() call above made cls a dataclass; its static type cannot say so.
+        for f in dataclasses.fields(cast("type[DataclassInstance]", cls)):
             kind, optional = _classify(cls, f.name, hints[f.name])
             has_default = (
                 f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING

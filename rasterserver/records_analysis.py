@@ -279,8 +279,8 @@ def combine(shapes: list[BackShape] | tuple[BackShape, ...]) -> BackShape:
         raise InputError("no analysis to combine")
     analysed = [s for s in shapes if not s.reason]
     if not analysed:
-        reasons = sorted({s.reason for s in shapes})
-        return BackShape.empty(f"no frame could be analysed: {'; '.join(reasons)}")
+        causes = sorted({s.reason for s in shapes})
+        return BackShape.empty(f"no frame could be analysed: {'; '.join(causes)}")
     if len(analysed) == 1 and len(shapes) == 1:
         return analysed[0]
     n = len(analysed)

@@ -143,7 +143,7 @@ def trends(
         rows, previous, first = [], None, None
         for v in visits:
             value = _value(v, name)
-            change = None if value is None or previous is None else value - previous
+            change: float | None = None if value is None or previous is None else value - previous
             rows.append(
                 {
                     "label": v.label,

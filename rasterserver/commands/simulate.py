@@ -275,7 +275,8 @@ def back(
     if ingest and not patient:
         raise InputError("--ingest needs --patient")
     params: BackParameters = rb(random_back) if random_back is not None else get_preset(preset)
-    changes = {
+    # float fields of BackParameters; replace() rejects an unknown name at run time
+    changes: dict[str, Any] = {
         name: value
         for name, value in (
             ("trunk_length", trunk_length),
