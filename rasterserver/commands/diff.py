@@ -83,7 +83,8 @@ def diff(
 
 def _run_diff(ctx: typer.Context, spec_a: object, spec_b: object, chosen: object,
               until: list[str] | None, out: Path | None, as_json: bool, quiet: bool,
-              acquisitions: list[tuple[str, int | None]] | None = None) -> None:
+              acquisitions: list[tuple[str, int | None]] | None = None,
+              *, strict: bool = True) -> None:
     from rasterserver.chain_diff import DEFAULT_TARGETS, diff_chains
     from rasterserver.chain_diff_report import summary_lines, write_report
     from rasterserver.commands.progress import progress_bar
@@ -105,6 +106,10 @@ def _run_diff(ctx: typer.Context, spec_a: object, spec_b: object, chosen: object
         typer.echo("\n".join(summary_lines(report)))
     summary = report.summary()
     if summary["acquisitions"] and not (summary["changed"] + summary["unchanged"]):
+        if not strict:  # reprocess: the new results are stored, there was nothing before
+            typer.echo("nothing to compare: no acquisition had results of the previous chain",
+                       err=True)
+            return
         raise NotFoundError(
             "no selected acquisition has stored results of both chains: process them with "
             "each chain first (`rasterserver process --stage ...`)"
@@ -190,7 +195,7 @@ def reprocess(
         with open_archive(ctx) as archive:
             acquisitions = resolve_selection(archive, Selection(uids=tuple(u for u, _ in done)))
         _run_diff(ctx, previous, new, None, targets, out or Path(f"diff-{job.id[:8]}"),
-                  as_json, quiet, acquisitions)
+                  as_json, quiet, acquisitions, strict=False)
     if failed:
         raise ProcessingFailedError(
             f"{len(failed)} of {len(outcomes)} acquisition(s) failed, see above",
