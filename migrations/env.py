@@ -7,6 +7,7 @@ from alembic import context
 from sqlalchemy import Connection
 
 from rasterserver.catalog import auth_models as _auth_models  # noqa: F401  (its tables)
+from rasterserver.catalog import job_models as _job_models  # noqa: F401  (its tables)
 from rasterserver.catalog.database import make_engine
 from rasterserver.catalog.models import Base
 

@@ -23,7 +23,7 @@ import logging
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -33,8 +33,7 @@ from sqlalchemy import Connection, Engine, Integer, Select, bindparam, func, sel
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session, selectinload
 
-from rasterserver.catalog import migrate
-from rasterserver.catalog.database import WriteLock, make_engine, session_factory
+from rasterserver.catalog.catalog import Catalog
 from rasterserver.catalog.lookup import patient_id_of, stored_name
 from rasterserver.catalog.models import (
     ACQUISITION_KINDS,
@@ -299,11 +298,11 @@ class Archive:
     check_schema : bool, default True
         Refuse to work on a catalogue that is not migrated to the current revision.
     connections : int, optional
-        Catalogue connections kept open for reuse: as many as threads that use the archive
-        at once (the HTTP server's). By default SQLAlchemy's pool of 5. Such a pool also
-        skips the liveness check (a round trip) before each use: after a database restart
-        the first use of each stale connection fails (the HTTP API answers 503) and the pool
-        replaces them all.
+        Catalogue connections kept open for reuse (see
+        :class:`~rasterserver.catalog.catalog.Catalog`).
+    catalog : Catalog, optional
+        An open catalogue to use (and leave open) instead of opening one;
+        ``check_schema`` and ``connections`` are then the catalogue's business.
     """
 
     def __init__(
@@ -313,52 +312,40 @@ class Archive:
         crash_hook: CrashHook | None = None,
         check_schema: bool = True,
         connections: int | None = None,
+        catalog: Catalog | None = None,
     ) -> None:
         self.settings = settings
-        # Connections beyond the pool are closed when given back: a busy server would open
-        # (and, on SQLite, set up) one per request. So the pool holds them all.
-        pool = {} if connections is None else {"pool_size": connections, "max_overflow": 4,
-                                               "pool_pre_ping": False}
-        self.engine: Engine = make_engine(settings.database_url, **pool)
+        #: The catalogue (engine, sessions, reads, the write lock); closed with the archive
+        #: unless it was given.
+        self.catalog = catalog if catalog is not None else Catalog(
+            settings.database_url, check_schema=check_schema, connections=connections)
+        self._owns_catalog = catalog is None
+        self.engine: Engine = self.catalog.engine
         #: Taken by the catalogue's frequent writers (ingest, the audit trail): see WriteLock.
-        self.write_lock = WriteLock(self.engine)
-        # PostgreSQL wraps even a lone SELECT in a transaction: BEGIN before it and a
-        # ROLLBACK when the connection goes back to the pool, two round trips more than the
-        # query, which doubled the time of a one-row read. A single statement sees one
-        # snapshot anyway. SQLite begins no transaction for a SELECT, so it keeps its engine.
-        self._reader: Engine = (
-            self.engine.execution_options(isolation_level="AUTOCOMMIT")
-            if self.engine.dialect.name == "postgresql" else self.engine)
-        self._sessions = session_factory(self.engine)
+        self.write_lock = self.catalog.write_lock
         self._crash_hook = crash_hook
         self.raw = RawStore(settings.archive, crash_hook=crash_hook)
-        if check_schema:
-            migrate.require_current(self.engine)
 
     def reading(self) -> Connection:
         """A catalogue connection for *one* read-only statement, outside a transaction.
 
-        Use as ``with archive.reading() as conn: conn.execute(...)``. For several statements
-        that must agree with each other, use :meth:`session` or ``engine.begin()``.
+        See :meth:`rasterserver.catalog.catalog.Catalog.reading`.
         """
-        return self._reader.connect()
+        return self.catalog.reading()
 
     @classmethod
     def create(cls, settings: Settings, **kwargs: Any) -> Archive:
         """Open the archive, first migrating its catalogue to the newest schema."""
         from rasterserver.pseudonym_key import key_file
 
-        engine = make_engine(settings.database_url)
-        try:
-            migrate.upgrade(engine, key_file=key_file(settings))
-        finally:
-            engine.dispose()
+        Catalog.create(settings.database_url, key_file=key_file(settings),
+                       check_schema=False).close()
         return cls(settings, **kwargs)
 
     def close(self) -> None:
-        """Release the catalogue's connections."""
-        self.engine.dispose()
-        self.write_lock.close()
+        """Release the catalogue's connections (if the archive opened the catalogue)."""
+        if self._owns_catalog:
+            self.catalog.close()
 
     def __enter__(self) -> Archive:
         return self
@@ -366,16 +353,9 @@ class Archive:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @contextmanager
-    def session(self) -> Iterator[Session]:
+    def session(self) -> AbstractContextManager[Session]:
         """A catalogue session committed on success and rolled back on any error."""
-        with self._sessions() as session:
-            try:
-                yield session
-                session.commit()
-            except BaseException:
-                session.rollback()
-                raise
+        return self.catalog.session()
 
     # -- patients, stations, rasters, calibrations ----------------------------------------
 

@@ -9,13 +9,18 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
-from sqlalchemy.orm import Session, sessionmaker
 
 from rasterserver.store.modes import file_mode
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+# The ORM (sqlalchemy.orm) is imported by session_factory when a session is first needed:
+# readers of the catalogue with SQLAlchemy Core (`rasterserver list`) start without it.
 
 
 def make_engine(url: str, **kwargs: Any) -> Engine:
@@ -129,4 +134,6 @@ class WriteLock:
 
 def session_factory(engine: Engine) -> sessionmaker[Session]:
     """Return a session factory bound to ``engine`` that keeps objects usable after commit."""
+    from sqlalchemy.orm import sessionmaker
+
     return sessionmaker(engine, expire_on_commit=False)

@@ -10,14 +10,11 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import Engine, inspect
 
-from rasterserver.errors import RasterServerError
+from rasterserver.catalog.schema import SchemaError
+from rasterserver.catalog.schema import require_current as require_current
 
-
-class SchemaError(RasterServerError):
-    """The catalogue's schema is not at the version this code expects."""
-
-    exit_code = 6
-    http_status = 503
+__all__ = ["SchemaError", "alembic_config", "create_embedded", "current_revision", "downgrade",
+           "head_revision", "require_current", "upgrade"]
 
 
 def alembic_config(engine: Engine) -> Config:
@@ -101,18 +98,3 @@ def create_embedded(engine: Engine) -> bool:
         return False
     upgrade(engine)
     return True
-
-
-def require_current(engine: Engine) -> None:
-    """Raise :class:`SchemaError` unless the catalogue is at the newest revision.
-
-    Services call this before touching the catalogue, so an old or empty database gets a
-    message that says what to run instead of an SQL error.
-    """
-    current, head = current_revision(engine), head_revision(engine)
-    if current != head:
-        state = "is empty" if current is None else f"is at revision {current}"
-        raise SchemaError(
-            f"the catalogue {state}, this rasterserver needs {head}: "
-            "run `rasterserver db upgrade`"
-        )

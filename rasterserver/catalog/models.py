@@ -27,6 +27,8 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from rasterserver.catalog.utc_datetime import UtcDateTime
+from rasterserver.catalog.vocabulary import ACQUISITION_KINDS, SEXES
+from rasterserver.catalog.vocabulary import FRAME_ROLES as FRAME_ROLES  # re-exported
 from rasterserver.identifiers import lookup_key
 
 # Explicit constraint names keep migrations identical on SQLite and PostgreSQL and let
@@ -39,9 +41,6 @@ NAMING_CONVENTION = {
     "pk": "pk_%(table_name)s",
 }
 
-SEXES = ("female", "male", "other", "unknown")
-FRAME_ROLES = ("raster", "projector-off", "projector-on", "dark", "other")
-ACQUISITION_KINDS = ("patient", "calibration", "test")
 
 
 def utcnow() -> dt.datetime:

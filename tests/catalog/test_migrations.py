@@ -9,6 +9,8 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect
 
+from rasterserver.catalog import auth_models as _auth_models  # noqa: F401  (its tables)
+from rasterserver.catalog import job_models as _job_models  # noqa: F401  (its tables)
 from rasterserver.catalog import migrate
 from rasterserver.catalog.database import make_engine
 from rasterserver.catalog.models import Base
