@@ -213,19 +213,19 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     ctx = StageContext(calibration=station, raster=station.raster_definition)
     image = frame.image
     t = time.perf_counter()
-    peaks = run_stage(FirstMomentPeaks, Image(image))
+    peaks = run_stage(FirstMomentPeaks, Image(image), params=_PARAMS.get("peaks"))
     t_peaks = time.perf_counter() - t
     t = time.perf_counter()
     g_col, g_row = generic_peaks(image)
     t_generic = time.perf_counter() - t
     t = time.perf_counter()
-    lines = run_stage(HierarchicalLineSearch, peaks)
+    lines = run_stage(HierarchicalLineSearch, peaks, params=_PARAMS.get("lines"))
     t_lines = time.perf_counter() - t
     t = time.perf_counter()
-    ordered = run_stage(HierarchicalLineOrder, lines)
+    ordered = run_stage(HierarchicalLineOrder, lines, params=_PARAMS.get("order"))
     t_order = time.perf_counter() - t
     t = time.perf_counter()
-    result = run_stage(CodeWindowNumbering, ordered, context=ctx)
+    result = run_stage(CodeWindowNumbering, ordered, params=_PARAMS.get("numbers"), context=ctx)
     t_numbers = time.perf_counter() - t
 
     lr = frame.line_rows
@@ -308,6 +308,8 @@ def score_frame(frame: Frame) -> dict[str, Any]:
 
 
 _CACHE: Path | None = None
+# per-stage parameters for tuning runs (``--params``): {"peaks": {...}, "numbers": {...}}
+_PARAMS: dict[str, dict[str, Any]] = {}
 
 
 def run_scene(seed: int) -> dict[str, Any]:
@@ -323,9 +325,10 @@ def run_scene(seed: int) -> dict[str, Any]:
     return score_frame(frame)
 
 
-def _init(cache: Path | None) -> None:
-    global _CACHE
+def _init(cache: Path | None, params: dict[str, dict[str, Any]] | None = None) -> None:
+    global _CACHE, _PARAMS
     _CACHE = cache
+    _PARAMS = params or {}
 
 
 def _safe(seed: int) -> dict[str, Any]:
@@ -425,6 +428,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/bodies-tune.jsonl"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
     ap.add_argument(
+        "--params",
+        default=None,
+        help='stage parameters for tuning, JSON: {"peaks": {...}, "lines": {...}, ...}',
+    )
+    ap.add_argument(
         "--cache",
         type=Path,
         default=None,
@@ -445,7 +453,10 @@ def main(argv: list[str] | None = None) -> int:
     start = time.time()
     with (
         mp.get_context("spawn").Pool(
-            args.workers, initializer=_init, initargs=(args.cache,), maxtasksperchild=40
+            args.workers,
+            initializer=_init,
+            initargs=(args.cache, json.loads(args.params) if args.params else None),
+            maxtasksperchild=40,
         ) as pool,
         args.out.open("a") as fh,
     ):

@@ -139,6 +139,9 @@ class ComponentNumbering:
         ``(n_levels,)`` int8 observed kind of each level: 0 light, 1 heavy, -1 unknown.
     reason : str
         Why it was refused; empty when numbered.
+    how : str
+        How it was numbered: ``"code"`` (its own code), ``"linked"`` (inherited from the
+        numbered components it touches); empty when refused.
     """
 
     component: int
@@ -148,6 +151,7 @@ class ComponentNumbering:
     margin: float
     kinds: np.ndarray
     reason: str
+    how: str = ""
 
 
 def observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: float) -> np.ndarray:

@@ -39,6 +39,8 @@ from rasterserver_plugins.code_evidence import (
 from rasterserver_plugins.numbering_checks import (
     column_order_conflicts,
     contact_votes,
+    line_jumps,
+    pair_contradictions,
     plausible_distance,
 )
 
@@ -71,11 +73,13 @@ def number_lines(
     max_cost_rate: float = 0.25,
     min_columns: int = 5,
     correlation: float = 4.0,
-    min_votes: float = 5.0,
+    min_votes: float = 8.0,
     max_conflict: float = 0.2,
     min_conflict: float = 3.0,
     station: Any = None,
     max_depth: float = 600.0,
+    pair_check: bool = True,
+    min_contact_share: float = 0.2,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -121,6 +125,13 @@ def number_lines(
         The calibration; when given, the plausible-distance test is made.
     max_depth : float
         Largest distance (mm) of a component from the calibrated back plane's distance.
+    pair_check : bool
+        Refuse the shorter line of numbered column neighbours whose intensity ratio
+        contradicts the code at their numbers (:func:`.numbering_checks.pair_contradictions`).
+    min_contact_share : float
+        Least contact weight, as a share of a component's column extent, for it to inherit
+        a number: a wide component touching numbered lines at a corner only (across a
+        waistband's depth step) is refused.
 
     Returns
     -------
@@ -167,6 +178,15 @@ def number_lines(
     size = np.zeros(n_comp)
     peaks_per_line = np.bincount(data.line_id[data.line_id >= 0], minlength=n_lines)
     np.add.at(size, comps[valid], peaks_per_line[valid])
+    # column extent of every component (for the share of it a link touches)
+    lid_all = data.line_id.astype(np.int64)
+    peak_comp = np.where(lid_all >= 0, comps[np.maximum(lid_all, 0)], -1)
+    has = (peak_comp >= 0) & valid[np.maximum(lid_all, 0)]
+    first_col = np.full(n_comp, np.iinfo(np.int64).max)
+    last_col = np.full(n_comp, -1)
+    np.minimum.at(first_col, peak_comp[has], data.col[has].astype(np.int64))
+    np.maximum.at(last_col, peak_comp[has], data.col[has].astype(np.int64))
+    width = np.maximum(last_col - first_col + 1, 0)
     for c in range(n_comp):
         mine = valid & (comps == c)
         if not np.any(mine):
@@ -195,6 +215,7 @@ def number_lines(
     offset = dict.fromkeys(fits, -1)
     reason = {c: fits[c].reason for c in fits}
     decided: set[int] = set()
+    how_of: dict[int, str] = {}
     order = sorted(fits, key=lambda c: (-size[c], c))
 
     # Each component's contacts, in component order (the order of the sums below): a
@@ -226,6 +247,7 @@ def number_lines(
             why = plausible_distance(data, mine, levels, off, raster, station, max_depth)
         offset[c] = offset[c] if why else off
         reason[c] = why
+        how_of[c] = "" if why else how
         decided.add(c)
 
     for _ in range(6):
@@ -255,6 +277,14 @@ def number_lines(
                 continue
             # the code alone does not decide: inherit from touching numbered components
             if total < min_votes:
+                continue
+            if total < min_contact_share * width[c]:
+                # a few contact columns along a wide component: a corner of it touches a
+                # numbered surface, possibly across a depth step (a waistband); too little
+                reason[c] = (
+                    f"{fit.reason}; touches numbered lines over {total:.0f} columns only, "
+                    f"{width[c]} wide"
+                )
                 continue
             off = max(implied, key=lambda o: implied[o])
             if implied[off] < (1.0 - max_conflict) * total or not 0 <= off < n_off:
@@ -300,7 +330,14 @@ def number_lines(
         best_cost = float(fit.cost[off]) if off >= 0 and fit.cost.size else float("nan")
         results.append(
             ComponentNumbering(
-                c, n_levels_of[c], off, best_cost, fit.margin, kinds_of[c], reason[c]
+                c,
+                n_levels_of[c],
+                off,
+                best_cost,
+                fit.margin,
+                kinds_of[c],
+                reason[c],
+                how_of.get(c, "") if off >= 0 else "",
             )
         )
         if off >= 0:
@@ -319,7 +356,45 @@ def number_lines(
                 "(a line-order error inside a component) left unnumbered",
             )
         )
+    if pair_check:
+        refused = _refuse_contradicted_pairs(data, raster, lam, line_number, peaks_per_line)
+        if refused:
+            results.append(
+                ComponentNumbering(
+                    -1,
+                    refused,
+                    -1,
+                    float("nan"),
+                    0.0,
+                    np.zeros(0, np.int8),
+                    f"{refused} line(s) whose intensity ratio with a column neighbour "
+                    "contradicts the code at their numbers (a piece placed a level off, as "
+                    "across a waistband) left unnumbered",
+                )
+            )
     return line_number, kind, results
+
+
+def _refuse_contradicted_pairs(
+    data: OrderedLines,
+    raster: Raster,
+    lam: float,
+    line_number: np.ndarray,
+    peaks_per_line: np.ndarray,
+) -> int:
+    """Unnumber (in place) the shorter line of every pair of column neighbours whose
+    intensity ratio contradicts the code at their numbers; the count of lines refused."""
+    upper, lower, _ = pair_contradictions(
+        data.col, data.area, data.line_id, line_number, raster, lam
+    )
+    if upper.size == 0:
+        return 0
+    # The image cannot tell which of the two is off; the shorter is the piece (a whole line
+    # misread as the other kind loses one of its neighbours or itself, never a number).
+    shorter = np.where(peaks_per_line[upper] <= peaks_per_line[lower], upper, lower)
+    shorter = np.unique(shorter)
+    line_number[shorter] = -1
+    return int(shorter.size)
 
 
 def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[float, str]:
@@ -366,11 +441,19 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Version 2: geometric checks, linking, reliability weights, area ratio from the raster.
     Version 3: the column order check also judges numbered peaks two or three spacings apart
     (a line continued across a depth step of a whole spacing).
+    Version 4: every pair of numbered column neighbours numbered as consecutive raster
+    lines must show the intensity ratio the code gives those numbers
+    (:func:`.numbering_checks.pair_contradictions`); otherwise the shorter line of the pair
+    is left unnumbered (a piece placed a level off inside a component, as across a
+    waistband). A component inherits a number only through contacts over 8 columns and
+    a fifth of its width (``min_votes``, ``min_contact_share``). Peaks where their line
+    jumps by 0.3 of a spacing between neighbouring columns are refused
+    (:func:`.numbering_checks.line_jumps`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "3"
+    version: ClassVar[str] = "4"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -404,7 +487,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             4.0, ge=1, description="Columns over which the albedo texture is correlated."
         )
         min_votes: float = Field(
-            5.0, ge=1, description="Least contact columns for a component to inherit a number."
+            8.0, ge=1, description="Least contact columns for a component to inherit a number."
         )
         max_conflict: float = Field(
             0.2, gt=0, lt=1, description="Share of contradicting contacts that refuses."
@@ -414,6 +497,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         )
         max_depth: float = Field(
             600.0, gt=0, description="Largest distance (mm) from the calibrated back plane."
+        )
+        min_contact_share: float = Field(
+            0.2,
+            ge=0,
+            le=1,
+            description="Least contact columns, as a share of a component's width, to inherit.",
         )
 
     def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
@@ -442,6 +531,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_conflict=params.min_conflict,
             station=station,
             max_depth=params.max_depth,
+            min_contact_share=params.min_contact_share,
         )
         lid = data.line_id
         comps = data.line_component
@@ -456,6 +546,14 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         table = np.append(line_number, -1).astype(np.int32)
         number = table[np.where(lid >= 0, lid, -1)]
         clash = column_order_conflicts(data.col, data.row, number)
+        jumps = line_jumps(data.col, data.row, lid, number)
+        if np.any(jumps):
+            number = np.where(jumps, -1, number).astype(np.int32)
+            note = (
+                f"{int(jumps.sum())} peak(s) where their line jumps by a fraction of a line "
+                "spacing (a peak of the neighbouring line) left unnumbered"
+            )
+            reason = f"{reason}; {note}" if reason else note
         if np.any(clash):
             number = np.where(clash, -1, number).astype(np.int32)
             note = (

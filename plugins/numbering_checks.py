@@ -263,3 +263,177 @@ def column_order_conflicts(
     out[a[conflict]] = True
     out[b[conflict]] = True
     return out
+
+
+def pair_contradictions(
+    col: np.ndarray,
+    area: np.ndarray,
+    line_id: np.ndarray,
+    line_number: np.ndarray,
+    raster: Raster,
+    lam: float,
+    *,
+    min_columns: int = 5,
+    min_z: float = 3.0,
+    min_departure: float = 0.75,
+    correlation: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of numbered lines, direct column neighbours numbered as consecutive raster lines,
+    whose intensity ratio contradicts the kinds the code gives those numbers.
+
+    The numbering of a component rests on the ratios of all its level pairs; a short piece
+    placed a level or two off (a cloth line across a waistband whose depth step is close to a
+    whole spacing) hardly moves them. Judged pair by pair, the piece's ratios with its column
+    neighbours (``log(area above / area below)``, robust centre over the shared columns) depart
+    from the expected ``(kind above - kind below) * lam``.
+
+    Parameters
+    ----------
+    col, area, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    line_number : numpy.ndarray
+        ``(n_lines,)`` absolute number of every line, -1 when unnumbered.
+    raster : Raster
+        The code.
+    lam : float
+        ``log`` of the heavy/light area ratio.
+    min_columns : int
+        Fewest shared columns for a pair to be judged.
+    min_z : float
+        Least departure, in standard errors of the centre, that contradicts.
+    min_departure : float
+        Least departure, in units of ``lam``, that contradicts.
+    correlation : float
+        Columns over which the albedo texture is correlated (for the standard error).
+
+    Returns
+    -------
+    upper, lower, columns : numpy.ndarray
+        The contradicting pairs' line ids (the upper line, the lower one) and the number of
+        columns where they are neighbours.
+    """
+    empty = np.zeros(0, dtype=np.int64)
+    n = col.size
+    if n < 2 or line_number.size == 0 or raster.n_lines < 2:
+        return empty, empty, empty
+    lid = line_id.astype(np.int64)
+    numbered = (lid >= 0) & (line_number[np.maximum(lid, 0)] >= 0)
+    lut = np.full(int(raster.numbers.max()) + 2, -1, dtype=np.int64)
+    lut[raster.numbers] = np.arange(raster.n_lines)
+    pos = np.full(n, -1, dtype=np.int64)
+    num = line_number[np.maximum(lid, 0)].astype(np.int64)
+    inside = numbered & (num < lut.size - 1)
+    pos[inside] = lut[num[inside]]
+    a = np.flatnonzero(
+        (col[1:] == col[:-1]) & (pos[:-1] >= 0) & (pos[1:] == pos[:-1] + 1) & (lid[1:] != lid[:-1])
+    )
+    if a.size == 0:
+        return empty, empty, empty
+    b = a + 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(area[a].astype(np.float64) / area[b].astype(np.float64))
+    good = np.isfinite(lr)
+    a, b, lr = a[good], b[good], np.clip(lr[good], -1.0, 1.0)
+    if a.size == 0:
+        return empty, empty, empty
+    code = raster.code.astype(np.float64)
+    expected = (code[pos[a]] - code[pos[b]]) * lam
+    keys, inv = np.unique(lid[a] * (int(lid.max()) + 1) + lid[b], return_inverse=True)
+    counts = np.bincount(inv, minlength=keys.size)
+    centre = np.bincount(inv, weights=lr, minlength=keys.size) / counts
+    for window in (0.3, 0.15):  # a robust centre, as in code_evidence.level_statistics
+        near = np.abs(lr - centre[inv]) <= window
+        total = np.bincount(inv[near], weights=lr[near], minlength=keys.size)
+        n_near = np.bincount(inv[near], minlength=keys.size)
+        centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
+    spread = np.bincount(inv, weights=np.abs(lr - centre[inv]), minlength=keys.size) / counts
+    exp_pair = np.zeros(keys.size)
+    exp_pair[inv] = expected
+    se = np.maximum(1.25 * spread / np.sqrt(np.maximum(counts / correlation, 1.0)), 0.01)
+    departure = np.abs(centre - exp_pair)
+    bad = (counts >= min_columns) & (departure >= min_departure * lam) & (departure >= min_z * se)
+    span = int(lid.max()) + 1
+    return keys[bad] // span, keys[bad] % span, counts[bad]
+
+
+def line_jumps(
+    col: np.ndarray,
+    row: np.ndarray,
+    line_id: np.ndarray,
+    number: np.ndarray,
+    *,
+    max_jump: float = 0.3,
+    max_columns: int = 2,
+) -> np.ndarray:
+    """Numbered peaks where their line jumps: two consecutive peaks of a line (at most
+    ``max_columns`` apart) whose row step departs from the line's steps on either side by
+    more than ``max_jump`` of the local line spacing (or, at a line's end, from the next
+    step). Line search took a peak of the neighbouring line there (where lines are dim and
+    crowd); both peaks are refused, the image cannot tell which one it was.
+
+    Parameters
+    ----------
+    col, row, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    max_jump : float
+        Largest departure of a step, in local line spacings.
+    max_columns : int
+        Largest column gap between consecutive peaks of a line that is judged.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool, True for the refused peaks.
+    """
+    n = col.size
+    out = np.zeros(n, dtype=bool)
+    lid = line_id.astype(np.int64)
+    idx = np.flatnonzero((lid >= 0) & (number >= 0))
+    if idx.size < 3:
+        return out
+    spacing = _local_spacing(col, row, number)
+    if spacing is None:
+        return out
+    order = idx[np.lexsort((col[idx], lid[idx]))]
+    same = (lid[order][1:] == lid[order][:-1]) & (
+        np.diff(col[order].astype(np.int64)) <= max_columns
+    )
+    dcol = np.maximum(np.diff(col[order].astype(np.float64)), 1.0)
+    slope = np.diff(row[order]) / dcol
+    slope = np.where(same, slope, np.nan)
+    # the step's neighbours on the left and the right (NaN across a line's end or a gap)
+    left = np.concatenate([[np.nan], slope[:-1]])
+    right = np.concatenate([slope[1:], [np.nan]])
+    ref = np.where(np.isnan(left), right, np.where(np.isnan(right), left, 0.5 * (left + right)))
+    depart = np.abs(slope - ref) * dcol
+    a, b = order[:-1], order[1:]
+    with np.errstate(invalid="ignore"):
+        bad = same & ~np.isnan(ref) & (depart > max_jump * spacing[a])
+    out[a[bad]] = True
+    out[b[bad]] = True
+    return out
+
+
+def _local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:
+    """Per peak, the mean row gap of consecutive numbered lines in its 32 x 32 px cell (the
+    median over the frame where the cell has none); None without any such pair."""
+    numbered = np.flatnonzero(number >= 0)
+    if numbered.size < 2:
+        return None
+    a, b = numbered[:-1], numbered[1:]
+    one = (col[a] == col[b]) & (number[b].astype(np.int64) - number[a] == 1)
+    if not np.any(one):
+        return None
+    a, b = a[one], b[one]
+    gap = row[b] - row[a]
+    cell_of = (col.astype(np.int64) // 32) * 100000 + (row.astype(np.int64) // 32)
+    keys, inv = np.unique(cell_of[a], return_inverse=True)
+    total = np.bincount(inv, weights=gap, minlength=keys.size)
+    cnt = np.bincount(inv, minlength=keys.size)
+    pos = np.searchsorted(keys, cell_of)
+    pos = np.minimum(pos, keys.size - 1)
+    found = keys[pos] == cell_of
+    mean = total / np.maximum(cnt, 1)
+    return np.where(found, mean[pos], float(np.median(gap)))

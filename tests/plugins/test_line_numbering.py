@@ -47,6 +47,15 @@ def _ordered_truth(
     )
 
 
+def _assert_numbered_right(result: NumberedLines, number: np.ndarray, refused: int = 20) -> None:
+    """Every numbered peak right, at most ``refused`` left unnumbered: truth lines join the
+    trunk and the arm at the shoulders, where the line jumps by a spacing (version 4 refuses
+    the peaks there)."""
+    numbered = result.number >= 0
+    assert np.array_equal(result.number[numbered], number[numbered])
+    assert np.count_nonzero(~numbered) <= refused
+
+
 def _wrong_and_numbered(result: NumberedLines, number: np.ndarray) -> tuple[int, int]:
     wrong = numbered = 0
     for line in range(result.line_order.size):
@@ -99,8 +108,12 @@ def test_truth_lines_are_numbered() -> None:
     result = run_stage(
         CodeWindowNumbering, _ordered_truth(col, row, area, number), context=_context()
     )
-    assert np.array_equal(result.number, number)
-    assert result.reason == ""
+    # one "line" per raster line joins surfaces at the shoulders, where the real line jumps
+    # by a spacing: those few peaks are refused (version 4), nothing else
+    numbered = result.number >= 0
+    assert np.array_equal(result.number[numbered], number[numbered])
+    assert np.count_nonzero(~numbered) <= 20
+    assert result.reason == "" or "line jumps" in result.reason
 
 
 @pytest.mark.parametrize("which", [5, 20, 40])
@@ -115,7 +128,12 @@ def test_one_swapped_kind_still_numbers_correctly(which: int) -> None:
     result = run_stage(
         CodeWindowNumbering, _ordered_truth(col, row, area, number), context=_context()
     )
-    assert np.array_equal(result.number, number)
+    # the component is numbered right; the misread line's ratios with its neighbours
+    # contradict the code there, so it or a neighbour may be refused (version 4), never
+    # numbered wrongly
+    numbered = result.number >= 0
+    assert np.array_equal(result.number[numbered], number[numbered])
+    assert np.count_nonzero(result.line_number < 0) <= 2
     line = np.flatnonzero(np.unique(number) == target)[0]
     assert result.kind_observed[line] in (-1, 0 if heavy else 1)
 
@@ -186,7 +204,7 @@ def test_numbers_come_from_the_raster_definition() -> None:
         _ordered_truth(col, row, area, number),
         context=StageContext(raster=shifted),
     )
-    assert np.array_equal(result.number, number + 100)
+    _assert_numbered_right(result, number + 100)
 
 
 def test_min_lines_parameter() -> None:
@@ -195,7 +213,7 @@ def test_min_lines_parameter() -> None:
     keep = np.isin(number, numbers[20:32])  # 12 lines
     ordered = _ordered_truth(col[keep], row[keep], area[keep], number[keep])
     numbered = run_stage(CodeWindowNumbering, ordered, context=_context())
-    assert np.array_equal(numbered.number, number[keep])
+    _assert_numbered_right(numbered, number[keep])
     refused = run_stage(CodeWindowNumbering, ordered, {"min_lines": 13}, context=_context())
     assert np.all(refused.number == -1) and "too few lines" in refused.reason
 
@@ -251,10 +269,16 @@ def test_touching_component_with_contradicting_code_is_refused() -> None:
     order = np.lexsort((row, col))
     sel = lambda a: a[order]  # noqa: E731
     data = OrderedLines(
-        col=sel(col), row=sel(row), area=sel(area2).astype(np.float32),
-        height=np.full(col.size, 40.0, np.float32), width=np.full(col.size, 7, np.int16),
-        image_shape=np.array([604, 576]), line_id=sel(new_line).astype(np.int32),
-        order=line_order[sel(new_line)], line_order=line_order, line_component=line_comp,
+        col=sel(col),
+        row=sel(row),
+        area=sel(area2).astype(np.float32),
+        height=np.full(col.size, 40.0, np.float32),
+        width=np.full(col.size, 7, np.int16),
+        image_shape=np.array([604, 576]),
+        line_id=sel(new_line).astype(np.int32),
+        order=line_order[sel(new_line)],
+        line_order=line_order,
+        line_component=line_comp,
     )
     result = run_stage(CodeWindowNumbering, data, context=_context())
     truth = sel(number)
@@ -322,4 +346,52 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "3"
+    assert CodeWindowNumbering.version == "4"
+
+
+def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> None:
+    """A waistband whose depth step is two line spacings: in its columns the two lines at
+    the step are hidden and the lines below it are taken as the next ones (line sequence
+    cannot see the step). The component's code, read over all its columns, is unmoved; the
+    pieces' intensity ratios with their column neighbours contradict their numbers, except
+    where the code two lines on happens to have the same kinds on both sides of a piece:
+    those stay wrong (the remaining wrong numbers on the clinic scenes)."""
+    from rasterserver_plugins.line_numbering import number_lines
+
+    col, row, area, number = truth_lines(back("normal"))
+    ordered = _ordered_truth(col, row, area, number)
+    numbers = np.unique(number)
+    cut = numbers[-14]
+    cloth = (col >= 200) & (col < 260)
+    keep = ~(cloth & np.isin(number, numbers[-16:-14]))  # the two hidden lines
+    n_lines = numbers.size
+    lid = ordered.line_id.copy()
+    piece = cloth & (number >= cut)
+    lid[piece] += n_lines  # each cloth piece a line of its own
+    line_order = np.concatenate([ordered.line_order, ordered.line_order - 2])
+    line_component = np.zeros(2 * n_lines, np.int32)
+    sel = np.flatnonzero(keep)
+    bad = OrderedLines.extend(
+        ordered,
+        col=col[sel],
+        row=row[sel],
+        area=area[sel],
+        height=ordered.height[sel],
+        width=ordered.width[sel],
+        line_id=lid[sel].astype(np.int32),
+        order=line_order[lid[sel]].astype(np.int32),
+        line_order=line_order.astype(np.int32),
+        line_component=line_component,
+    )
+    truth = np.concatenate([numbers, numbers])
+    pieces = np.arange(n_lines, 2 * n_lines)[numbers >= cut]
+    raster = rendering_raster()
+    naive, _, _ = number_lines(bad, raster, pair_check=False)
+    checked, _, comps = number_lines(bad, raster)
+    assert np.count_nonzero((naive[pieces] >= 0) & (naive[pieces] != truth[pieces])) >= 8
+    assert not np.any((checked >= 0) & (checked != truth) & (np.arange(truth.size) < n_lines))
+    naive_wrong = np.count_nonzero((naive[pieces] >= 0) & (naive[pieces] != truth[pieces]))
+    wrong = np.count_nonzero((checked[pieces] >= 0) & (checked[pieces] != truth[pieces]))
+    assert wrong <= naive_wrong // 2
+    assert np.count_nonzero(checked[:n_lines] >= 0) >= n_lines - 3
+    assert any("intensity ratio" in c.reason for c in comps)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from rasterserver_plugins.numbering_checks import _line_ends, contact_votes
+from rasterserver_plugins.numbering_checks import _line_ends, contact_votes, pair_contradictions
 
 
 def _sorted(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -63,3 +63,46 @@ def test_continuation_across_a_gap_votes_for_the_same_number() -> None:
     # the right part one level lower (a line missing): the vote says so
     shifted = contact_votes(col, row, lid, np.array([0, 1, 1, 2], np.int32), comp, min_line=5)
     assert set(shifted[(0, 1)]) == {-1}
+
+
+def _coded_lines(kind_of_piece: int | None, noise: float = 0.03) -> tuple[np.ndarray, ...]:
+    """20 lines of the w8-1to2 raster over 30 columns, areas by their kinds; with a piece
+    (columns 20-29 of line 10, a line of its own) of the given kind when not None."""
+    from rasterserver.raster import get_raster
+
+    raster = get_raster("w8-1to2")
+    rng = np.random.default_rng(5)
+    cols, rows, lids, areas = [], [], [], []
+    for i in range(20):
+        for c in range(30):
+            piece = kind_of_piece is not None and i == 10 and c >= 20
+            kind = kind_of_piece if piece else raster.code[i]
+            cols.append(c)
+            rows.append(10.0 * i)
+            lids.append(20 if piece else i)
+            areas.append((200.0 if kind else 100.0) * (1.0 + noise * rng.standard_normal()))
+    col, _row, lid = _sorted(np.array(cols), np.array(rows), np.array(lids))
+    area = np.array(areas)[np.lexsort((np.array(rows), np.array(cols)))]
+    line_number = np.append(raster.numbers[:20], raster.numbers[10]).astype(np.int32)
+    return col, area, lid, line_number, raster
+
+
+def test_a_piece_of_the_wrong_kind_contradicts_its_neighbours() -> None:
+    col, area, lid, line_number, raster = _coded_lines(1 - 1)  # line 10 is heavy: a light piece
+    assert raster.code[10] == 1
+    upper, lower, columns = pair_contradictions(col, area, lid, line_number, raster, np.log(2.0))
+    assert 20 in set(upper.tolist()) | set(lower.tolist())
+    assert np.all(columns == 10)
+    # the long lines around it agree with one another
+    assert all(20 in (u, v) for u, v in zip(upper.tolist(), lower.tolist(), strict=True))
+
+
+def test_lines_of_the_right_kinds_contradict_nothing() -> None:
+    col, area, lid, line_number, raster = _coded_lines(None, noise=0.1)
+    upper, _, _ = pair_contradictions(col, area, lid, line_number, raster, np.log(2.0))
+    assert upper.size == 0
+    # degenerate inputs: no peaks, nothing numbered
+    empty = np.zeros(0, np.int64)
+    assert pair_contradictions(empty, empty * 1.0, empty, line_number, raster, 0.7)[0].size == 0
+    none = np.full(line_number.shape, -1, np.int32)
+    assert pair_contradictions(col, area, lid, none, raster, 0.7)[0].size == 0

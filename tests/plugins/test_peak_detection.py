@@ -208,3 +208,34 @@ def test_wide_peaks_need_a_wider_window() -> None:
     err = _match(peaks, cols, rows)
     assert peaks.n_peaks == rows.size
     assert np.sqrt(np.mean(err**2)) < 0.05
+
+
+def _sharp_column(centre: float, n: int = 40, sigma: float = 0.35) -> np.ndarray:
+    """One column with a line sharper than a pixel (Gaussian ``sigma`` px), integrated over
+    the pixels."""
+    from math import erf, sqrt
+
+    edges = np.arange(n + 1) - 0.5
+    cdf = np.array([0.5 * (1.0 + erf((e - centre) / (sigma * sqrt(2.0)))) for e in edges])
+    return (12.0 + 180.0 * np.diff(cdf)).astype(np.float32)[:, None]
+
+
+@pytest.mark.parametrize("centre", [19.9, 20.1, 20.25, 19.7])
+def test_line_sharper_than_a_pixel_is_found_at_its_centre(centre: float) -> None:
+    pixels = np.repeat(_sharp_column(centre), 3, axis=1)
+    found = detect_peaks(pixels)
+    assert found.col.size == 3
+    # the centroid of three pixels of so sharp a line is biased towards the pixel centre
+    assert np.allclose(found.row, centre, atol=0.1)
+
+
+def test_line_in_one_pixel_above_the_bias_is_found_only_with_narrow() -> None:
+    pixels = np.repeat(_sharp_column(19.9, sigma=0.2), 3, axis=1)
+    assert detect_peaks(pixels, narrow=False).col.size == 0
+    found = detect_peaks(pixels)
+    assert found.col.size == 3 and np.allclose(found.row, 19.9, atol=0.15)
+
+
+def test_line_entirely_inside_one_pixel_is_not_told_from_a_hot_pixel() -> None:
+    pixels = np.repeat(_sharp_column(20.0, sigma=0.05), 3, axis=1)
+    assert detect_peaks(pixels).col.size == 0
