@@ -62,6 +62,9 @@ RULES: dict[str, frozenset[str]] = {
     "start_job": frozenset({CLINICIAN}),
     "list_jobs": frozenset({CLINICIAN}),
     "get_job": frozenset({CLINICIAN}),
+    "pause_job": frozenset({CLINICIAN}),
+    "resume_job": frozenset({CLINICIAN}),
+    "cancel_job": frozenset({CLINICIAN}),
     # oversight
     "get_audit": frozenset({ADMIN}),
 }
