@@ -18,7 +18,6 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import hashlib
-import json
 import logging
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -51,6 +50,7 @@ from rasterserver.catalog.models import (
 from rasterserver.config import Settings
 from rasterserver.errors import ConflictError, InputError, NotFoundError
 from rasterserver.frame_fit import check_frames_fit
+from rasterserver.hashing import canonical_json_sha256
 from rasterserver.identifiers import PATIENT_MAX, check_name, lookup_key
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
 from rasterserver.times import require_zone
@@ -185,12 +185,6 @@ def _check_range(since: dt.datetime | None, until: dt.datetime | None) -> None:
     for value, what in ((since, "since"), (until, "until")):
         if value is not None:
             require_zone(value, what)
-
-
-def canonical_json_sha256(document: Any) -> str:
-    """Return the SHA-256 of ``document`` serialised as canonical JSON (sorted keys)."""
-    text = json.dumps(document, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(text.encode()).hexdigest()
 
 
 # The statements of find() and info() are built once, with bound parameters: building a

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self, cast, dataclass_
 import numpy as np
 
 from rasterserver.errors import InputError
+from rasterserver.hashing import canonical_array
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -275,7 +276,7 @@ class Record:
         digest = hashlib.sha256(f"rasterserver.record\0{self.kind}\0".encode())
         arrays = self.to_arrays()
         for name in sorted(arrays):
-            array = _canonical(arrays[name])
+            array = canonical_array(arrays[name])
             digest.update(f"{name}\0{array.dtype.str}\0{array.shape}\0".encode())
             digest.update(array.tobytes())
         return digest.hexdigest()
@@ -290,7 +291,7 @@ class Record:
         if mine.keys() != theirs.keys():
             return False
         for key, a in mine.items():
-            a, b = _canonical(a), _canonical(theirs[key])
+            a, b = canonical_array(a), canonical_array(theirs[key])
             if a.dtype != b.dtype or a.shape != b.shape or a.tobytes() != b.tobytes():
                 return False
         return True
@@ -307,14 +308,6 @@ class Record:
             else:
                 parts.append(f"{spec.name}={reprlib.repr(value)}")
         return f"{type(self).__name__}({', '.join(parts)})"
-
-
-def _canonical(array: np.ndarray) -> np.ndarray:
-    """Return ``array`` C-contiguous and little-endian, so its bytes mean one thing."""
-    array = np.ascontiguousarray(array)
-    if array.dtype.str.startswith(">"):
-        array = array.astype(array.dtype.newbyteorder("<"))
-    return array
 
 
 def _from_array(cls: type, spec: _FieldSpec, array: np.ndarray) -> Any:

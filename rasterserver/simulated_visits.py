@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rasterserver.archive import Archive, FrameSource, canonical_json_sha256
+from rasterserver.archive import Archive, FrameSource
 from rasterserver.catalog.models import Acquisition
 from rasterserver.errors import ConflictError, NotFoundError
+from rasterserver.hashing import canonical_json_sha256
 from rasterserver.optics import Station
 from rasterserver.simulator.back import BackParameters
 

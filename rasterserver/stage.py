@@ -26,9 +26,7 @@ parameters and checks the output type.
 
 from __future__ import annotations
 
-import hashlib
 import inspect
-import json
 import re
 import reprlib
 import weakref
@@ -40,6 +38,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from rasterserver.errors import InputError
+from rasterserver.hashing import canonical_json_sha256
 from rasterserver.records import Record
 
 __all__ = [
@@ -293,10 +292,9 @@ def params_hash(params: BaseModel) -> str:
     str
         64 lowercase hex digits.
     """
-    canonical = json.dumps(
-        params.model_dump(mode="json"), sort_keys=True, separators=(",", ":"), ensure_ascii=False
-    )
-    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+    # non-ASCII written as is, NaN allowed: as these digests were first stored
+    return canonical_json_sha256(params.model_dump(mode="json"), ensure_ascii=False,
+                                 allow_nan=True)
 
 
 def _describe_validation_error(exc: ValidationError, params_cls: type[BaseModel]) -> str:

@@ -13,10 +13,11 @@ from dataclasses import dataclass
 
 from sqlalchemy import select
 
-from rasterserver.archive import Archive, FrameSource, canonical_json_sha256
+from rasterserver.archive import Archive, FrameSource
 from rasterserver.calibration.station_calibration import CalibrationFrames, StationCalibration
 from rasterserver.catalog.models import Raster as RasterRow
 from rasterserver.errors import NotFoundError
+from rasterserver.hashing import canonical_json_sha256
 from rasterserver.raster import Raster
 
 __all__ = ["StoredCalibration", "calibration_frame_sources", "ensure_raster", "store_calibration"]
