@@ -16,15 +16,42 @@ taken for gone: its pids mean nothing here.
 
 Only runners on this host can be checked. A runner on another host, or one written without a
 pid, is never reported gone: not being able to tell must not look like a crash.
+
+Reaping
+-------
+:func:`reap_runs` stores a pipeline run left ``running`` by a gone process as ``failed``, with
+an error beginning :data:`INTERRUPTED`. :class:`rasterserver.pipeline.Pipeline` calls it
+whenever runs are listed, an acquisition is planned or the unprocessed ones are selected.
 """
 
 from __future__ import annotations
 
+import datetime as dt
+import logging
 import os
 import socket
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-__all__ = ["current_runner", "describe_runner", "local_host", "runner_gone", "runner_host"]
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session
+
+__all__ = [
+    "INTERRUPTED",
+    "ReapReport",
+    "current_runner",
+    "describe_runner",
+    "local_host",
+    "reap_runs",
+    "runner_gone",
+    "runner_host",
+]
+
+log = logging.getLogger(__name__)
+
+#: How the error of a run whose process was killed begins (its status is ``failed``).
+INTERRUPTED = "interrupted: "
 
 _PROC = Path("/proc")
 _BOOT_ID = _PROC / "sys/kernel/random/boot_id"
@@ -160,3 +187,110 @@ def runner_gone(runner: str) -> bool:
     if state in ("Z", "X"):
         return True  # dead, not yet reaped by its parent
     return bool(start) and bool(current_boot) and started != start
+
+
+# --- reaping pipeline runs ---------------------------------------------------------------------
+
+
+@dataclass
+class ReapReport:
+    """What :func:`reap_runs` found among the ``running`` runs.
+
+    Attributes
+    ----------
+    marked : int
+        Runs marked interrupted (with ``dry_run``: that would have been).
+    alive : int
+        Runs of live processes on this host, left running.
+    unchecked : dict of str to int
+        Per host, runs left running that cannot be checked from here: those of other hosts
+        not named in ``hosts``, and those recorded before runs named their process.
+    """
+
+    marked: int = 0
+    alive: int = 0
+    unchecked: dict[str, int] = field(default_factory=dict)
+
+
+def _interruption(host: str, runner: str, declared: frozenset[str]) -> str | None:
+    """The error to store for a ``running`` run, or None to leave it running."""
+    if runner_gone(runner):
+        return f"{INTERRUPTED}the process running it ({describe_runner(runner)}) is gone"
+    where = runner_host(runner) or host
+    if where not in declared:
+        return None
+    if where == local_host() and runner_host(runner):
+        return None  # its process is here and alive: naming the host does not stop it
+    return (
+        f"{INTERRUPTED}host {where} was reported to run it no longer "
+        f"(`rasterserver runs reap --host {where}`); it ran as {describe_runner(runner)}"
+    )
+
+
+def reap_runs(
+    s: Session,
+    report: ReapReport | None = None,
+    *,
+    acquisition_id: int | None = None,
+    local_only: bool = False,
+    declared: frozenset[str] = frozenset(),
+    dry_run: bool = False,
+) -> ReapReport:
+    """Mark the pipeline runs left ``running`` by gone processes as interrupted, in ``s``.
+
+    Parameters
+    ----------
+    s : sqlalchemy.orm.Session
+        The session to read and update in (its transaction commits the marks).
+    report : ReapReport, optional
+        Added to; a new one by default.
+    acquisition_id : int, optional
+        Only this acquisition's runs.
+    local_only : bool, optional
+        Only runs of this host (the automatic path: other hosts cannot be checked anyway).
+    declared : frozenset of str, optional
+        Hosts whose ``running`` runs are to be taken as stopped.
+    dry_run : bool, optional
+        Count, change nothing.
+
+    Returns
+    -------
+    ReapReport
+    """
+    # imported here: this module is also read by light modules that need no database
+    from sqlalchemy import select, update
+
+    from rasterserver.catalog.models import PipelineRun
+
+    report = report if report is not None else ReapReport()
+    query = select(PipelineRun.id, PipelineRun.host, PipelineRun.runner).where(
+        PipelineRun.status == "running"
+    )
+    if acquisition_id is not None:
+        query = query.where(PipelineRun.acquisition_id == acquisition_id)
+    here = local_host()
+    if local_only:
+        query = query.where(PipelineRun.host == here)
+    for run_id, host, runner in s.execute(query).all():
+        error = _interruption(host, runner, declared)
+        if error is None:
+            where = runner_host(runner) or host
+            if where == here and runner:
+                report.alive += 1
+            else:
+                report.unchecked[where] = report.unchecked.get(where, 0) + 1
+            continue
+        if dry_run:
+            report.marked += 1
+            continue
+        # only if still running: its process may have finished it since it was read
+        done = s.execute(
+            update(PipelineRun)
+            .where(PipelineRun.id == run_id, PipelineRun.status == "running")
+            .values(status="failed", finished_at=dt.datetime.now(dt.UTC), error=error)
+            .execution_options(synchronize_session=False)
+        )
+        if done.rowcount:
+            report.marked += 1
+            log.warning("pipeline run %d marked failed: %s", run_id, error)
+    return report

@@ -16,20 +16,18 @@ from __future__ import annotations
 
 import hashlib
 import json
-import socket
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 
-from rasterserver import __version__
-from rasterserver.catalog.models import StageResult, StageResultInput, utcnow
+from rasterserver.catalog.models import StageResult, StageResultInput
 from rasterserver.errors import InputError
 from rasterserver.pair_comparison import pack, pack_visit
 from rasterserver.records import Record
+from rasterserver.result_rows import add_or_adopt, result_row
 from rasterserver.stage import coerce_params, params_hash, run_stage
 
 if TYPE_CHECKING:
@@ -159,58 +157,39 @@ def _stored(
         input_checksum=input_checksum,
     )
     package = registry.info(stage.name).package or ""
-    with pipeline.archive.session() as s:
-        new = StageResult(
-            acquisition_id=owner.acquisition_id,
-            run_id=None,
-            parent_id=None,
-            calibration_id=None,
-            frame_index=owner.frame_index,
-            stage=kind,
-            plugin=stage.name,
-            plugin_version=stage.version,
-            plugin_package=package,
-            params=validated.model_dump(mode="json"),
-            params_hash=digest,
-            chain_key=key,
-            input_checksum=input_checksum,
-            output_checksum=stored.output_checksum,
-            record_kind=record.kind,
-            store_path=stored.path,
-            reason=getattr(record, "reason", "") or "",
-            package_version=__version__,
-            host=socket.gethostname(),
-            duration_s=duration,
-            created_at=utcnow(),
-        )
-        try:
-            with s.begin_nested():
-                s.add(new)
-                s.flush()
-                for position, (role, rid, _sum, acquisition_id) in enumerate(inputs):
-                    s.add(
-                        StageResultInput(
-                            result_id=new.id,
-                            position=position,
-                            role=role,
-                            input_id=rid,
-                            acquisition_id=acquisition_id,
-                        )
-                    )
-                s.flush()
-        except SQLIntegrityError:
-            # another process stored the same result meanwhile: use its row
-            existing = s.scalar(
-                select(StageResult).where(
-                    StageResult.acquisition_id == owner.acquisition_id,
-                    StageResult.chain_key == key,
+    new = result_row(
+        record,
+        acquisition_id=owner.acquisition_id,
+        frame_index=owner.frame_index,
+        stage=kind,
+        plugin=stage.name,
+        plugin_version=stage.version,
+        plugin_package=package,
+        params=validated.model_dump(mode="json"),
+        params_hash=digest,
+        chain_key=key,
+        input_checksum=input_checksum,
+        output_checksum=stored.output_checksum,
+        store_path=stored.path,
+        duration_s=duration,
+    )
+
+    def add_inputs(row: StageResult) -> None:
+        for position, (role, rid, _sum, acquisition_id) in enumerate(inputs):
+            s.add(
+                StageResultInput(
+                    result_id=row.id,
+                    position=position,
+                    role=role,
+                    input_id=rid,
+                    acquisition_id=acquisition_id,
                 )
             )
-            if existing is None:
-                raise
-            return StoredComparison(existing.id, record, True, stage.name, stage.version)
-        result_id = new.id
-    return StoredComparison(result_id, record, False, stage.name, stage.version)
+
+    with pipeline.archive.session() as s:
+        row, adopted = add_or_adopt(s, new, then=add_inputs)
+        result_id = row.id
+    return StoredComparison(result_id, record, adopted, stage.name, stage.version)
 
 
 def stored_comparison(

@@ -1,0 +1,137 @@
+"""Writing :class:`~rasterserver.catalog.models.StageResult` rows: one way, for every caller.
+
+A stored result is a derived file (written durably first, :mod:`rasterserver.store.derived`)
+and then its row. Two processes may store the same computation at once (same acquisition,
+same chain key): the second insert hits the unique constraint, and that process adopts the
+row already there instead of failing. :class:`rasterserver.pipeline.Pipeline` and
+:mod:`rasterserver.stored_comparison` both store results this way.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import socket
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError as SQLIntegrityError
+from sqlalchemy.orm import Session
+
+from rasterserver import __version__
+from rasterserver.catalog.models import StageResult
+from rasterserver.records import Record
+
+__all__ = ["add_or_adopt", "result_row"]
+
+
+def result_row(
+    record: Record,
+    *,
+    acquisition_id: int,
+    frame_index: int,
+    stage: str,
+    plugin: str,
+    plugin_version: str,
+    plugin_package: str,
+    params: Mapping[str, Any],
+    params_hash: str,
+    chain_key: str,
+    input_checksum: str,
+    output_checksum: str,
+    store_path: str,
+    duration_s: float,
+    run_id: int | None = None,
+    parent_id: int | None = None,
+    calibration_id: int | None = None,
+    host: str | None = None,
+) -> StageResult:
+    """A new, unsaved row for ``record`` stored at ``store_path``.
+
+    Parameters
+    ----------
+    record : Record
+        The result; its kind and its ``reason`` (when it has one) go into the row.
+    host : str, optional
+        Where it was computed; this host by default.
+    acquisition_id, frame_index, stage, plugin, plugin_version, plugin_package, params, \
+params_hash, chain_key, input_checksum, output_checksum, store_path, duration_s, run_id, \
+parent_id, calibration_id
+        The columns of the same names.
+
+    Returns
+    -------
+    StageResult
+    """
+    return StageResult(
+        acquisition_id=acquisition_id,
+        run_id=run_id,
+        parent_id=parent_id,
+        calibration_id=calibration_id,
+        frame_index=frame_index,
+        stage=stage,
+        plugin=plugin,
+        plugin_version=plugin_version,
+        plugin_package=plugin_package,
+        params=dict(params),
+        params_hash=params_hash,
+        chain_key=chain_key,
+        input_checksum=input_checksum,
+        output_checksum=output_checksum,
+        record_kind=record.kind,
+        store_path=store_path,
+        reason=getattr(record, "reason", "") or "",
+        package_version=__version__,
+        host=host or socket.gethostname(),
+        duration_s=float(duration_s),
+        created_at=dt.datetime.now(dt.UTC),
+    )
+
+
+def add_or_adopt(
+    s: Session,
+    row: StageResult,
+    *,
+    then: Callable[[StageResult], None] | None = None,
+) -> tuple[StageResult, bool]:
+    """Insert ``row`` in a savepoint of ``s``, or adopt the row that stores the same result.
+
+    Parameters
+    ----------
+    s : sqlalchemy.orm.Session
+        Inside a transaction; nothing is committed here.
+    row : StageResult
+        From :func:`result_row`.
+    then : callable, optional
+        Called with the flushed row (its id known) inside the same savepoint, to add rows
+        that belong to it (a comparison's inputs); undone with it if the insert conflicts.
+
+    Returns
+    -------
+    (StageResult, bool)
+        The row in the catalogue, and whether it was already there (adopted).
+
+    Raises
+    ------
+    sqlalchemy.exc.IntegrityError
+        The insert failed for another reason than an existing row with the same key.
+    """
+    try:
+        with s.begin_nested():
+            s.add(row)
+            if then is not None:
+                s.flush()
+                then(row)
+            s.flush()
+    except SQLIntegrityError:
+        # another process stored the same computation meanwhile: use its row
+        existing = s.scalar(
+            select(StageResult).where(
+                StageResult.acquisition_id == row.acquisition_id,
+                StageResult.chain_key == row.chain_key,
+            )
+        )
+        if existing is None:
+            raise
+        return existing, True
+    return row, False
