@@ -23,7 +23,7 @@ import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
@@ -52,6 +52,8 @@ from rasterserver.errors import ConflictError, InputError, NotFoundError
 from rasterserver.frame_fit import check_frames_fit
 from rasterserver.hashing import canonical_json_sha256
 from rasterserver.identifiers import PATIENT_MAX, check_name, lookup_key
+from rasterserver.integrity import Problem as Problem  # re-exported
+from rasterserver.integrity import Progress, VerifyReport, verify_raw
 from rasterserver.store.raw import FrameToWrite, RawStore, StoredFrame
 from rasterserver.times import require_zone
 
@@ -67,8 +69,6 @@ log = logging.getLogger(__name__)
 #: Called with the name of each ingest step as it completes; the crash tests kill the
 #: process from here. Steps: those of :class:`RawStore` and ``"committed"``.
 CrashHook = Callable[[str], None]
-#: Called with (done, total) while a long operation runs.
-Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -1092,70 +1092,14 @@ class Archive:
     def verify(self, *, progress: Progress | None = None) -> VerifyReport:
         """Re-hash every stored frame and compare files with catalogue rows.
 
+        See :func:`rasterserver.integrity.verify_raw`.
+
         Returns
         -------
         VerifyReport
             Missing, corrupt, orphaned and temporary files, with explanations.
         """
-        report = VerifyReport()
-        with self.session() as s:
-            expected: dict[str, dict[int, str]] = {}
-            for uid, index, digest in s.execute(
-                select(Acquisition.uid, Frame.index, Frame.sha256).join(Frame)
-            ):
-                expected.setdefault(uid, {})[index] = digest
-            for (uid,) in s.execute(select(Acquisition.uid)):
-                expected.setdefault(uid, {})
-        found: dict[str, Path] = {}
-        for entry in self.raw.scan():
-            if entry.kind == "final" and entry.uid is not None:
-                found[entry.uid] = entry.path
-            elif entry.kind == "temp":
-                report.problems.append(
-                    Problem(
-                        "temporary",
-                        entry.uid,
-                        entry.path,
-                        "partial write left by an interrupted ingest (no catalogue row refers "
-                        "to it); safe to delete",
-                    )
-                )
-            else:
-                report.problems.append(
-                    Problem("stray", entry.uid, entry.path, "file not made by rasterserver")
-                )
-        total = len(expected) + len(set(found) - set(expected))
-        done = 0
-        for uid, hashes in sorted(expected.items()):
-            file_report = self.raw.check_file(uid, hashes)
-            report.frames_checked += len(file_report.hashes)
-            path = self.raw.path_for(uid)
-            if file_report.status == "missing":
-                report.problems.append(
-                    Problem("missing", uid, path, "catalogue row without its file")
-                )
-            else:
-                for problem in file_report.problems:
-                    kind = "unreadable" if file_report.status == "unreadable" else "corrupt"
-                    report.problems.append(Problem(kind, uid, path, problem.message))
-            done += 1
-            if progress:
-                progress(done, total)
-        for uid in sorted(set(found) - set(expected)):
-            report.problems.append(
-                Problem(
-                    "orphaned",
-                    uid,
-                    found[uid],
-                    "complete file without a catalogue row: an ingest stopped between "
-                    "writing the file and committing the row",
-                )
-            )
-            done += 1
-            if progress:
-                progress(done, total)
-        report.acquisitions_checked = len(expected)
-        return report
+        return verify_raw(self.catalog, self.raw, progress=progress)
 
     def repair(
         self,
@@ -1219,39 +1163,3 @@ def _validate_array(array: np.ndarray, name: str, limit: int) -> np.ndarray:
     buffer = BytesIO()
     np.save(buffer, np.asarray(array), allow_pickle=False)
     return decode_frame_bytes(buffer.getvalue(), name=f"{name}.npy", max_bytes=limit)
-
-
-@dataclass(frozen=True)
-class Problem:
-    """One thing ``verify`` found wrong.
-
-    Attributes
-    ----------
-    kind : str
-        ``missing``, ``corrupt``, ``unreadable``, ``orphaned``, ``temporary`` or ``stray``.
-    uid : str or None
-        The acquisition concerned.
-    path : Path or None
-        The file concerned.
-    detail : str
-        What is wrong and what it means.
-    """
-
-    kind: str
-    uid: str | None
-    path: Path | None
-    detail: str
-
-
-@dataclass
-class VerifyReport:
-    """Outcome of :meth:`Archive.verify`."""
-
-    acquisitions_checked: int = 0
-    frames_checked: int = 0
-    problems: list[Problem] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        """True when nothing is missing, corrupt, orphaned or left over."""
-        return not self.problems

@@ -37,7 +37,7 @@ from typing import Any
 from sqlalchemy import exists, select
 
 from rasterserver import __version__
-from rasterserver.archive import Archive, Problem, VerifyReport, canonical_json_sha256
+from rasterserver.archive import Archive
 from rasterserver.catalog.models import (
     Acquisition,
     Calibration,
@@ -62,6 +62,8 @@ from rasterserver.chain import (
 from rasterserver.documents import calibration_from_document, raster_from_document
 from rasterserver.errors import InputError, IntegrityError, NotFoundError, RasterServerError
 from rasterserver.frame_fit import check_frame_fits
+from rasterserver.hashing import canonical_json_sha256
+from rasterserver.integrity import VerifyReport, verify_derived
 from rasterserver.optics import Station
 from rasterserver.raster import Raster
 from rasterserver.records import Image, Record
@@ -553,67 +555,16 @@ class Pipeline:
     def verify(self, *, progress: Callable[[int, int], None] | None = None) -> VerifyReport:
         """Check stored results against their rows: every row's file exists and matches.
 
-        Reported problems (:class:`rasterserver.archive.Problem`): ``missing`` (a row without
-        its file), ``corrupt`` (a file whose contents differ from the row's checksum or that
-        cannot be read), ``orphaned`` (a complete file without a row: processing stopped
-        between writing it and committing its row; the next run of the same computation
-        adopts it), ``temporary`` (a partial write) and ``stray`` (not made by rasterserver).
+        See :func:`rasterserver.integrity.verify_derived` (problems ``missing``, ``corrupt``,
+        ``orphaned``: the next run of the same computation adopts it, ``temporary`` and
+        ``stray``).
 
         Returns
         -------
-        rasterserver.archive.VerifyReport
+        rasterserver.integrity.VerifyReport
             ``frames_checked`` counts the results checked.
         """
-        report = VerifyReport()
-        with self.archive.session() as s:
-            rows = list(
-                s.execute(
-                    select(Acquisition.uid, StageResult.store_path, StageResult.output_checksum)
-                    .join(Acquisition, Acquisition.id == StageResult.acquisition_id)
-                    .order_by(StageResult.id)
-                )
-            )
-        known = {path for _uid, path, _sum in rows}
-        for done, (uid, path, checksum) in enumerate(rows, start=1):
-            where = self.archive.settings.archive / path
-            try:
-                self.derived.read(path, expected_checksum=checksum)
-            except NotFoundError:
-                report.problems.append(
-                    Problem("missing", uid, where, "stored result row without its file")
-                )
-            except IntegrityError as exc:
-                report.problems.append(Problem("corrupt", uid, where, str(exc)))
-            report.frames_checked += 1
-            if progress:
-                progress(done, len(rows))
-        for entry in self.derived.scan():
-            relative = entry.path.relative_to(self.archive.settings.archive).as_posix()
-            if entry.kind == "final" and relative not in known:
-                report.problems.append(
-                    Problem(
-                        "orphaned",
-                        entry.uid,
-                        entry.path,
-                        "result file without a catalogue row: processing stopped between "
-                        "writing it and recording it; the same computation will adopt it",
-                    )
-                )
-            elif entry.kind == "temp":
-                report.problems.append(
-                    Problem(
-                        "temporary",
-                        entry.uid,
-                        entry.path,
-                        "partial write of an interrupted run; safe to delete",
-                    )
-                )
-            elif entry.kind == "stray":
-                report.problems.append(
-                    Problem("stray", None, entry.path, "file not made by rasterserver")
-                )
-        report.acquisitions_checked = len({uid for uid, _p, _s in rows})
-        return report
+        return verify_derived(self.archive.catalog, self.derived, progress=progress)
 
     # --- helpers ---------------------------------------------------------------------------
 

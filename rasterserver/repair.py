@@ -55,11 +55,12 @@ from sqlalchemy import select
 
 from rasterserver.catalog.models import Acquisition, StageResult
 from rasterserver.errors import ConflictError
+from rasterserver.integrity import Problem
 from rasterserver.store.durable import ensure_dir, fsync_dir, fsync_file
 from rasterserver.store.layout import is_uid, temp_path
 
 if TYPE_CHECKING:
-    from rasterserver.archive import Archive, Problem
+    from rasterserver.archive import Archive
 
 __all__ = [
     "DEFAULT_MIN_AGE",

@@ -11,9 +11,10 @@ from rasterserver.commands.common import open_archive, progress_bar
 from rasterserver.errors import InputError, IntegrityError
 
 if TYPE_CHECKING:
-    from rasterserver.archive import Problem
+    from rasterserver.integrity import Problem
 
-# The archive and the pipeline are imported when the command runs: `--help` starts without.
+# The archive and the integrity checks are imported when the command runs: `--help` starts
+# without them.
 
 
 def verify(
@@ -54,18 +55,16 @@ def verify(
     otherwise (always 5 after a dry run that found problems: it changed nothing), 4 if another
     repair is running.
     """
-    from rasterserver.archive import VerifyReport
-    from rasterserver.pipeline import Pipeline
+    from rasterserver.integrity import VerifyReport, verify_archive
 
     repair = repair or dry_run
     if min_age is not None and not repair:
         raise InputError("--min-age goes with --repair or --dry-run")
     with open_archive(ctx) as archive:
-        with progress_bar("verifying raw frames") as progress:
-            raw = archive.verify(progress=progress)
-        with progress_bar("verifying stored results") as progress:
-            derived = Pipeline(archive).verify(progress=progress)
-        problems: list[Problem] = [*raw.problems, *derived.problems]
+        with progress_bar("verifying raw frames and stored results") as progress:
+            found = verify_archive(archive, progress=progress)
+        raw, derived = found.raw, found.derived
+        problems: list[Problem] = found.problems
         if not repair:
             for problem in problems:
                 typer.echo(f"{problem.kind}\t{_where(problem)}\t{problem.detail}")
