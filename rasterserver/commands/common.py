@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime as dt
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
@@ -50,29 +49,12 @@ def parse_datetime(text: str | None, what: str) -> dt.datetime | None:
 
 @contextmanager
 def progress_bar(description: str, *, enabled: bool = True) -> Iterator[Callable[[int, int], None]]:
-    """Yield a ``progress(done, total)`` callback drawing a bar on stderr.
+    """Yield a ``progress(done, total)`` callback drawing a bar on stderr, with rate and ETA.
 
-    The bar is drawn only on a terminal; in a pipe or a CI log it stays silent.
+    The bar is drawn only on a terminal; in a pipe or a CI log it stays silent. See
+    :func:`rasterserver.commands.progress.progress_bar`.
     """
-    if not enabled or not sys.stderr.isatty():
-        yield lambda _done, _total: None
-        return
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeRemainingColumn,
-    )
+    from rasterserver.commands.progress import progress_bar as bar
 
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TimeRemainingColumn(), console=Console(stderr=True), transient=True,
-    ) as bar:
-        task = bar.add_task(description, total=None)
-
-        def update(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
+    with bar(description, unit="item", enabled=enabled) as update:
         yield update

@@ -33,11 +33,9 @@ LINE_EVERY_S = 10.0
 
 
 def _duration(seconds: float | None) -> str:
-    if seconds is None:
-        return "?"
-    seconds = round(seconds)
-    hours, rest = divmod(seconds, 3600)
-    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
+    from rasterserver.commands.progress import duration
+
+    return duration(seconds)
 
 
 def _progress_text(status: JobStatus) -> str:
@@ -54,8 +52,10 @@ def _progress_text(status: JobStatus) -> str:
 def job_progress(*, enabled: bool = True) -> Iterator[Callable[[JobStatus], None]]:
     """Yield a callback drawing a job's progress on stderr, with rate and ETA.
 
-    On a terminal: a bar (rich). Elsewhere: a line every :data:`LINE_EVERY_S` seconds, so a
-    log shows the job moving without a line per acquisition.
+    On a terminal: the CLI's bar (:func:`rasterserver.commands.progress.rich_bar`) with the
+    job's own counts, rate and ETA (from the catalogue, so a resumed job's bar starts where
+    it stopped). Elsewhere: a line every :data:`LINE_EVERY_S` seconds, so a log shows the job
+    moving without a line per acquisition.
     """
     if not enabled:
         yield lambda _status: None
@@ -70,15 +70,9 @@ def job_progress(*, enabled: bool = True) -> Iterator[Callable[[JobStatus], None
 
         yield line
         return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+    from rasterserver.commands.progress import rich_bar
 
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TextColumn("{task.fields[rate]}"), TextColumn("ETA {task.fields[eta]}"),
-        console=Console(stderr=True), transient=True,
-    ) as bar:
-        task = bar.add_task("processing", total=None, rate="", eta="?")
+    with rich_bar("processing") as (bar, task):
 
         def update(status: JobStatus) -> None:
             job = status.job

@@ -9,10 +9,47 @@ rich is imported only when a bar is drawn (it comes with Typer).
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
-__all__ = ["progress_bar"]
+__all__ = ["duration", "progress_bar", "rich_bar"]
+
+
+@contextmanager
+def rich_bar(description: str) -> Iterator[tuple[Any, Any]]:
+    """Draw a bar on stderr; yield ``(progress, task)`` of rich, to update with ``completed``,
+    ``total``, ``description`` and the text fields ``rate`` and ``eta``.
+
+    The one look of every bar of the CLI: description, bar, done/total, percentage, rate and
+    ETA; removed when done (the command prints its own summary).
+    """
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TaskProgressColumn,
+        TextColumn,
+    )
+
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TaskProgressColumn(), TextColumn("{task.fields[rate]}"),
+        TextColumn("ETA {task.fields[eta]}"),
+        console=Console(stderr=True), transient=True,
+    ) as bar:
+        yield bar, bar.add_task(description, total=None, rate="", eta="?")
+
+
+def duration(seconds: float | None) -> str:
+    """``m:ss`` or ``h:mm:ss``; ``?`` when unknown."""
+    if seconds is None:
+        return "?"
+    seconds = round(seconds)
+    hours, rest = divmod(seconds, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"
 
 
 @contextmanager
@@ -38,27 +75,15 @@ def progress_bar(
     if not enabled or not sys.stderr.isatty():
         yield lambda _done, _total: None
         return
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TaskProgressColumn,
-        TextColumn,
-        TimeRemainingColumn,
-    )
-
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-        TaskProgressColumn(),
-        TextColumn("{task.fields[rate]}"), TextColumn("ETA"), TimeRemainingColumn(),
-        console=Console(stderr=True), transient=True,
-    ) as bar:
-        task = bar.add_task(description, total=None, rate="")
+    with rich_bar(description) as (bar, task):
+        started = time.monotonic()
 
         def update(done: int, total: int) -> None:
-            speed = bar.tasks[0].speed  # rich's own moving estimate
+            # the mean rate since the start: steadier than a moving window for uneven items
+            spent = time.monotonic() - started
+            rate = done / spent if done and spent > 0 else None
+            eta = (total - done) / rate if rate else None
             bar.update(task, completed=done, total=total,
-                       rate=f"{speed:.1f} {unit}/s" if speed else "")
+                       rate=f"{rate:.1f} {unit}/s" if rate else "", eta=duration(eta))
 
         yield update
