@@ -338,7 +338,7 @@ def pair_contradictions(
         return empty, empty, empty
     code = raster.code.astype(np.float64)
     expected = (code[pos[a]] - code[pos[b]]) * lam
-    keys, inv = np.unique(lid[a] * (int(lid.max()) + 1) + lid[b], return_inverse=True)
+    keys, inv = _group(lid[a] * (int(lid.max()) + 1) + lid[b])
     counts = np.bincount(inv, minlength=keys.size)
     centre = np.bincount(inv, weights=lr, minlength=keys.size) / counts
     for window in (0.3, 0.15):  # a robust centre, as in code_evidence.level_statistics
@@ -396,7 +396,7 @@ def line_jumps(
     spacing = _local_spacing(col, row, number)
     if spacing is None:
         return out
-    order = idx[np.lexsort((col[idx], lid[idx]))]
+    order = idx[_by_line(lid[idx])]
     same = (lid[order][1:] == lid[order][:-1]) & (
         np.diff(col[order].astype(np.int64)) <= max_columns
     )
@@ -428,12 +428,32 @@ def _local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.n
         return None
     a, b = a[one], b[one]
     gap = row[b] - row[a]
-    cell_of = (col.astype(np.int64) // 32) * 100000 + (row.astype(np.int64) // 32)
-    keys, inv = np.unique(cell_of[a], return_inverse=True)
-    total = np.bincount(inv, weights=gap, minlength=keys.size)
-    cnt = np.bincount(inv, minlength=keys.size)
-    pos = np.searchsorted(keys, cell_of)
-    pos = np.minimum(pos, keys.size - 1)
-    found = keys[pos] == cell_of
-    mean = total / np.maximum(cnt, 1)
-    return np.where(found, mean[pos], float(np.median(gap)))
+    # dense cell indices (a frame has a few hundred cells): counts by bincount, no sort
+    n_rows = int(np.max(row, initial=0.0)) // 32 + 1
+    cell_of = (col.astype(np.int64) // 32) * n_rows + np.maximum(row, 0.0).astype(np.int64) // 32
+    n_cells = int(cell_of.max()) + 1
+    total = np.bincount(cell_of[a], weights=gap, minlength=n_cells)
+    cnt = np.bincount(cell_of[a], minlength=n_cells)
+    mean = np.where(cnt > 0, total / np.maximum(cnt, 1), float(np.median(gap)))
+    return mean[cell_of]
+
+
+def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True)``, faster: one unstable argsort."""
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    start = np.empty(sorted_keys.size, dtype=bool)
+    start[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=start[1:])
+    group = np.cumsum(start) - 1
+    inv = np.empty(keys.size, dtype=np.int64)
+    inv[order] = group
+    return sorted_keys[start], inv
+
+
+def _by_line(lid: np.ndarray) -> np.ndarray:
+    """Indices ordering peaks (sorted by column) by line, keeping the column order within a
+    line: a stable sort, by radix on 16-bit ids when they fit (twelve times faster)."""
+    if lid.size and int(lid.max()) < 65536 and int(lid.min()) >= 0:
+        return np.argsort(lid.astype(np.uint16), kind="stable")
+    return np.argsort(lid, kind="stable")
