@@ -33,6 +33,9 @@ import numpy as np
 from rasterserver.archive import Archive
 from rasterserver.chain_spec import ChainSpec, ResultRow, StepPattern, match_path, result_rows
 from rasterserver.records import Record
+from rasterserver.records_analysis import BackShape
+from rasterserver.records_lines import NumberedLines
+from rasterserver.records_surface import Surface
 from rasterserver.registry import Registry, get_registry
 
 __all__ = ["AcquisitionDiff", "ChainDiff", "diff_chains", "diff_records"]
@@ -111,7 +114,7 @@ class ChainDiff:
             for name, p in a.parameters.items():
                 if p["shift"] is not None:
                     shifts.setdefault(name, []).append(p["shift"])
-        first = {}
+        first: dict[str, int] = {}
         for a in changed:
             if a.changed_stages:
                 first[a.changed_stages[0]] = first.get(a.changed_stages[0], 0) + 1
@@ -138,16 +141,26 @@ class ChainDiff:
             scored.sort(key=lambda t: (-t[0], t[1]))
             return [{"uid": uid, "value": round(v, 4)} for v, uid in scored[:count]]
 
-        out = {
-            "displacement_p95_mm": top(lambda a: a.displacement and a.displacement["p95_abs"]),
-            "lines_renumbered": top(lambda a: a.numbering and a.numbering["lines_renumbered"]),
-            "coverage_lost_cm2": top(lambda a: a.coverage and a.coverage["lost_cm2"]),
-        }
-        names = sorted({n for a in changed for n in a.parameters})
-        for name in names:
-            out[f"parameter {name}"] = top(
-                lambda a, n=name: (abs(a.parameters[n]["shift"]) if n in a.parameters
-                                   and a.parameters[n]["shift"] is not None else None))
+        def p95(a: AcquisitionDiff) -> float | None:
+            return a.displacement["p95_abs"] if a.displacement else None
+
+        def renumbered(a: AcquisitionDiff) -> float | None:
+            return float(a.numbering["lines_renumbered"]) if a.numbering else None
+
+        def lost(a: AcquisitionDiff) -> float | None:
+            return a.coverage["lost_cm2"] if a.coverage else None
+
+        def shift(name: str) -> Callable[[AcquisitionDiff], float | None]:
+            def value(a: AcquisitionDiff) -> float | None:
+                found = a.parameters.get(name)
+                return abs(found["shift"]) if found and found["shift"] is not None else None
+
+            return value
+
+        out = {"displacement_p95_mm": top(p95), "lines_renumbered": top(renumbered),
+               "coverage_lost_cm2": top(lost)}
+        for name in sorted({n for a in changed for n in a.parameters}):
+            out[f"parameter {name}"] = top(shift(name))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -188,7 +201,9 @@ def _distribution(values: Sequence[float]) -> dict[str, float | int | None]:
 # --- measures of two records -------------------------------------------------------------------
 
 
-def surface_displacement(a: Record, b: Record) -> tuple[dict[str, float] | None, dict[str, float]]:
+def surface_displacement(
+    a: Surface, b: Surface
+) -> tuple[dict[str, float] | None, dict[str, float]]:
     """Displacement ``z_B - z_A`` over the cells both surfaces measured, and the coverage.
 
     Returns
@@ -199,17 +214,17 @@ def surface_displacement(a: Record, b: Record) -> tuple[dict[str, float] | None,
     coverage : dict
         ``a_cm2``, ``b_cm2``, ``gained_cm2``, ``lost_cm2``.
     """
-    za, zb = np.asarray(a.z), np.asarray(b.z)  # type: ignore[attr-defined]
-    s = float(a.spacing)  # type: ignore[attr-defined]
+    za, zb = np.asarray(a.z, dtype=np.float64), np.asarray(b.z, dtype=np.float64)
+    s = float(a.spacing)
     cell_cm2 = (s / 10.0) ** 2
     va, vb = np.isfinite(za), np.isfinite(zb)
     coverage = {"a_cm2": float(va.sum() * cell_cm2), "b_cm2": float(vb.sum() * cell_cm2)}
-    if not np.isclose(s, float(b.spacing)):  # type: ignore[attr-defined]
+    if not np.isclose(s, float(b.spacing)):
         coverage |= {"gained_cm2": float("nan"), "lost_cm2": float("nan")}
         return None, coverage
     # grid origins are multiples of the spacing: B's cell (i, j) is A's (i + di, j + dj)
-    di = round((float(b.y0) - float(a.y0)) / s)  # type: ignore[attr-defined]
-    dj = round((float(b.x0) - float(a.x0)) / s)  # type: ignore[attr-defined]
+    di = round((float(b.y0) - float(a.y0)) / s)
+    dj = round((float(b.x0) - float(a.x0)) / s)
     top, left = min(0, di), min(0, dj)
     bottom = max(za.shape[0], di + zb.shape[0])
     right = max(za.shape[1], dj + zb.shape[1])
@@ -234,14 +249,14 @@ def surface_displacement(a: Record, b: Record) -> tuple[dict[str, float] | None,
     }, coverage
 
 
-def renumbering(a: Record, b: Record) -> dict[str, Any]:
+def renumbering(a: NumberedLines, b: NumberedLines) -> dict[str, Any]:
     """Peaks and lines whose raster line number differs between two numbered-line records.
 
     A peak of A is matched with the nearest peak of B in the same pixel column, within one row.
     """
-    col_a, row_a = np.asarray(a.col, dtype=np.int64), np.asarray(a.row, float)  # type: ignore[attr-defined]
-    col_b, row_b = np.asarray(b.col, dtype=np.int64), np.asarray(b.row, float)  # type: ignore[attr-defined]
-    num_a, num_b = np.asarray(a.number), np.asarray(b.number)  # type: ignore[attr-defined]
+    col_a, row_a = np.asarray(a.col, dtype=np.int64), np.asarray(a.row, dtype=np.float64)
+    col_b, row_b = np.asarray(b.col, dtype=np.int64), np.asarray(b.row, dtype=np.float64)
+    num_a, num_b = np.asarray(a.number), np.asarray(b.number)
     out: dict[str, Any] = {"peaks_matched": 0, "peaks_renumbered": 0,
                            "peaks_newly_numbered": 0, "peaks_unnumbered": 0,
                            "lines_renumbered": 0, "shifts": {}}
@@ -283,10 +298,10 @@ def renumbering(a: Record, b: Record) -> dict[str, Any]:
     return out
 
 
-def parameter_shifts(a: Record, b: Record) -> dict[str, dict[str, Any]]:
+def parameter_shifts(a: BackShape, b: BackShape) -> dict[str, dict[str, Any]]:
     """Each clinical parameter of two analyses: ``a``, ``b``, ``shift`` (B - A), ``unit``."""
-    table_a = a.parameter_table()  # type: ignore[attr-defined]
-    table_b = b.parameter_table()  # type: ignore[attr-defined]
+    table_a = a.parameter_table()
+    table_b = b.parameter_table()
     out = {}
     for name in sorted(set(table_a) | set(table_b)):
         va = _number(table_a.get(name, {}).get("value"))
@@ -320,12 +335,15 @@ def diff_records(uid: str, changed: list[str], a: dict[str, Record],
         ``backshape``); a kind missing from either is not measured.
     """
     result = AcquisitionDiff(uid, "changed", changed)
-    if "surface" in a and "surface" in b:
-        result.displacement, result.coverage = surface_displacement(a["surface"], b["surface"])
-    if "numbered-lines" in a and "numbered-lines" in b:
-        result.numbering = renumbering(a["numbered-lines"], b["numbered-lines"])
-    if "backshape" in a and "backshape" in b:
-        result.parameters = parameter_shifts(a["backshape"], b["backshape"])
+    # by record kind, so a third-party stage making these records is measured the same way
+    if isinstance(sa := a.get("surface"), Surface) and isinstance(sb := b.get("surface"), Surface):
+        result.displacement, result.coverage = surface_displacement(sa, sb)
+    na, nb = a.get("numbered-lines"), b.get("numbered-lines")
+    if isinstance(na, NumberedLines) and isinstance(nb, NumberedLines):
+        result.numbering = renumbering(na, nb)
+    ba, bb = a.get("backshape"), b.get("backshape")
+    if isinstance(ba, BackShape) and isinstance(bb, BackShape):
+        result.parameters = parameter_shifts(ba, bb)
     return result
 
 

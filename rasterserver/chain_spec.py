@@ -234,11 +234,11 @@ def match_path(
     if not frontier:
         return None
     path: dict[str, ResultRow] = {}
-    row: ResultRow | None = max(frontier, key=lambda r: r.id)
+    at: ResultRow | None = max(frontier, key=lambda r: r.id)
     for pattern in reversed(patterns):
-        assert row is not None
-        path[pattern.kind] = row
-        row = by_id.get(row.parent_id) if row.parent_id is not None else None
+        assert at is not None
+        path[pattern.kind] = at
+        at = by_id.get(at.parent_id) if at.parent_id is not None else None
     return dict(reversed(list(path.items())))
 
 

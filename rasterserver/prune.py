@@ -245,9 +245,9 @@ def plan_prune(
                         if row.stage in ALWAYS_KEPT or row.id in pinned}
             for chain in chains:
                 for patterns in chain.targets.values():
-                    path = match_path(rows, patterns)
-                    if path is not None:
-                        keep_ids.update(row.id for row in path.values())
+                    matched = match_path(rows, patterns)
+                    if matched is not None:
+                        keep_ids.update(row.id for row in matched.values())
             # ancestors of kept results are kept (a child names its parent)
             for rid in list(keep_ids):
                 row = by_id.get(rid)
@@ -331,7 +331,7 @@ def run_prune(archive: Archive, plan: PrunePlan, *, force: bool = False) -> Prun
                     done = s.execute(delete(StageResult).where(
                         StageResult.id.in_(ids[start : start + _PAGE]))
                         .execution_options(synchronize_session=False))
-                    report.rows_removed += done.rowcount or 0
+                    report.rows_removed += getattr(done, "rowcount", 0) or 0
     except SQLIntegrityError:
         # a result kept since the plan (a new child or comparison refers to it): the
         # transaction is rolled back whole, nothing was removed

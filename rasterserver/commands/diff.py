@@ -94,6 +94,10 @@ def _run_diff(ctx: typer.Context, spec_a: object, spec_b: object, chosen: object
     with open_archive(ctx) as archive:
         if acquisitions is None:
             acquisitions = resolve_selection(archive, chosen)  # type: ignore[arg-type]
+        unknown = [uid for uid, acquisition_id in acquisitions if acquisition_id is None]
+        if unknown:
+            raise NotFoundError(f"no acquisition {', '.join(unknown[:5])}"
+                                + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""))
         with progress_bar("comparing", enabled=not quiet) as progress:
             report = diff_chains(archive, spec_a, spec_b, acquisitions,  # type: ignore[arg-type]
                                  targets=until or DEFAULT_TARGETS, progress=progress)

@@ -41,6 +41,8 @@ def test_reprocess_then_diff_name_what_changed(tmp_path: Path) -> None:
     assert json.loads(shown.stdout)["summary"]["unchanged"] == 1
     none = cli("diff", "default", "peaks.bias_fraction=0.4")
     assert none.returncode == 3 and "process them with each chain" in none.stderr, describe(none)
+    missing = cli("diff", "default", "default", "f" * 32)
+    assert missing.returncode == 3 and "no acquisition ffff" in missing.stderr, describe(missing)
     bad = cli("diff", "default", "peaks=")
     assert bad.returncode == 2 and "KIND=PLUGIN" in bad.stderr, describe(bad)
     unknown = cli("diff", "default", "peaks=peaks.nope")
