@@ -25,8 +25,8 @@ before parents, in one transaction; the files after the commit, each only if no 
 any more (a file shared by several results goes with the last of them). Killed between the
 commit and the deletions, the archive holds files without rows: ``rasterserver verify``
 reports them as orphaned, which is harmless (a computation of the same chain key adopts its
-file; ``verify --repair`` deletes the rest). Pruning while a pipeline run is in progress is
-refused: a run may be about to reuse a result being removed.
+file; ``verify --repair`` moves the rest to its quarantine). Pruning while a pipeline run is
+in progress is refused: a run may be about to reuse a result being removed.
 """
 
 from __future__ import annotations

@@ -45,7 +45,8 @@ def prune(
     every result a kept one was computed from. Raw frames are never touched. Catalogue rows
     go first, in one transaction, then their files: a row never names a missing file, and
     files left by a crash in between are reported by `rasterserver verify` as orphaned
-    (harmless; `verify --repair` deletes them). Exit 4 while a pipeline run is in progress.
+    (harmless; `verify --repair` moves them to its quarantine). Exit 4 while a pipeline run
+    is in progress.
     """
     from rasterserver.chain_spec import parse_chain
     from rasterserver.commands.progress import progress_bar
