@@ -40,6 +40,7 @@ from rasterserver_plugins.numbering_checks import (
     column_order_conflicts,
     contact_votes,
     line_jumps,
+    local_spacing,
     pair_contradictions,
     plausible_distance,
 )
@@ -545,8 +546,9 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             reason = "no lines"
         table = np.append(line_number, -1).astype(np.int32)
         number = table[np.where(lid >= 0, lid, -1)]
-        clash = column_order_conflicts(data.col, data.row, number)
-        jumps = line_jumps(data.col, data.row, lid, number)
+        spacing = local_spacing(data.col, data.row, number)
+        clash = column_order_conflicts(data.col, data.row, number, spacing=spacing)
+        jumps = line_jumps(data.col, data.row, lid, number, spacing=spacing)
         if np.any(jumps):
             number = np.where(jumps, -1, number).astype(np.int32)
             note = (

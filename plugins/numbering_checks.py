@@ -29,7 +29,14 @@ import numpy as np
 from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
-__all__ = ["column_order_conflicts", "contact_votes", "plausible_distance"]
+__all__ = [
+    "column_order_conflicts",
+    "contact_votes",
+    "line_jumps",
+    "local_spacing",
+    "pair_contradictions",
+    "plausible_distance",
+]
 
 
 def _line_ends(
@@ -144,11 +151,23 @@ def contact_votes(
     cross = same_col & (comp[:-1] >= 0) & (comp[1:] >= 0) & (comp[:-1] != comp[1:])
     cross &= np.abs(gap / ref - 1.0) <= gap_tolerance
     cross &= np.abs(ref / spacing - 1.0) <= 0.5
-    for k in np.flatnonzero(cross):
-        a, b = int(comp[k]), int(comp[k + 1])
-        delta = int(lev[k] + 1 - lev[k + 1])  # offset(b) - offset(a)
-        votes[(a, b)][delta] += 1.0
-        votes[(b, a)][-delta] += 1.0
+    k = np.flatnonzero(cross)
+    if k.size:
+        # one vote per column; tallied per (a, b, delta) and entered in the order of each
+        # group's first column (the dictionaries' order is that of a column-by-column loop)
+        ca, cb = comp[k], comp[k + 1]
+        delta = lev[k] + 1 - lev[k + 1]  # offset(b) - offset(a)
+        n_comp = int(comp.max()) + 1
+        d0 = int(delta.min())
+        span = int(delta.max()) - d0 + 1
+        key = (ca * n_comp + cb) * span + (delta - d0)
+        groups, first, count = np.unique(key, return_index=True, return_counts=True)
+        for i in np.argsort(first, kind="stable"):
+            g = int(groups[i])
+            d = g % span + d0
+            a, b = divmod(g // span, n_comp)
+            votes[(a, b)][d] += float(count[i])
+            votes[(b, a)][-d] += float(count[i])
     # ---- continuations of lines across short gaps
     c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, line_id, n_lines, fit=8)
     ok = (count >= min_line) & (line_component >= 0) & (line_order >= 0)
@@ -156,19 +175,22 @@ def contact_votes(
     if ends.size < 2:
         return votes
     tol = row_tolerance * spacing
-    for a in ends:
-        # lines of other components starting within max_gap columns after a ends
-        dc = c0[ends] - c1[a]
-        cand = ends[(dc >= 1) & (dc <= max_gap) & (line_component[ends] != line_component[a])]
-        if cand.size == 0:
-            continue
-        dcc = (c0[cand] - c1[a]).astype(np.float64)
-        fwd = r1[a] + s1[a] * dcc  # a extended to b's start
-        bwd = r0[cand] - s0[cand] * dcc  # b extended back to a's end
-        hit = (np.abs(fwd - r0[cand]) <= tol) & (np.abs(bwd - r1[a]) <= tol)
-        if np.count_nonzero(hit) != 1:
-            continue  # none, or not unique: no evidence
-        b = int(cand[hit][0])
+    e_c0, e_r0, e_s0 = c0[ends], r0[ends], s0[ends]
+    e_comp = line_component[ends]
+    pairs: list[tuple[int, int]] = []
+    # every line end against every line start, in blocks of line ends (no Python loop per
+    # line: a fragmented frame has thousands)
+    for lo in range(0, ends.size, 256):
+        a_ = ends[lo : lo + 256]
+        dc = e_c0[None, :] - c1[a_][:, None]
+        cand = (dc >= 1) & (dc <= max_gap) & (e_comp[None, :] != line_component[a_][:, None])
+        dcc = dc.astype(np.float64)
+        fwd = r1[a_][:, None] + s1[a_][:, None] * dcc  # a extended to b's start
+        bwd = e_r0[None, :] - e_s0[None, :] * dcc  # b extended back to a's end
+        hit = cand & (np.abs(fwd - e_r0[None, :]) <= tol) & (np.abs(bwd - r1[a_][:, None]) <= tol)
+        one = np.flatnonzero(hit.sum(axis=1) == 1)  # none, or not unique: no evidence
+        pairs.extend(zip(a_[one].tolist(), ends[np.argmax(hit[one], axis=1)].tolist(), strict=True))
+    for a, b in pairs:
         ca, cb = int(line_component[a]), int(line_component[b])
         delta = int(line_order[a] - line_order[b])
         w = continuation_weight * min(1.0, min(count[a], count[b]) / 20.0)
@@ -220,12 +242,14 @@ def column_order_conflicts(
     *,
     tolerance: float = 0.3,
     max_multiple: int = 3,
+    spacing: np.ndarray | None = None,
 ) -> np.ndarray:
     """Peaks whose number breaks the order of their column: two consecutive numbered peaks
     one line spacing apart (within ``tolerance`` spacings) whose numbers do not differ by
     exactly one, or ``m`` spacings apart (``2 <= m <= max_multiple``) whose numbers differ by
     more than ``m``, or any two close peaks numbered out of order. Both are refused: the
-    image cannot tell which of the two is wrong."""
+    image cannot tell which of the two is wrong. ``spacing`` is the per-peak local line
+    spacing (:func:`local_spacing`) when the caller has it already."""
     n = col.size
     out = np.zeros(n, dtype=bool)
     if n < 2:
@@ -244,13 +268,11 @@ def column_order_conflicts(
     if not np.any(one):
         return out
     # the local spacing: mean gap of consecutive lines in cells of 32 x 32 px
-    cell = (col[a].astype(np.int64) // 32) * 100000 + (row[a].astype(np.int64) // 32)
-    keys, inv = np.unique(cell, return_inverse=True)
-    total = np.bincount(inv[one], weights=gap[one], minlength=keys.size)
-    cnt = np.bincount(inv[one], minlength=keys.size)
-    ref_cell = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
-    ref = ref_cell[inv]
-    ref = np.where(np.isnan(ref), float(np.median(gap[one])), ref)
+    if spacing is None:
+        spacing = local_spacing(col, row, number)
+    if spacing is None:
+        return out
+    ref = spacing[a]
     # One spacing apart, the numbers must differ by one. Two or three spacings apart (lines
     # between unnumbered), they must not differ by more: a line picked up across a depth
     # step of a whole spacing shows as a pair two spacings apart numbered three apart. (They
@@ -364,6 +386,7 @@ def line_jumps(
     *,
     max_jump: float = 0.3,
     max_columns: int = 2,
+    spacing: np.ndarray | None = None,
 ) -> np.ndarray:
     """Numbered peaks where their line jumps: two consecutive peaks of a line (at most
     ``max_columns`` apart) whose row step departs from the line's steps on either side by
@@ -381,6 +404,8 @@ def line_jumps(
         Largest departure of a step, in local line spacings.
     max_columns : int
         Largest column gap between consecutive peaks of a line that is judged.
+    spacing : numpy.ndarray, optional
+        Per-peak local line spacing (:func:`local_spacing`), when already computed.
 
     Returns
     -------
@@ -393,7 +418,8 @@ def line_jumps(
     idx = np.flatnonzero((lid >= 0) & (number >= 0))
     if idx.size < 3:
         return out
-    spacing = _local_spacing(col, row, number)
+    if spacing is None:
+        spacing = local_spacing(col, row, number)
     if spacing is None:
         return out
     order = idx[_by_line(lid[idx])]
@@ -416,7 +442,7 @@ def line_jumps(
     return out
 
 
-def _local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:
+def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:
     """Per peak, the mean row gap of consecutive numbered lines in its 32 x 32 px cell (the
     median over the frame where the cell has none); None without any such pair."""
     numbered = np.flatnonzero(number >= 0)
