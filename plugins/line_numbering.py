@@ -415,8 +415,13 @@ def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[fl
     small = [r for r in refused if "fewer than" in r.reason and ";" not in r.reason]
     small_ids = {id(r) for r in small}  # identity: comparing the dataclasses is quadratic
     other = [r for r in refused if id(r) not in small_ids]
+    # entries of component -1 count lines refused inside numbered components: their reason
+    # says it all
     parts = [
-        f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): {r.reason}"
+        r.reason
+        if r.component < 0
+        else f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): "
+        f"{r.reason}"
         for r in other
     ]
     if small:
