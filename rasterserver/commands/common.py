@@ -14,6 +14,7 @@ from rasterserver.times import parse_day, parse_instant
 
 if TYPE_CHECKING:
     from rasterserver.archive import Archive
+    from rasterserver.catalog.catalog import Catalog
 
 # Heavy modules (the archive with SQLAlchemy, HDF5 and NumPy; rich's progress bars) are
 # imported inside the functions that use them, so that `--help` and light commands start fast.
@@ -32,6 +33,16 @@ def open_archive(ctx: typer.Context) -> Archive:
     from rasterserver.archive import Archive
 
     return Archive(settings(ctx))
+
+
+def open_catalog(ctx: typer.Context) -> Catalog:
+    """Open only the catalogue named by the global options (its schema must be current).
+
+    For commands that read the database alone (``list``): no file stores, no NumPy or HDF5.
+    """
+    from rasterserver.catalog.catalog import Catalog
+
+    return Catalog(settings(ctx).database_url)
 
 
 def parse_date(text: str | None, what: str) -> dt.date | None:

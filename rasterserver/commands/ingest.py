@@ -8,20 +8,9 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive, parse_date, parse_datetime
-from rasterserver.errors import InputError
 from rasterserver.times import TIME_RULE
 
 # The archive (SQLAlchemy, HDF5, NumPy) is imported when a command runs, not at start.
-
-
-def _parse_shape(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        rows, cols = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"--shape {text!r}: expected ROWSxCOLUMNS, e.g. 604x576") from None
-    return rows, cols
 
 
 def ingest(
@@ -78,37 +67,19 @@ def ingest(
     A frame whose size differs from the camera of the calibration that applies is refused
     (exit 2); when no calibration applies yet it is stored with a warning saying why.
     """
-    from rasterserver.archive import FrameSource
     from rasterserver.frame_fit import calibration_notice
+    from rasterserver.ingest_request import ingest_request
 
-    roles = role or ["raster"]
-    if len(roles) == 1:
-        roles = roles * len(files)
-    if len(roles) != len(files):
-        raise InputError(f"{len(files)} files but {len(roles)} --role values")
-    sources = [
-        FrameSource(path, role=r, name=path.name)
-        for path, r in zip(files, roles, strict=True)
-    ]
-    options = {
-        "patient": patient,
-        "kind": kind,
-        "station": station,
-        "calibration_version": calibration,
-        "visit_date": parse_date(visit_date, "--visit-date"),
-        "acquired_at": parse_datetime(acquired_at, "--acquired-at"),
-        "operator": operator,
-        "notes": notes,
-        "shape": _parse_shape(shape),
-        "dtype": dtype,
-        "convert_color": convert_color,
-    }
+    request = ingest_request(
+        [(path, path.name) for path in files], roles=role, patient=patient, kind=kind,
+        station=station, calibration_version=calibration,
+        visit_date=parse_date(visit_date, "--visit-date"),
+        acquired_at=parse_datetime(acquired_at, "--acquired-at"), operator=operator,
+        notes=notes, shape=shape, dtype=dtype, convert_color=convert_color,
+        idempotency_key=idempotency_key, source="cli",
+        spelling={"shape": "--shape", "roles": "--role values"})
     with open_archive(ctx) as archive:
-        if idempotency_key is None:
-            acq, replayed = archive.ingest(sources, **options), False
-        else:
-            acq, replayed = archive.ingest_once(sources, source="cli", key=idempotency_key,
-                                                **options)
+        acq, replayed = request.store(archive)
         notice = calibration_notice(archive, acq)
     done = "already stored under this key" if replayed else "stored"
     typer.echo(f"acquisition {acq.uid}: {len(acq.frames)} frame(s) {done}")

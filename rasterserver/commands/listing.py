@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.commands.common import open_catalog, parse_datetime
 from rasterserver.errors import InputError
 from rasterserver.times import TIME_RULE
 
@@ -25,15 +25,17 @@ def list_acquisitions(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line.")] = False,
 ) -> None:
     """List acquisitions, newest first."""
-    # imported here, not at start: the catalogue's models load SQLAlchemy, which `--help`
-    # does not need
-    from rasterserver.catalog.models import ACQUISITION_KINDS
+    # imported here, not at start: SQLAlchemy, which `--help` does not need
+    from rasterserver.catalog import listing
+    from rasterserver.catalog.vocabulary import ACQUISITION_KINDS
 
     if kind is not None and kind not in ACQUISITION_KINDS:
         # an unknown kind would list nothing, as if the archive were empty
         raise InputError(f"--kind must be one of {', '.join(ACQUISITION_KINDS)}, got {kind!r}")
-    with open_archive(ctx) as archive:
-        rows = archive.find(
+    # the catalogue alone: listing needs neither the file stores nor their NumPy and HDF5
+    with open_catalog(ctx) as catalog:
+        rows = listing.find(
+            catalog,
             patient=patient,
             since=parse_datetime(since, "--since"),
             until=parse_datetime(until, "--until"),

@@ -25,7 +25,7 @@ def test_current_revision_agrees_with_alembic(database_url: str) -> None:
     assert schema.current_revision(engine) is None
     migrate.upgrade(engine, "0005")
     assert schema.current_revision(engine) == migrate.current_revision(engine) == "0005"
-    with pytest.raises(schema.SchemaError, match="is at revision 0005.*rasterserver db upgrade"):
+    with pytest.raises(schema.SchemaError, match=r"is at revision 0005.*rasterserver db upgrade"):
         schema.require_current(engine)
     migrate.upgrade(engine)
     assert schema.current_revision(engine) == migrate.current_revision(engine)

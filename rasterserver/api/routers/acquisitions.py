@@ -29,10 +29,9 @@ from rasterserver.api.views import (
     refuse_date_filters_for,
     resolve_patient,
 )
-from rasterserver.archive import FrameSource
-from rasterserver.catalog.models import ACQUISITION_KINDS
-from rasterserver.errors import InputError, NotFoundError
+from rasterserver.errors import NotFoundError
 from rasterserver.frame_fit import calibration_notice
+from rasterserver.ingest_request import ingest_request
 from rasterserver.times import TIME_RULE
 
 router = protected_router("acquisitions")
@@ -44,16 +43,6 @@ router = protected_router("acquisitions")
 # pixels, writes or may take long is plain ``def``, in threads.
 
 FrameIndex = Annotated[int, Path(ge=0, le=MAX_OFFSET)]
-
-
-def _parse_shape(text: str | None) -> tuple[int, int] | None:
-    if not text:
-        return None
-    try:
-        rows, cols = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"shape {text!r}: expected ROWSxCOLUMNS, e.g. 604x576") from None
-    return rows, cols
 
 
 @router.get("/acquisitions", name="list_acquisitions", response_model=list[AcquisitionOut])
@@ -118,25 +107,14 @@ def upload_acquisition(
     whose size differs from the camera of the calibration that applies is refused (422);
     when no calibration applies yet, ``warnings`` says so and why.
     """
-    if kind not in ACQUISITION_KINDS:
-        raise InputError(f"kind must be one of {', '.join(ACQUISITION_KINDS)}")
-    names = roles or ["raster"]
-    if len(names) == 1:
-        names = names * len(files)
-    if len(names) != len(files):
-        raise InputError(f"{len(files)} files but {len(names)} roles")
-    sources = [FrameSource(f.file.read(), role=r, name=f.filename or f"frame-{k}")
-               for k, (f, r) in enumerate(zip(files, names, strict=True))]
-    options = {"patient": patient, "kind": kind, "station": station,
-               "calibration_version": calibration_version, "visit_date": visit_date,
-               "acquired_at": utc(acquired_at), "operator": operator, "notes": notes,
-               "shape": _parse_shape(shape), "dtype": dtype, "convert_color": convert_color}
-    replayed = False
-    if idempotency_key is None:
-        acq = svc.archive.ingest(sources, **options)
-    else:
-        acq, replayed = svc.archive.ingest_once(sources, source=caller.name,
-                                                key=idempotency_key, **options)
+    request = ingest_request(
+        [(f.file.read(), f.filename or f"frame-{k}") for k, f in enumerate(files)],
+        roles=roles, patient=patient, kind=kind, station=station,
+        calibration_version=calibration_version, visit_date=visit_date,
+        acquired_at=utc(acquired_at), operator=operator, notes=notes, shape=shape,
+        dtype=dtype, convert_color=convert_color, idempotency_key=idempotency_key,
+        source=caller.name)
+    acq, replayed = request.store(svc.archive)
     note.touch(acq.patient_id, acq.uid)
     # read back as a reader would see it
     info = svc.archive.info(acq.uid)
