@@ -8,7 +8,7 @@ runs a job exactly as ``process`` does and then compares, and keeping it apart l
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -23,6 +23,10 @@ from rasterserver.commands.selection_options import (
     Uids,
     selection,
 )
+
+if TYPE_CHECKING:
+    from rasterserver.chain_spec import ChainSpec
+    from rasterserver.processing_jobs import Selection
 
 # The chains, the pipeline, NumPy and matplotlib are imported when a command runs.
 
@@ -81,7 +85,8 @@ def diff(
               quiet)
 
 
-def _run_diff(ctx: typer.Context, spec_a: object, spec_b: object, chosen: object,
+def _run_diff(ctx: typer.Context, spec_a: ChainSpec, spec_b: ChainSpec,
+              chosen: Selection | None,
               until: list[str] | None, out: Path | None, as_json: bool, quiet: bool,
               acquisitions: list[tuple[str, int | None]] | None = None,
               *, strict: bool = True) -> None:
@@ -93,13 +98,14 @@ def _run_diff(ctx: typer.Context, spec_a: object, spec_b: object, chosen: object
 
     with open_archive(ctx) as archive:
         if acquisitions is None:
-            acquisitions = resolve_selection(archive, chosen)  # type: ignore[arg-type]
+            assert chosen is not None
+            acquisitions = resolve_selection(archive, chosen)
         unknown = [uid for uid, acquisition_id in acquisitions if acquisition_id is None]
         if unknown:
             raise NotFoundError(f"no acquisition {', '.join(unknown[:5])}"
                                 + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""))
         with progress_bar("comparing", enabled=not quiet) as progress:
-            report = diff_chains(archive, spec_a, spec_b, acquisitions,  # type: ignore[arg-type]
+            report = diff_chains(archive, spec_a, spec_b, acquisitions,
                                  targets=until or DEFAULT_TARGETS, progress=progress)
     if out is not None:
         for path in write_report(report, out):
