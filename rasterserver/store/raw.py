@@ -49,10 +49,10 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import h5py
 import numpy as np
@@ -62,6 +62,15 @@ from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFo
 from rasterserver.store.durable import ensure_dir, fsync_file, publish
 from rasterserver.store.hashing import canonical, frame_sha256
 from rasterserver.store.layout import ShardEntry, scan_area, shard_path, temp_path
+from rasterserver.store.raw_check import (
+    ACCEPTED_DTYPES,
+    FORMAT_NAME,
+    FileReport,
+    FrameProblem,
+    attr_text,
+    check_raw_file,
+    short_error,
+)
 
 __all__ = [
     "DEFAULT_COMPRESSION",
@@ -75,7 +84,6 @@ __all__ = [
     "parse_compression",
 ]
 
-FORMAT_NAME = "rasterserver-raw"
 FORMAT_VERSION = 1
 AREA = "raw"
 SUFFIX = ".h5"
@@ -85,7 +93,6 @@ SUFFIX = ".h5"
 DEFAULT_COMPRESSION = "none"
 
 _CHUNK_TARGET_BYTES = 1024 * 1024
-_ACCEPTED_DTYPES = (np.dtype("uint8"), np.dtype("uint16"))
 _COMPRESSION = re.compile(r"(?P<shuffle>shuffle\+)?(?P<codec>none|lzf|gzip)(?:-(?P<level>\d))?")
 
 
@@ -137,73 +144,6 @@ class StoredFrame:
     sha256: str
     path: str
     dataset: str
-
-
-ProblemKind = Literal[
-    "missing-file",
-    "unreadable-file",
-    "bad-attributes",
-    "unreadable-frame",
-    "hash-mismatch",
-    "catalog-mismatch",
-    "missing-frame",
-    "extra-frame",
-]
-
-
-@dataclass(frozen=True)
-class FrameProblem:
-    """One inconsistency found by :meth:`RawStore.check_file`.
-
-    Attributes
-    ----------
-    kind : str
-        ``missing-file``, ``unreadable-file`` (not an HDF5 file, truncated),
-        ``bad-attributes`` (not a rasterserver raw file, or attributes disagree with the
-        content), ``unreadable-frame`` (a dataset cannot be decoded), ``hash-mismatch``
-        (pixels differ from the file's own ``sha256``), ``catalog-mismatch`` (pixels differ
-        from the expected hash), ``missing-frame`` (expected but absent), ``extra-frame``
-        (present but not expected).
-    index : int or None
-        Frame concerned, if any.
-    message : str
-        Human-readable explanation (no absolute paths).
-    """
-
-    kind: ProblemKind
-    index: int | None
-    message: str
-
-
-@dataclass(frozen=True)
-class FileReport:
-    """Result of re-checking one raw file.
-
-    Attributes
-    ----------
-    uid : str
-        Acquisition uid.
-    path : str
-        File path relative to the store root.
-    status : {"ok", "missing", "unreadable", "corrupt"}
-        ``missing``: no file. ``unreadable``: the file cannot be opened as a rasterserver raw
-        file. ``corrupt``: it opens but at least one frame is wrong, missing or extra.
-    problems : tuple of FrameProblem
-        Everything found; empty when ``status == "ok"``.
-    hashes : dict of int to str
-        SHA-256 recomputed from the pixels of each readable frame.
-    """
-
-    uid: str
-    path: str
-    status: Literal["ok", "missing", "unreadable", "corrupt"]
-    problems: tuple[FrameProblem, ...] = ()
-    hashes: dict[int, str] = field(default_factory=dict)
-
-    @property
-    def ok(self) -> bool:
-        """True when the file is complete and every frame matches its hashes."""
-        return self.status == "ok"
 
 
 def parse_compression(spec: str) -> dict[str, Any]:
@@ -405,9 +345,9 @@ class RawStore:
         with self._open(uid) as h5:
             for index, dataset in _datasets(h5, relative):
                 out.append(StoredFrame(
-                    index=index, role=_text(dataset.attrs.get("role", "")),
+                    index=index, role=attr_text(dataset.attrs.get("role", "")),
                     shape=(int(dataset.shape[0]), int(dataset.shape[1])),
-                    dtype=dataset.dtype.name, sha256=_text(dataset.attrs.get("sha256", "")),
+                    dtype=dataset.dtype.name, sha256=attr_text(dataset.attrs.get("sha256", "")),
                     path=relative, dataset=f"frames/{index}",
                 ))
         return out
@@ -479,7 +419,7 @@ class RawStore:
             return h5py.File(path, "r", locking=False)
         except OSError as exc:
             raise IntegrityError(
-                f"{self.relative_path(uid)}: unreadable HDF5 file ({_short(exc)})"
+                f"{self.relative_path(uid)}: unreadable HDF5 file ({short_error(exc)})"
             ) from None
 
     # --- verification ------------------------------------------------------------------------
@@ -511,26 +451,7 @@ class RawStore:
         -------
         FileReport
         """
-        relative = self.relative_path(uid)
-        path = self.path_for(uid)
-        if not path.is_file():
-            return FileReport(uid, relative, "missing", (
-                FrameProblem("missing-file", None, f"{relative}: file is missing"),
-            ))
-        try:
-            h5 = h5py.File(path, "r", locking=False)
-        except OSError as exc:
-            return FileReport(uid, relative, "unreadable", (FrameProblem(
-                "unreadable-file", None, f"{relative}: not a readable HDF5 file ({_short(exc)})"
-            ),))
-        with h5:
-            try:
-                return _check_open_file(h5, uid, relative, expected)
-            except (OSError, KeyError, RuntimeError) as exc:
-                # Metadata damaged beyond a single dataset (the group's index, say).
-                return FileReport(uid, relative, "unreadable", (FrameProblem(
-                    "unreadable-file", None, f"{relative}: damaged HDF5 structure ({_short(exc)})"
-                ),))
+        return check_raw_file(self.path_for(uid), uid, self.relative_path(uid), expected)
 
 
 # --- helpers -----------------------------------------------------------------------------------
@@ -554,7 +475,7 @@ def _prepare(frames: Sequence[FrameToWrite]) -> list[tuple[FrameToWrite, np.ndar
         array = np.asarray(frame.array)
         if array.ndim != 2 or 0 in array.shape:
             raise InputError(f"frame {index}: shape {array.shape} is not a non-empty 2-D frame")
-        if array.dtype.newbyteorder("=") not in _ACCEPTED_DTYPES:
+        if array.dtype.newbyteorder("=") not in ACCEPTED_DTYPES:
             raise InputError(f"frame {index}: dtype {array.dtype.name} is not uint8 or uint16")
         out.append((FrameToWrite(int(index), frame.role, frame.array), canonical(array)))
     return out
@@ -577,105 +498,9 @@ def _load(dataset: h5py.Dataset, relative: str, index: int, verify: bool) -> np.
     try:
         array = canonical(dataset[()])
     except (OSError, ValueError) as exc:
-        raise IntegrityError(f"{relative}: frame {index} is unreadable ({_short(exc)})") from None
-    if verify and frame_sha256(array) != _text(dataset.attrs.get("sha256", "")):
+        raise IntegrityError(
+            f"{relative}: frame {index} is unreadable ({short_error(exc)})") from None
+    if verify and frame_sha256(array) != attr_text(dataset.attrs.get("sha256", "")):
         raise IntegrityError(f"{relative}: frame {index} does not match its SHA-256")
     array.flags.writeable = False
     return array
-
-
-def _check_open_file(
-    h5: h5py.File, uid: str, relative: str, expected: Mapping[int, str] | None
-) -> FileReport:
-    problems: list[FrameProblem] = []
-    hashes: dict[int, str] = {}
-    attrs = h5.attrs
-    group = h5.get("frames")
-    if attrs.get("format") != FORMAT_NAME or not isinstance(group, h5py.Group):
-        return FileReport(uid, relative, "unreadable", (FrameProblem(
-            "bad-attributes", None, f"{relative}: not a rasterserver raw file"
-        ),))
-    if _text(attrs.get("uid", "")) != uid:
-        problems.append(FrameProblem(
-            "bad-attributes", None,
-            f"{relative}: file says uid {_text(attrs.get('uid', ''))!r}, expected {uid}",
-        ))
-    names = list(group.keys())
-    if attrs.get("frame_count") != len(names):
-        problems.append(FrameProblem(
-            "bad-attributes", None,
-            f"{relative}: frame_count is {attrs.get('frame_count')} but the file holds "
-            f"{len(names)} frames",
-        ))
-    present: set[int] = set()
-    for name in names:
-        if not name.isdigit():
-            problems.append(FrameProblem(
-                "extra-frame", None, f"{relative}: unexpected entry frames/{name}"
-            ))
-            continue
-        index = int(name)
-        present.add(index)
-        problems.extend(_check_frame(group, name, index, relative, hashes))
-        if expected is not None and index in hashes:
-            if index not in expected:
-                problems.append(FrameProblem(
-                    "extra-frame", index, f"{relative}: frame {index} is not in the catalogue"
-                ))
-            elif hashes[index] != expected[index]:
-                problems.append(FrameProblem(
-                    "catalog-mismatch", index,
-                    f"{relative}: frame {index} differs from the catalogue's SHA-256",
-                ))
-    if expected is not None:
-        for index in sorted(set(expected) - present):
-            problems.append(FrameProblem(
-                "missing-frame", index, f"{relative}: frame {index} is missing"
-            ))
-    status: Literal["ok", "corrupt"] = "corrupt" if problems else "ok"
-    return FileReport(uid, relative, status, tuple(problems), hashes)
-
-
-def _check_frame(
-    group: h5py.Group, name: str, index: int, relative: str, hashes: dict[int, str]
-) -> list[FrameProblem]:
-    item = group.get(name)
-    if not isinstance(item, h5py.Dataset):
-        return [FrameProblem("extra-frame", index, f"{relative}: frames/{name} is not a dataset")]
-    problems = []
-    try:
-        array = item[()]
-    except (OSError, ValueError) as exc:
-        return [FrameProblem(
-            "unreadable-frame", index, f"{relative}: frame {index} is unreadable ({_short(exc)})"
-        )]
-    if array.ndim != 2 or array.dtype.newbyteorder("=") not in _ACCEPTED_DTYPES:
-        problems.append(FrameProblem(
-            "bad-attributes", index,
-            f"{relative}: frame {index} is {array.dtype} of shape {array.shape}, not a frame",
-        ))
-    digest = frame_sha256(array)
-    hashes[index] = digest
-    stored = _text(item.attrs.get("sha256", ""))
-    if digest != stored:
-        problems.append(FrameProblem(
-            "hash-mismatch", index,
-            f"{relative}: frame {index} does not match its stored SHA-256",
-        ))
-    if item.attrs.get("index") != index:
-        problems.append(FrameProblem(
-            "bad-attributes", index, f"{relative}: frame {index} has index attribute "
-            f"{item.attrs.get('index')!r}",
-        ))
-    return problems
-
-
-def _text(value: object) -> str:
-    return value.decode() if isinstance(value, bytes) else str(value)
-
-
-def _short(exc: BaseException) -> str:
-    """First line of an HDF5 error, without the absolute path h5py likes to include."""
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return re.sub(r"(name|filename) = '[^']*'", r"\1 = <file>", text)[:200]
-
