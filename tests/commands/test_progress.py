@@ -40,3 +40,17 @@ def test_nothing_in_a_pipe_or_when_quiet(monkeypatch) -> None:
 
 def test_duration() -> None:
     assert duration(None) == "?" and duration(61.4) == "1:01" and duration(3725) == "1:02:05"
+
+
+def test_a_jobs_bar_shows_its_counts_rate_and_eta(monkeypatch) -> None:
+    from rasterserver.catalog.job_models import ProcessingJob
+    from rasterserver.commands.jobs import job_progress
+    from rasterserver.processing_jobs import JobStatus
+
+    screen = Terminal()
+    monkeypatch.setattr(sys, "stderr", screen)
+    job = ProcessingJob(id="abcdef0123456789" * 2, total=10, done=3, failed=1, state="running")
+    with job_progress() as progress:
+        progress(JobStatus(job, left=6, rate=2.5, eta_s=2.4))
+    shown = screen.getvalue()
+    assert "job abcdef01 (1 failed)" in shown and "2.5 acq/s" in shown and "ETA 0:02" in shown
