@@ -34,7 +34,15 @@ from typing import Any
 from rasterserver.errors import InputError
 from rasterserver.registry import Registry, get_registry
 
-__all__ = ["ChainSpec", "ResultRow", "StepPattern", "match_path", "parse_chain"]
+__all__ = [
+    "ChainSpec",
+    "ResultRow",
+    "StepPattern",
+    "describe_patterns",
+    "match_path",
+    "parse_chain",
+    "result_rows",
+]
 
 
 @dataclass(frozen=True)

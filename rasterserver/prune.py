@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, select
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.job_models import ProcessingJob
@@ -369,8 +369,3 @@ def _unlink(root: Path, relative: str, report: PruneReport) -> None:
     report.files_removed += 1
     report.bytes_freed += size
 
-
-def count_results(archive: Archive) -> int:
-    """Stored results in the catalogue."""
-    with archive.session() as s:
-        return int(s.scalar(select(func.count(StageResult.id))) or 0)
