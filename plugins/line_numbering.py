@@ -37,6 +37,7 @@ from rasterserver_plugins.code_evidence import (
     reliability,
 )
 from rasterserver_plugins.numbering_checks import (
+    by_line,
     column_order_conflicts,
     contact_votes,
     line_jumps,
@@ -182,12 +183,17 @@ def number_lines(
     # column extent of every component (for the share of it a link touches)
     lid_all = data.line_id.astype(np.int64)
     peak_comp = np.where(lid_all >= 0, comps[np.maximum(lid_all, 0)], -1)
-    has = (peak_comp >= 0) & valid[np.maximum(lid_all, 0)]
-    first_col = np.full(n_comp, np.iinfo(np.int64).max)
-    last_col = np.full(n_comp, -1)
-    np.minimum.at(first_col, peak_comp[has], data.col[has].astype(np.int64))
-    np.maximum.at(last_col, peak_comp[has], data.col[has].astype(np.int64))
-    width = np.maximum(last_col - first_col + 1, 0)
+    has = np.flatnonzero((peak_comp >= 0) & valid[np.maximum(lid_all, 0)])
+    width = np.zeros(n_comp, dtype=np.int64)
+    if has.size:
+        # peaks are sorted by column: grouped by component (a stable sort), each group's
+        # first and last peak are its first and last column
+        grouped = has[by_line(peak_comp[has])]
+        gc = peak_comp[grouped]
+        start = np.flatnonzero(np.r_[True, gc[1:] != gc[:-1]])
+        end = np.r_[start[1:], gc.size] - 1
+        cols = data.col.astype(np.int64)
+        width[gc[start]] = cols[grouped[end]] - cols[grouped[start]] + 1
     for c in range(n_comp):
         mine = valid & (comps == c)
         if not np.any(mine):
