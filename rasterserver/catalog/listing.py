@@ -15,8 +15,11 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from sqlalchemy import Integer, Select, bindparam, select
 
+# _t: the tables' light Core views (the parameters are called patient, kind, ...)
+from rasterserver.catalog.columns import acquisition as acquisition_t
+from rasterserver.catalog.columns import frame as frame_t
+from rasterserver.catalog.columns import patient as patient_t
 from rasterserver.catalog.lookup import patient_id_of
-from rasterserver.catalog.models import Acquisition, Frame, Patient
 from rasterserver.errors import NotFoundError
 from rasterserver.identifiers import lookup_key
 from rasterserver.times import require_zone
@@ -89,11 +92,12 @@ def check_range(since: dt.datetime | None, until: dt.datetime | None) -> None:
 # The statements of find() and info() are built once, with bound parameters: building a
 # SQLAlchemy statement costs more Python than running it on a page of a hundred rows.
 _INFO_COLUMNS = (
-    Acquisition.id, Acquisition.uid, Acquisition.kind, Acquisition.patient_id,
-    Patient.identifier, Acquisition.station_id, Acquisition.calibration_id,
-    Acquisition.acquired_at, Acquisition.operator, Acquisition.notes,
+    acquisition_t.c.id, acquisition_t.c.uid, acquisition_t.c.kind, acquisition_t.c.patient_id,
+    patient_t.c.identifier, acquisition_t.c.station_id, acquisition_t.c.calibration_id,
+    acquisition_t.c.acquired_at, acquisition_t.c.operator, acquisition_t.c.notes,
 )
-_FRAME_COLUMNS = (Frame.index, Frame.role, Frame.height, Frame.width, Frame.dtype, Frame.sha256)
+_FRAME_COLUMNS = (frame_t.c.index, frame_t.c.role, frame_t.c.height, frame_t.c.width,
+                  frame_t.c.dtype, frame_t.c.sha256)
 
 
 def patient_params(identifier: str) -> dict[str, str]:
@@ -102,40 +106,41 @@ def patient_params(identifier: str) -> dict[str, str]:
 
 
 PATIENT_OF = patient_id_of(bindparam("identifier"), bindparam("identifier_key"))
-_PATIENT_ID = select(Patient.id).where(Patient.id == PATIENT_OF)
-_PATIENT_INFO = select(Patient.id, Patient.identifier, Patient.name, Patient.birth_date,
-                       Patient.sex, Patient.created_at).where(Patient.id == PATIENT_OF)
+_PATIENT_ID = select(patient_t.c.id).where(patient_t.c.id == PATIENT_OF)
+_PATIENT_INFO = select(patient_t.c.id, patient_t.c.identifier, patient_t.c.name,
+                       patient_t.c.birth_date, patient_t.c.sex,
+                       patient_t.c.created_at).where(patient_t.c.id == PATIENT_OF)
 
 
 def _with_frames(page: Select[Any]) -> Select[Any]:
     """``page`` (the info columns, ordered) joined to its frames, in the same order."""
     sub = page.subquery()
     return (select(sub, *_FRAME_COLUMNS)
-            .outerjoin(Frame, Frame.acquisition_id == sub.c.id)
-            .order_by(sub.c.acquired_at.desc(), sub.c.id.desc(), Frame.index))
+            .outerjoin(frame_t, frame_t.c.acquisition_id == sub.c.id)
+            .order_by(sub.c.acquired_at.desc(), sub.c.id.desc(), frame_t.c.index))
 
 
 @functools.cache
 def _find_statement(patient: bool, since: bool, until: bool, kind: bool) -> Select[Any]:
     """The statement of :func:`find` for one combination of filters."""
-    page = select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
+    page = select(*_INFO_COLUMNS).outerjoin(patient_t, patient_t.c.id == acquisition_t.c.patient_id)
     if patient:  # by identifier, in the same query: no round trip to look up the id first
-        page = page.where(Acquisition.patient_id == PATIENT_OF)
+        page = page.where(acquisition_t.c.patient_id == PATIENT_OF)
     if since:
-        page = page.where(Acquisition.acquired_at >= bindparam("since"))
+        page = page.where(acquisition_t.c.acquired_at >= bindparam("since"))
     if until:
-        page = page.where(Acquisition.acquired_at < bindparam("until"))
+        page = page.where(acquisition_t.c.acquired_at < bindparam("until"))
     if kind:
-        page = page.where(Acquisition.kind == bindparam("kind"))
-    page = (page.order_by(Acquisition.acquired_at.desc(), Acquisition.id.desc())
+        page = page.where(acquisition_t.c.kind == bindparam("kind"))
+    page = (page.order_by(acquisition_t.c.acquired_at.desc(), acquisition_t.c.id.desc())
             .limit(bindparam("limit", type_=Integer)).offset(bindparam("offset", type_=Integer)))
     return _with_frames(page)
 
 
 _INFO_BY_UID = _with_frames(
-    select(*_INFO_COLUMNS).outerjoin(Patient, Patient.id == Acquisition.patient_id)
-    .where(Acquisition.uid == bindparam("uid")).order_by(Acquisition.acquired_at.desc(),
-                                                         Acquisition.id.desc()))
+    select(*_INFO_COLUMNS).outerjoin(patient_t, patient_t.c.id == acquisition_t.c.patient_id)
+    .where(acquisition_t.c.uid == bindparam("uid")).order_by(acquisition_t.c.acquired_at.desc(),
+                                                         acquisition_t.c.id.desc()))
 
 
 def _infos(rows: Iterable[Sequence[Any]]) -> list[AcquisitionInfo]:

@@ -8,11 +8,18 @@ their own rows. The archive service, the accounts and the audit trail look names
 
 from __future__ import annotations
 
-from sqlalchemy import BindParameter, ColumnElement, func, select
-from sqlalchemy.orm import InstrumentedAttribute, Session
+from typing import TYPE_CHECKING
 
-from rasterserver.catalog.models import Patient
+from sqlalchemy import BindParameter, ColumnElement, func, select
+
+from rasterserver.catalog.columns import patient
 from rasterserver.identifiers import lookup_key
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import InstrumentedAttribute, Session
+
+# The patient table through its light Core view (rasterserver.catalog.columns): the listing
+# statements built from patient_id_of load without the ORM.
 
 __all__ = ["patient_id_of", "stored_name"]
 
@@ -43,8 +50,8 @@ def patient_id_of(
             raise TypeError("give the key of a bound identifier")
         key = lookup_key(identifier)
     return func.coalesce(
-        select(Patient.id).where(Patient.identifier == identifier).scalar_subquery(),
-        select(Patient.id).where(Patient.identifier_key == key).scalar_subquery(),
+        select(patient.c.id).where(patient.c.identifier == identifier).scalar_subquery(),
+        select(patient.c.id).where(patient.c.identifier_key == key).scalar_subquery(),
     )
 
 

@@ -66,3 +66,28 @@ def test_an_archive_borrows_a_catalog_and_leaves_it_open(tmp_path: Path,
             archive.add_patient("P1")
         with catalog.session() as s:  # still open
             assert s.scalar(select(Patient.identifier)) == "P1"
+
+
+def test_the_light_column_views_match_the_models() -> None:
+    """rasterserver.catalog.columns names real columns, with the types that decode them."""
+    from rasterserver.catalog import columns
+    from rasterserver.catalog.models import Base
+
+    for view in (columns.patient, columns.acquisition, columns.frame):
+        model = Base.metadata.tables[view.name]
+        for col in view.columns:
+            assert col.name in model.columns, f"{view.name}.{col.name}"
+            assert type(col.type)._type_affinity is type(  # type: ignore[attr-defined]
+                model.columns[col.name].type)._type_affinity, f"{view.name}.{col.name}"
+
+
+def test_listing_starts_without_the_orm() -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys, rasterserver.catalog.listing, rasterserver.catalog.catalog; "
+            "print(sorted(m for m in sys.modules if m in ('sqlalchemy.orm', "
+            "'rasterserver.catalog.models', 'alembic', 'numpy', 'h5py')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True)
+    assert done.stdout.strip() == "[]"
