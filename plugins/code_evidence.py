@@ -172,14 +172,20 @@ def observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: flo
     expect = np.array([[0.0, -1.0], [1.0, 0.0]]) * lam
     u = (dd[:, None, None] - expect[None, :, :]) / (tolerance * lam)
     cost = np.minimum(u * u, 1.0) * ww[:, None, None]
-    # forward and backward passes give each level's best total cost per kind
-    fwd = np.zeros((n, 2))
-    for k in range(n - 1):
-        fwd[k + 1] = (fwd[k][:, None] + cost[k]).min(axis=0)
-    bwd = np.zeros((n, 2))
-    for k in range(n - 2, -1, -1):
-        bwd[k] = (cost[k] + bwd[k + 1][None, :]).min(axis=1)
-    total = fwd + bwd
+    # forward and backward passes give each level's best total cost per kind (on Python
+    # floats: two states, where a NumPy call per level costs more than the arithmetic)
+    c = cost.reshape(n - 1, 4).tolist()  # [a0b0, a0b1, a1b0, a1b1] per level
+    f0, f1 = 0.0, 0.0
+    fwd = [(0.0, 0.0)]
+    for c00, c01, c10, c11 in c:
+        f0, f1 = min(f0 + c00, f1 + c10), min(f0 + c01, f1 + c11)
+        fwd.append((f0, f1))
+    b0, b1 = 0.0, 0.0
+    bwd = [(0.0, 0.0)]
+    for c00, c01, c10, c11 in reversed(c):
+        b0, b1 = min(c00 + b0, c01 + b1), min(c10 + b0, c11 + b1)
+        bwd.append((b0, b1))
+    total = np.array(fwd) + np.array(bwd[::-1])
     gap = total[:, 0] - total[:, 1]  # > 0: heavy explains better
     seen = np.zeros(n, dtype=bool)
     seen[:-1] |= measured
