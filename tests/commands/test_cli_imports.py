@@ -148,9 +148,35 @@ def test_help_does_not_load_the_archive_stack(tmp_path: Path) -> None:
     """``--help`` needs Typer and the command modules, not the catalogue, HDF5 or NumPy."""
     code, modules = hooked(["--help"], tmp_path)
     assert code == 0
-    heavy = ("sqlalchemy", "alembic", "h5py", "numpy", "cv2", "rasterserver.archive")
+    heavy = ("sqlalchemy", "alembic", "h5py", "numpy", "cv2", "rasterserver.archive",
+             "rasterserver.ingest", "rasterserver.integrity", "rasterserver.catalog.catalog",
+             "rasterserver.hashing")
     loaded = sorted(m for m in modules if m.split(".")[0] in heavy or m in heavy)
     assert not loaded, loaded
+
+
+#: What ``list`` does without since issue 17: it opens the catalogue alone (a Catalog, no
+#: Archive and file stores), reads it with SQLAlchemy Core (no ORM, no models) and checks the
+#: schema revision without Alembic.
+LIST_NEEDS_NOT = ("sqlalchemy.orm", "rasterserver.catalog.models", "rasterserver.archive",
+                  "rasterserver.store.raw", "alembic", "numpy", "h5py", "cv2")
+
+
+@pytest.mark.parametrize("name", ["list", "list-json"])
+def test_list_reads_the_catalogue_alone(name: str, archive: Path, tmp_path: Path) -> None:
+    code, modules = hooked(_with_archive(COMMANDS[name], archive), tmp_path)
+    assert code == 0
+    loaded = sorted(m for m in modules
+                    if any(m == n or m.startswith(n + ".") for n in LIST_NEEDS_NOT))
+    assert not loaded, loaded
+    assert "rasterserver.catalog.listing" in modules
+
+
+def test_verify_checks_the_schema_without_alembic(archive: Path, tmp_path: Path) -> None:
+    code, modules = hooked(_with_archive(COMMANDS["verify"], archive), tmp_path)
+    assert code == 0
+    assert "rasterserver.integrity" in modules
+    assert not [m for m in modules if m == "alembic" or m.startswith("alembic.")]
 
 
 def test_the_hook_sees_a_heavy_import(tmp_path: Path) -> None:
