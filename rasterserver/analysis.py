@@ -557,7 +557,7 @@ def _parent_surface(pipeline: Pipeline, row: StageResult) -> Surface | None:
 
 def _calibration(pipeline: Pipeline, calibration_id: int | None) -> tuple[str, list[float] | None]:
     """``"STATION:VERSION"`` and the gravity of calibration row ``calibration_id``."""
-    from rasterserver.documents import calibration_from_document
+    from rasterserver.documents import stored_calibration
 
     if calibration_id is None:
         return "", None
@@ -566,4 +566,4 @@ def _calibration(pipeline: Pipeline, calibration_id: int | None) -> tuple[str, l
         if row is None:
             return "", None
         label, parameters = f"{row.station.name}:{row.version}", row.parameters
-    return label, _gravity(calibration_from_document(parameters, source=f"calibration {label}"))
+    return label, _gravity(stored_calibration(parameters, label=label))

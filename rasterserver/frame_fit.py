@@ -62,10 +62,10 @@ def check_frame_fits(image_shape: tuple[int, ...], station: object) -> None:
 def _camera_shape(sha256: str, parameters: object, label: str, station: str) -> tuple[int, int]:
     shape = _SHAPES.get(sha256)
     if shape is None:
-        from rasterserver.documents import calibration_from_document
+        from rasterserver.documents import stored_calibration
 
         try:
-            calibration = calibration_from_document(parameters, source=f"calibration {label}")
+            calibration = stored_calibration(parameters, label=label)
         except InputError as exc:
             # stored before documents were checked: it would fail every acquisition later
             raise InputError(

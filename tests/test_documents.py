@@ -507,3 +507,62 @@ def test_devices_read_alone_go_through_the_same_checks() -> None:
     broken = station.camera.to_dict() | {"K": [[0.0] * 3] * 3}
     with pytest.raises(InputError, match=r"^camera: K: focal lengths must be positive"):
         Camera.from_dict(broken)
+
+
+SCHEMAS = DOCS.parent / "schemas"
+
+
+def test_schema_files_are_generated_from_the_models() -> None:
+    from rasterserver.documents import json_schemas, write_json_schemas
+
+    expected = json_schemas()
+    if os.environ.get("RASTERSERVER_UPDATE_DOCS"):
+        write_json_schemas(SCHEMAS)
+    assert sorted(p.name for p in SCHEMAS.glob("*.json")) == sorted(expected)
+    for name, text in expected.items():
+        assert (SCHEMAS / name).read_text(encoding="utf-8") == text, (
+            f"docs/schemas/{name} differs from the document models: run "
+            "RASTERSERVER_UPDATE_DOCS=1 .venv/bin/pytest tests/test_documents.py -k schema_files"
+        )
+        schema = json.loads(text)
+        assert schema["$schema"].endswith("/2020-12/schema") and schema["type"] == "object"
+
+
+def test_schema_files_accept_the_good_documents() -> None:
+    """The published schema is the models' own: the good documents satisfy its required
+    fields, and a document's keys are all among its properties."""
+    for name, document in (
+        ("calibration.schema.json", good_calibration()),
+        ("raster.schema.json", good_raster()),
+    ):
+        schema = json.loads((SCHEMAS / name).read_text(encoding="utf-8"))
+        assert set(schema["required"]) <= set(document) <= set(schema["properties"])
+
+
+def test_stored_calibration_names_the_row() -> None:
+    from rasterserver.documents import stored_calibration
+
+    station = stored_calibration(good_calibration(), label="clinic-1:2")
+    assert isinstance(station, Station)
+    broken = good_calibration() | {"camera": good_calibration()["camera"] | {"width": 0}}
+    with pytest.raises(InputError, match=r"^calibration clinic-1:2: camera\.width: "):
+        stored_calibration(broken, label="clinic-1:2")
+
+
+def test_calibration_raster_from_a_file_a_row_or_the_station(tmp_path: Path) -> None:
+    from rasterserver.documents import calibration_raster
+
+    station = default_station()
+    assert calibration_raster(station, source="cal.json").name == station.raster_definition.name
+    other = make_raster(name="other", n_lines=40)
+    path = tmp_path / "raster.json"
+    path.write_text(json.dumps(other.to_dict()), encoding="utf-8")
+    assert calibration_raster(station, path, source="cal.json").name == "other"
+    assert calibration_raster(station, other.to_dict(), source="x").name == "other"
+    with pytest.raises(InputError, match=r"^the raster of calibration s:1: "):
+        calibration_raster(station, {"format": "rasterserver.raster/1"}, source="calibration s:1")
+    unknown = Station(station.camera, station.projector, raster="no-such-raster")
+    with pytest.raises(
+        InputError, match=r"^cal\.json: unknown built-in raster 'no-such-raster'.*; give it$"
+    ):
+        calibration_raster(unknown, source="cal.json", hint="; give it")

@@ -219,7 +219,7 @@ def _reference(
 ) -> Station | None:
     """The reference station: a file, else the station's newest calibration (not in a dry
     run, which touches no archive), else None for the nominal design."""
-    from rasterserver.documents import calibration_from_document, load_calibration_document
+    from rasterserver.documents import load_calibration_document, stored_calibration
 
     if path is not None:
         return load_calibration_document(path)
@@ -230,9 +230,7 @@ def _reference(
             row = archive.calibration(station)
         except NotFoundError:
             return None
-        return calibration_from_document(
-            row.parameters, source=f"calibration {station}:{row.version}"
-        )
+        return stored_calibration(row.parameters, label=f"{station}:{row.version}")
 
 
 def export_calibration(

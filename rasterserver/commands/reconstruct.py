@@ -26,17 +26,11 @@ def load_station(path: Path) -> Station:
 
 def load_raster(path: Path | None, station: Station) -> Raster:
     """The raster named by ``--raster``, else the one the calibration names or holds."""
-    from rasterserver.documents import load_raster_document
+    from rasterserver.documents import calibration_raster
 
-    if path is None:
-        try:
-            return station.raster_definition
-        except KeyError as exc:
-            raise InputError(
-                f"the calibration names raster {station.raster!r}, which is not built in; "
-                f"give its definition with --raster ({exc})"
-            ) from None
-    return load_raster_document(path)
+    return calibration_raster(
+        station, path, source="the calibration", hint="; give its definition with --raster"
+    )
 
 
 def reconstruct(
