@@ -275,11 +275,11 @@ def _rms(v: Any) -> float:
 
 
 def _truth_distance(dmap: Any, mesh: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    from rasterserver.comparison import _signed_distances
+    from rasterserver.comparison import signed_distances
     from rasterserver.records_surface import MeshRecord
 
     record = MeshRecord(vertices=mesh[0], triangles=mesh[1].astype(np.int32), normals=mesh[0] * 0)
-    return _signed_distances(dmap.vertices, dmap.normals, record, limit=60.0)
+    return signed_distances(dmap.vertices, dmap.normals, record, limit=60.0)
 
 
 def score_back(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:

@@ -221,13 +221,13 @@ def registration_of(record: ComparisonRecord) -> Registration:
 
 
 def _map(mesh: MeshRecord, index: np.ndarray, values: np.ndarray, what: str) -> DistanceMap:
-    from rasterserver.comparison import _submesh
+    from rasterserver.comparison import submesh
 
     if len(index) and int(index.max()) >= len(mesh.vertices):
         raise InputError("the stored map does not belong to this mesh (vertex index too large)")
     keep = np.zeros(len(mesh.vertices), dtype=bool)
     keep[index] = True
-    trunk = _submesh(mesh, keep)
+    trunk = submesh(mesh, keep)
     return DistanceMap(trunk.vertices, trunk.triangles, trunk.normals, np.array(values), what=what)
 
 

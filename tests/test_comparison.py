@@ -198,7 +198,7 @@ def _scene_mesh(params: BackParameters) -> MeshRecord:
 
 
 def test_a_local_change_is_mapped_within_half_a_millimetre_of_the_truth() -> None:
-    from rasterserver.comparison import _signed_distances
+    from rasterserver.comparison import signed_distances
 
     a = first()
     main = BASE.curves[0]
@@ -206,8 +206,8 @@ def test_a_local_change_is_mapped_within_half_a_millimetre_of_the_truth() -> Non
     c = visit(hump, 4, "hump")
     dmap = distance_map(a, c, register(a, c))
     # the true change along A's normals: distance to C's true surface minus to A's
-    to_c = _signed_distances(dmap.vertices, dmap.normals, _scene_mesh(hump), limit=60.0)
-    to_a = _signed_distances(dmap.vertices, dmap.normals, _scene_mesh(BASE), limit=60.0)
+    to_c = signed_distances(dmap.vertices, dmap.normals, _scene_mesh(hump), limit=60.0)
+    to_a = signed_distances(dmap.vertices, dmap.normals, _scene_mesh(BASE), limit=60.0)
     truth = to_c - to_a
     ok = np.isfinite(truth) & np.isfinite(dmap.distance)
     assert ok.sum() > 0.9 * len(truth)

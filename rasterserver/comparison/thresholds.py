@@ -1,0 +1,71 @@
+"""What a comparison accepts: the trunk margin, the farthest distance reported, the
+convergence bounds of the registration, and the refusal when they are not met."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rasterserver.errors import InputError
+
+#: How far inside the measured outline the trunk starts (mm): the outermost cells of a
+#: reconstructed surface are the least certain (grazing raster lines, smoothing at the rim).
+EDGE_MARGIN = 15.0
+#: Largest distance a distance map reports (mm); farther, the vertex has no counterpart.
+MAX_DISTANCE = 30.0
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """When a registration is accepted; values of :data:`THRESHOLDS` and why.
+
+    Attributes
+    ----------
+    coarse_distance : float
+        Correspondence distance of the first ICP pass (mm): the landmark frames agree to a few
+        millimetres and about a degree (7 mm over a 440 mm trunk), so 20 mm catches them.
+    fine_distance : float
+        Correspondence distance of the second pass and of the reported fitness and rmse (mm).
+    min_fitness : float
+        Fraction of B's trunk points with a counterpart on A within ``fine_distance``: below
+        0.7 the two surfaces do not overlap enough to say they were aligned.
+    max_rmse : float
+        Inlier rmse (mm); two visits of one back agree to well under 1 mm after
+        registration, a progressed scoliosis to 2-3 mm; above 4 mm the alignment is not
+        trusted.
+    max_shift : float
+        Largest distance (mm) ICP may move the trunk's centre away from where the landmark
+        frames put it; farther means ICP slid into another minimum.
+    max_turn : float
+        Largest rotation (degrees) ICP may add to the landmark frames' rotation.
+    min_points : int
+        Fewest trunk points of either visit.
+    robust_scale : float or None
+        Scale (mm) of Tukey's biweight in the fine ICP pass: point-to-plane residuals beyond
+        it do not pull the alignment (a changed region is left out of the fit). Two renders
+        of one back agree to about 0.1 mm along the normal, a change worth mapping is
+        millimetres. None: plain least squares.
+    voxel : float or None
+        Voxel size (mm) the moved visit's trunk is thinned to for ICP (one point per voxel,
+        their mean); None: every point.
+    mirror_distance : float
+        Correspondence distance (mm) of the asymmetry map's mirror fit, both passes.
+    """
+
+    coarse_distance: float = 20.0
+    fine_distance: float = 5.0
+    min_fitness: float = 0.7
+    max_rmse: float = 4.0
+    max_shift: float = 25.0
+    max_turn: float = 8.0
+    min_points: int = 500
+    robust_scale: float | None = 1.0
+    voxel: float | None = 4.0
+    mirror_distance: float = 10.0
+
+
+#: The thresholds :func:`register` uses unless given others.
+THRESHOLDS = Thresholds()
+
+
+class ComparisonRefusedError(InputError):
+    """Two visits cannot be compared; the message says why (exit 2, HTTP 422)."""

@@ -1,0 +1,131 @@
+"""The body-fixed landmark frame of a visit and its trunk: the part of the back between DM and
+VP inside the measured outline, eroded by the edge margin."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rasterserver.comparison.thresholds import EDGE_MARGIN, ComparisonRefusedError
+from rasterserver.comparison.visits import BodyFrame, Visit
+from rasterserver.records_analysis import BackShape
+from rasterserver.records_surface import MeshRecord
+
+
+def landmark_frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """Origin and axes of a visit's body frame; refused when its landmarks are missing."""
+    origin, axes = shape.frame_origin, shape.frame_axes
+    if shape.reason or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
+        missing = [n for n in ("VP", "DL", "DR") if shape.landmark(n) is None]
+        why = shape.reason or (
+            f"landmark {', '.join(missing)} not found" if missing else "degenerate landmarks"
+        )
+        details = shape.reason_table()
+        extra = "; ".join(f"{n}: {details[n]}" for n in missing if n in details)
+        raise ComparisonRefusedError(
+            f"visit {label or '?'} has no body-fixed frame ({why}{'; ' + extra if extra else ''})"
+        )
+    return np.asarray(origin, dtype=float), np.asarray(axes, dtype=float)
+
+
+def landmark_transform(
+    a: BackShape | BodyFrame, b: BackShape | BodyFrame, *, labels: tuple[str, str] = ("A", "B")
+) -> np.ndarray:
+    """The rigid transform putting B's body-fixed frame onto A's.
+
+    A point with body-frame coordinates ``l`` is ``o + Axesᵀ l`` in each world frame, so
+    ``p_a = A_axesᵀ B_axes (p_b − o_b) + o_a``.
+
+    Parameters
+    ----------
+    a, b : BackShape
+        The analyses of visits A and B.
+    labels : (str, str), optional
+        Names of the visits in messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(4, 4)`` homogeneous transform from B's world frame to A's.
+
+    Raises
+    ------
+    ComparisonRefusedError
+        When either visit has no body frame (VP, DL or DR not found), saying which.
+    """
+    oa, ra = landmark_frame(a, labels[0])
+    ob, rb = landmark_frame(b, labels[1])
+    rotation = ra.T @ rb
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = oa - rotation @ ob
+    return out
+
+
+def trunk_mask(visit: Visit, points: np.ndarray, *, margin: float = EDGE_MARGIN) -> np.ndarray:
+    """Which of ``points`` (world mm) lie on the visit's trunk.
+
+    The trunk is the part of the measured surface between DM and VP along the body frame's
+    vertical axis (the head and neck above VP, the buttocks below DM left out), at least
+    ``margin`` inside the measured outline (the outline eroded), and in the connected piece
+    of it that holds the VP–DM line's midpoint (arms measured apart from the trunk left out).
+
+    Parameters
+    ----------
+    visit : Visit
+        The visit (surface and analysis).
+    points : numpy.ndarray
+        ``(N, 3)`` points in the visit's world frame.
+    margin : float, optional
+        Erosion of the outline, mm.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool.
+    """
+    from scipy import ndimage
+
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    surface = visit.surface
+    if surface.z.size == 0 or len(points) == 0:
+        return np.zeros(len(points), dtype=bool)
+    origin, axes = landmark_frame(visit.shape, visit.label)
+    vp = visit.shape.landmark("VP")
+    assert vp is not None  # the frame exists, so VP does
+    height = float((vp - origin) @ axes[1])
+    local = (points - origin) @ axes.T
+    inside = (local[:, 1] >= 0.0) & (local[:, 1] <= height)
+    steps = max(1, round(margin / surface.spacing))
+    eroded = ndimage.binary_erosion(surface.valid, iterations=steps, border_value=0)
+    labels, _count = ndimage.label(eroded)
+    ny, nx = surface.shape
+
+    def cells(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        j = np.rint((p[:, 0] - surface.x0) / surface.spacing).astype(np.int64)
+        i = np.rint((p[:, 1] - surface.y0) / surface.spacing).astype(np.int64)
+        ok = (i >= 0) & (i < ny) & (j >= 0) & (j < nx)
+        return np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1), ok
+
+    mid = 0.5 * (vp + origin)
+    mi, mj, mok = cells(mid[None, :])
+    piece = labels[mi[0], mj[0]] if mok[0] else 0
+    i, j, ok = cells(points)
+    on = ok & (labels[i, j] == piece) if piece else ok & eroded[i, j]
+    return inside & on
+
+
+def submesh(mesh: MeshRecord, keep: np.ndarray) -> MeshRecord:
+    """The vertices ``keep`` and the triangles whose three corners are kept, renumbered."""
+    index = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    index[keep] = np.arange(int(keep.sum()))
+    tri = mesh.triangles[np.all(keep[mesh.triangles], axis=1)]
+    return MeshRecord(
+        vertices=np.array(mesh.vertices[keep]),
+        triangles=index[tri].astype(np.int32),
+        normals=np.array(mesh.normals[keep]),
+    )
+
+
+def trunk_mesh(visit: Visit, *, margin: float = EDGE_MARGIN) -> MeshRecord:
+    """The part of the visit's mesh on its trunk (:func:`trunk_mask`)."""
+    return submesh(visit.mesh, trunk_mask(visit, visit.mesh.vertices, margin=margin))
