@@ -106,3 +106,39 @@ def test_lines_of_the_right_kinds_contradict_nothing() -> None:
     assert pair_contradictions(empty, empty * 1.0, empty, line_number, raster, 0.7)[0].size == 0
     none = np.full(line_number.shape, -1, np.int32)
     assert pair_contradictions(col, area, lid, none, raster, 0.7)[0].size == 0
+
+
+def test_a_peak_taken_from_the_neighbouring_line_is_refused() -> None:
+    from rasterserver_plugins.numbering_checks import line_jumps, local_spacing
+
+    cols = np.repeat(np.arange(40), 3)
+    rows = np.tile([10.0, 20.0, 30.0], 40) + 0.02 * cols
+    lid = np.tile([0, 1, 2], 40)
+    number = np.tile([5, 6, 7], 40).astype(np.int32)
+    col, row, lid = _sorted(cols, rows, lid)
+    assert not np.any(line_jumps(col, row, lid, number))
+    # line 1 takes line 2's peak in column 20 (its own is missing there)
+    drop = (col == 20) & (lid == 1)
+    col, row, lid, number = col[~drop], row[~drop], lid[~drop], number[~drop]
+    took = (col == 20) & (lid == 2)
+    lid = np.where(took, 1, lid)
+    number = np.where(took, 6, number).astype(np.int32)
+    refused = line_jumps(col, row, lid, number)
+    assert refused[took].all()
+    assert np.count_nonzero(refused) <= 5  # the taken peak and two line neighbours each side
+    spacing = local_spacing(col, row, number)
+    assert spacing is not None and np.allclose(np.median(spacing), 10.0)
+
+
+def test_line_checks_of_degenerate_inputs() -> None:
+    from rasterserver_plugins.numbering_checks import line_jumps, local_spacing
+
+    empty_i = np.zeros(0, np.int64)
+    assert line_jumps(empty_i, empty_i * 1.0, empty_i, empty_i).size == 0
+    assert local_spacing(empty_i, empty_i * 1.0, empty_i) is None
+    # nothing numbered: no spacing, nothing refused
+    col = np.array([0, 0, 1, 1])
+    row = np.array([1.0, 11.0, 1.0, 11.0])
+    none = np.full(4, -1, np.int32)
+    assert local_spacing(col, row, none) is None
+    assert not np.any(line_jumps(col, row, np.array([0, 1, 0, 1]), none))
