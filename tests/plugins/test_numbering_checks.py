@@ -127,7 +127,7 @@ def test_a_peak_taken_from_the_neighbouring_line_is_refused() -> None:
     assert refused[took].all()
     assert np.count_nonzero(refused) <= 5  # the taken peak and two line neighbours each side
     spacing = local_spacing(col, row, number)
-    assert spacing is not None and np.allclose(np.median(spacing), 10.0)
+    assert spacing is not None and abs(float(np.median(spacing)) - 10.0) < 0.5
 
 
 def test_line_checks_of_degenerate_inputs() -> None:
