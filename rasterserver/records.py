@@ -96,7 +96,9 @@ def _classify(owner: type, name: str, hint: Any) -> tuple[_FieldKind, bool]:
     )
 
 
-@dataclass_transform(frozen_default=True, eq_default=False)
+@dataclass_transform(
+    frozen_default=True, eq_default=False, field_specifiers=(dataclasses.field, dataclasses.Field)
+)
 class Record:
     """Base of every record: a frozen dataclass of numpy arrays and scalars.
 
