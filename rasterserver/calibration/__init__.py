@@ -13,11 +13,8 @@ See ``docs/calibration.md``. The public entry points:
 from __future__ import annotations
 
 from rasterserver.calibration.camera_calibration import CameraCalibration, calibrate_camera
-from rasterserver.calibration.control_points import (
-    ControlPointFile,
-    detect_plates,
-    load_control_points,
-)
+from rasterserver.calibration.control_points import ControlPointFile, load_control_points
+from rasterserver.calibration.hole_detection import detect_plates
 from rasterserver.calibration.projector_calibration import (
     ProjectorCalibration,
     calibrate_projector,

@@ -30,7 +30,8 @@ from rasterserver.calibration.camera_calibration import (
     assign_plates,
     calibrate_camera,
 )
-from rasterserver.calibration.control_points import ControlPointFile, DetectedPlate, detect_plates
+from rasterserver.calibration.control_points import ControlPointFile
+from rasterserver.calibration.hole_detection import DetectedPlate, detect_plates
 from rasterserver.calibration.projector_calibration import (
     ProjectorCalibration,
     calibrate_projector,

@@ -137,7 +137,7 @@ def test_a_mirrored_plate_is_refused(tmp_path: Path, good: dict) -> None:
 
 
 def test_a_csv_takes_its_layout_from_its_points(tmp_path: Path) -> None:
-    from rasterserver.calibration.control_points import identify_holes
+    from rasterserver.calibration.hole_identification import identify_holes
     from rasterserver.simulator.calibration_body import random_hole_layout
 
     layout = random_hole_layout(np.random.default_rng(5))

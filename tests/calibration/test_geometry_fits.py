@@ -15,11 +15,8 @@ from rasterserver.calibration.camera_calibration import (
     decompose_projection,
     dlt,
 )
-from rasterserver.calibration.control_points import (
-    DEFAULT_HOLE_LAYOUT,
-    identify_holes,
-    load_control_points,
-)
+from rasterserver.calibration.control_points import DEFAULT_HOLE_LAYOUT, load_control_points
+from rasterserver.calibration.hole_identification import identify_holes
 from rasterserver.calibration.projector_calibration import (
     calibrate_projector,
     group_lines,

@@ -124,7 +124,7 @@ def test_a_frame_without_control_points_is_named(inputs) -> None:
 
 
 def _plate_pixels(image: np.ndarray) -> np.ndarray:
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     return detect_plates(image)[0].mask
 
@@ -144,7 +144,7 @@ def test_a_covered_hole_is_refused(inputs) -> None:
     frames = inputs[0]
     off = dict(frames.off)
     image = off[1].copy()
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     plate = detect_plates(image)[0]
     u, v = np.rint(plate.holes[6]).astype(int)
@@ -158,7 +158,7 @@ def test_a_foreign_dark_spot_is_refused(inputs) -> None:
     frames = inputs[0]
     off = dict(frames.off)
     image = off[2].copy()
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     plate = detect_plates(image)[1]
     u, v = np.rint(plate.holes[2] + [15, 30]).astype(int)
@@ -182,7 +182,7 @@ def test_mislabelled_control_points_are_refused_by_name(inputs) -> None:
 def test_a_plate_without_raster_lines_is_refused(inputs) -> None:
     frames = inputs[0]
     on = dict(frames.on)
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     image = on[0].copy()
     mask = detect_plates(frames.off[0])[1].mask
@@ -223,7 +223,7 @@ def real(inputs) -> tuple[CalibrationFrames, ControlPointFile]:
 def test_the_base_is_as_bright_as_the_plates(real) -> None:
     """The frames defeat a dark-background segmentation: plates, columns and base are one
     bright region, and the base carries dark mounting holes of the holes' size."""
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     frames, control = real
     image = frames.off[0]
@@ -263,7 +263,7 @@ def test_a_calibration_with_the_base_visible(real, inputs) -> None:
 
 def test_a_spot_beside_a_hole_is_refused_not_guessed(real, inputs) -> None:
     """A dark spot close to a hole: two sets of seven spots fit the pattern."""
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     frames, control = real
     image = frames.off[1].copy()
@@ -275,7 +275,7 @@ def test_a_spot_beside_a_hole_is_refused_not_guessed(real, inputs) -> None:
 
 
 def test_a_covered_hole_on_the_real_body_is_named(real, inputs) -> None:
-    from rasterserver.calibration.control_points import detect_plates
+    from rasterserver.calibration.hole_detection import detect_plates
 
     frames, control = real
     off = dict(frames.off)
