@@ -340,16 +340,14 @@ def pair_contradictions(
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
         return empty, empty, empty
     lid = line_id.astype(np.int64)
-    numbered = (lid >= 0) & (line_number[np.maximum(lid, 0)] >= 0)
+    # each line's index into the raster's lines (-1: unnumbered), then each peak's
     lut = np.full(int(raster.numbers.max()) + 2, -1, dtype=np.int64)
     lut[raster.numbers] = np.arange(raster.n_lines)
-    pos = np.full(n, -1, dtype=np.int64)
-    num = line_number[np.maximum(lid, 0)].astype(np.int64)
-    inside = numbered & (num < lut.size - 1)
-    pos[inside] = lut[num[inside]]
-    a = np.flatnonzero(
-        (col[1:] == col[:-1]) & (pos[:-1] >= 0) & (pos[1:] == pos[:-1] + 1) & (lid[1:] != lid[:-1])
-    )
+    num = line_number.astype(np.int64)
+    pos_line = np.where((num >= 0) & (num < lut.size - 1), lut[np.clip(num, 0, lut.size - 1)], -1)
+    pos = np.append(pos_line, -1)[lid]
+    # consecutive raster lines are two lines (a line has one number)
+    a = np.flatnonzero((col[1:] == col[:-1]) & (pos[:-1] >= 0) & (pos[1:] == pos[:-1] + 1))
     if a.size == 0:
         return empty, empty, empty
     b = a + 1
