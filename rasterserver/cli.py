@@ -195,6 +195,11 @@ def _environment_error(exc: Exception) -> RasterServerError | None:
     The catalogue's URL (password hidden) or the file the operating system names is given,
     with its reason; never the SQL or its parameters, which may hold patient data.
     """
+    from rasterserver.extras import missing_extra
+
+    extra = missing_extra(exc)  # an optional extra not installed: name it
+    if extra is not None:
+        return extra
     import sqlalchemy.exc
 
     if isinstance(exc, sqlalchemy.exc.ArgumentError):  # incl. an unknown dialect
