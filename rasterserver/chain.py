@@ -22,8 +22,8 @@ import hashlib
 import socket
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from rasterserver.stage import (
     params_hash,
     run_stage,
 )
+
+if TYPE_CHECKING:
+    from rasterserver.store.derived import StoredResult
 
 __all__ = [
     "DEFAULT_TARGET",
@@ -462,6 +465,12 @@ class Plan:
     input_record: Record | None
     input_checksum: str
     context: StageContext
+    frame_role: str = "raster"
+
+    @property
+    def needs_computing(self) -> bool:
+        """Whether some step has no stored result yet."""
+        return self.first < len(self.steps)
 
     @property
     def to_compute(self) -> list[ChainStep]:
@@ -471,11 +480,17 @@ class Plan:
 
 @dataclass
 class Computation:
-    """What :func:`compute` returns: the new records, their timings and where it ran."""
+    """What :func:`compute` returns: the new records, their timings and where it ran.
+
+    :func:`rasterserver.worker.work` also fills ``stored``: per stage kind, the
+    :class:`~rasterserver.store.derived.StoredResult` written and the input checksum it was
+    computed from; ``records`` then holds only what was asked to come back.
+    """
 
     records: dict[str, Record]
     durations: dict[str, float]
     host: str
+    stored: dict[str, tuple[StoredResult, str]] = field(default_factory=dict)
 
 
 def compute(

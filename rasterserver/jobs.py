@@ -28,22 +28,19 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import os
+import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from rasterserver.archive import Archive
+from rasterserver.chain import DEFAULT_TARGET, Computation, Plan
 from rasterserver.errors import RasterServerError
-from rasterserver.pipeline import (
-    DEFAULT_TARGET,
-    Computation,
-    Pipeline,
-    Plan,
-    ProcessResult,
-    compute,
-)
+from rasterserver.pipeline import Pipeline, ProcessResult
 from rasterserver.registry import Registry
+from rasterserver.worker import work
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -74,6 +71,13 @@ Progress = Callable[[int, int], None]
 #: beside it were slower than computing in the coordinator. Change it when the coordinator's
 #: share drops (issue 16, throughput).
 LOCAL_CLUSTER_MIN: int | None = None
+
+#: Acquisitions the in-process engine computes ahead of committing them.
+IN_PROCESS_BATCH = 4
+#: Computed acquisitions whose rows the coordinator commits in one transaction, at most...
+COMMIT_BATCH = 64
+#: ...and the longest a computed acquisition waits for its rows (seconds): progress stays live
+COMMIT_EVERY_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -185,24 +189,25 @@ class Engine:
 
 
 class InProcess(Engine):
-    """Compute here, at once: the future returned is already done."""
+    """Compute here, at once: the future returned is already done.
+
+    A few acquisitions are computed ahead of committing them (``in_flight``), so their rows
+    go to the catalogue in one transaction.
+    """
 
     name = "in-process"
 
-    def __init__(self, pipeline: Pipeline) -> None:
+    def __init__(self, pipeline: Pipeline, *, in_flight: int | None = None) -> None:
         self.pipeline = pipeline
-        self.in_flight = 1
+        self.in_flight = max(1, in_flight or IN_PROCESS_BATCH)
 
     def submit(self, plan: Plan) -> cf.Future[Computation]:
-        """Compute now; the future holds the result or the exception."""
+        """Compute and write the files now; the future holds the result or the exception."""
         future: cf.Future[Computation] = cf.Future()
         try:
-            assert plan.input_record is not None
             future.set_result(
-                compute(
-                    plan.input_record, plan.to_compute, plan.context,
-                    registry=self.pipeline.registry,
-                )
+                work(plan, self.pipeline.archive.settings.archive,
+                     registry=self.pipeline.registry)
             )
         except Exception as exc:
             future.set_exception(exc)
@@ -212,30 +217,40 @@ class InProcess(Engine):
 class OnDask(Engine):
     """Compute on the cluster of a Dask ``client`` (workers use their own plugin registry).
 
+    Workers read the raw frame and write the derived files themselves
+    (:func:`rasterserver.worker.work`): the archive must be at the same path on every worker
+    (shared storage), ``root`` says where.
+
     Parameters
     ----------
     client : distributed.Client
         A connected client.
     name : str
         What to call the engine (``"local-cluster"`` or the scheduler's address).
+    root : Path
+        The archive root as the workers see it.
     in_flight : int, optional
-        Acquisitions submitted ahead; by default twice the cluster's worker threads, so that
-        every worker has the next acquisition waiting while the coordinator stores one.
+        Acquisitions submitted ahead; by default four times the cluster's worker threads, so
+        that every worker has the next acquisitions waiting while the coordinator commits a
+        batch.
     """
 
-    def __init__(self, client: Client, *, name: str, in_flight: int | None = None) -> None:
+    def __init__(
+        self, client: Client, *, name: str, root: Path, in_flight: int | None = None
+    ) -> None:
         self.client = client
         self.name = name
+        self.root = str(root)
         if in_flight is None:
             threads = sum(client.nthreads().values()) or 1
-            in_flight = max(4, 2 * threads)
+            in_flight = max(8, 4 * threads)
         self.in_flight = max(1, in_flight)
         # concurrent.futures futures: the loop waits on them as on the in-process ones
         self._executor = client.get_executor(pure=False)
 
     def submit(self, plan: Plan) -> cf.Future[Computation]:
-        """Send the plan's input record, steps and context to a worker."""
-        return self._executor.submit(compute, plan.input_record, plan.to_compute, plan.context)
+        """Send the plan (chain, keys, station data; no pixels) to a worker."""
+        return self._executor.submit(work, plan, self.root)
 
 
 def quiet_dask_logs() -> None:
@@ -279,6 +294,9 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
         with Client(scheduler) as client:
             yield client
         return
+    # a worker samples its own stack every 10 ms for the dashboard's profile, which this
+    # cluster does not serve: a few percent of every core for nothing
+    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
     # one thread per worker: the stages are numpy code that is fastest single-threaded
     # per frame, and parallel across frames
     with (
@@ -347,15 +365,16 @@ def open_engine(
     in_flight : int, optional
         Acquisitions submitted ahead on Dask.
     """
+    root = pipeline.archive.settings.archive
     if client is not None:
-        yield OnDask(client, name=name, in_flight=in_flight)
+        yield OnDask(client, name=name, root=root, in_flight=in_flight)
         return
     if name == "in-process":
-        yield InProcess(pipeline)
+        yield InProcess(pipeline, in_flight=in_flight)
         return
     scheduler = None if name == "local-cluster" else name
     with dask_client(scheduler=scheduler, n_workers=n_workers) as own:
-        yield OnDask(own, name=name, in_flight=in_flight)
+        yield OnDask(own, name=name, root=root, in_flight=in_flight)
 
 
 # --- the coordinator loop ----------------------------------------------------------------------
@@ -397,13 +416,20 @@ def run_tasks(
     options: Mapping[str, Any] | None = None,
     stop: Callable[[], StopReason] | None = None,
     wait_s: float = 0.5,
+    flush: Callable[[], None] | None = None,
+    started: Callable[[list[int]], None] | None = None,
 ) -> StopReason:
     """Process ``tasks`` (index, uid) through ``targets`` on ``engine``: the coordinator loop.
 
-    For each acquisition and target: :meth:`Pipeline.plan` here, the computing on the
-    engine, :meth:`Pipeline.commit` here; the next target is planned after the previous one
-    is stored, so it reuses the stages they share. ``finished(index, outcome)`` is called
-    once per task, after its results are committed, in the order tasks finish.
+    For each acquisition and target: :meth:`Pipeline.plan` here (catalogue only: the engine
+    reads the frame), the computing and the derived files on the engine
+    (:func:`rasterserver.worker.work`), the rows here, for every result that came back
+    together in one transaction (:meth:`Pipeline.commit_many`); the next target is planned
+    after the previous one is stored, so it reuses the stages they share. Rows are committed
+    when :data:`COMMIT_BATCH` results are waiting or :data:`COMMIT_EVERY_S` after the first
+    of them came back, whichever is first.
+    ``finished(index, outcome)`` is called once per task, after its results are committed,
+    in the order tasks finish; ``flush()`` after each batch of them.
 
     Parameters
     ----------
@@ -422,9 +448,16 @@ def run_tasks(
     stop : callable, optional
         Asked between tasks and every ``wait_s`` while waiting: ``"paused"`` stops starting
         tasks and finishes those in flight; ``"cancelled"`` drops those in flight too (their
-        runs are marked failed, nothing of them stored).
+        runs are marked failed, nothing of them stored) except those already computed, whose
+        files exist: their rows are committed.
     wait_s : float, optional
         Longest wait for a result before asking ``stop`` again.
+    flush : callable, optional
+        Called after each batch of ``finished`` calls and before returning (a job stores its
+        task states in one transaction there).
+    started : callable, optional
+        Called with the indexes of the tasks just started (planned and submitted), a few at
+        a time (a job counts their attempts there).
 
     Returns
     -------
@@ -433,8 +466,14 @@ def run_tasks(
     """
     options = dict(options or {})
     ask = stop or (lambda: None)
+    after = flush or (lambda: None)
     source = iter(tasks)
     in_flight: dict[cf.Future[Computation], tuple[_Task, Plan]] = {}
+    # computed (files on disk), rows not yet committed: committed together, at the latest
+    # COMMIT_EVERY_S after the first of them came back
+    ready: list[tuple[_Task, Plan, Computation]] = []
+    oldest = 0.0
+    born: dict[cf.Future[Computation], float] = {}
     stopping: StopReason = None
 
     def close(task: _Task, step: JobOutcome) -> bool:
@@ -450,52 +489,99 @@ def run_tasks(
         while task.targets:
             target = task.targets.pop(0)
             try:
-                plan = pipeline.plan(task.uid, until=target, **options)
+                plan = pipeline.plan(task.uid, until=target, load_input=False, **options)
             except Exception as exc:
                 close(task, JobOutcome.failed(task.uid, exc))
                 return
-            if plan.input_record is None:  # everything stored already
-                if close(task, _commit(pipeline, plan, pipeline.compute(plan))):
+            if not plan.needs_computing:  # everything stored already
+                if close(task, _commit(pipeline, [(task, plan, Computation({}, {}, ""))])[0]):
                     return
                 continue
-            in_flight[engine.submit(plan)] = (task, plan)
+            future = engine.submit(plan)
+            if future.done():  # computed at once (in-process): its wait for rows starts now
+                born[future] = time.monotonic()
+            in_flight[future] = (task, plan)
             return
+
+    def commit_ready() -> None:
+        batch = ready[:]
+        ready.clear()
+        for (task, _plan, _c), outcome in zip(batch, _commit(pipeline, batch), strict=True):
+            if not close(task, outcome):
+                advance(task)
+        after()
 
     while True:
         if stopping is None:
             stopping = ask()
+        begun: list[int] = []
         while stopping is None and len(in_flight) < engine.in_flight:
             item = next(source, None)
             if item is None:
                 break
             index, uid = item
+            begun.append(index)
             advance(_Task(index, uid, list(targets)))
             stopping = ask()
+        if begun and started is not None:
+            started(begun)
         if stopping == "cancelled":
-            for future, (_task, plan) in in_flight.items():
-                future.cancel()
-                pipeline.fail(plan.run_id, JobStoppedError("the job was cancelled"))
+            # what is computed is on disk already: its rows are committed, so that no file
+            # is left without one; the rest is dropped (a task running on a Dask worker
+            # cannot be stopped: its files, if it gets that far, are adopted by a rerun)
+            for future, (task, plan) in in_flight.items():
+                if future.done() and not future.cancelled() and future.exception() is None:
+                    ready.append((task, plan, future.result()))
+                else:
+                    future.cancel()
+                    pipeline.fail(plan.run_id, JobStoppedError("the job was cancelled"))
             in_flight.clear()
+            born.clear()
+            for (task, _plan, _c), outcome in zip(ready, _commit(pipeline, ready), strict=True):
+                close(task, outcome)  # a task with targets left stays pending
+            ready.clear()
         if not in_flight:
+            if ready:
+                commit_ready()  # may plan next targets: go round again
+                continue
+            after()
             return stopping
-        done, _ = cf.wait(list(in_flight), timeout=wait_s, return_when=cf.FIRST_COMPLETED)
+        timeout = wait_s if not ready else max(0.0, oldest + COMMIT_EVERY_S - time.monotonic())
+        done, _ = cf.wait(list(in_flight), timeout=timeout, return_when=cf.FIRST_COMPLETED)
         for future in done:
             task, plan = in_flight.pop(future)
+            came = born.pop(future, time.monotonic())
             try:
                 computation = future.result()
             except Exception as exc:
                 pipeline.fail(plan.run_id, exc)
                 close(task, JobOutcome.failed(task.uid, exc))
                 continue
-            if not close(task, _commit(pipeline, plan, computation)):
-                advance(task)
+            oldest = min(oldest, came) if ready else came
+            ready.append((task, plan, computation))
+        if done and not ready:
+            after()  # failures only
+        if ready and (
+            len(ready) >= COMMIT_BATCH or time.monotonic() - oldest >= COMMIT_EVERY_S
+        ):
+            commit_ready()
 
 
-def _commit(pipeline: Pipeline, plan: Plan, computation: Computation) -> JobOutcome:
+def _commit(
+    pipeline: Pipeline, batch: Sequence[tuple[_Task, Plan, Computation]]
+) -> list[JobOutcome]:
+    if not batch:
+        return []
     try:
-        return JobOutcome.done(pipeline.commit(plan, computation))
-    except Exception as exc:
-        return JobOutcome.failed(plan.uid, exc)
+        results = pipeline.commit_many([(plan, computation) for _t, plan, computation in batch])
+    except Exception as exc:  # pragma: no cover - commit_many reports per acquisition
+        return [JobOutcome.failed(plan.uid, exc) for _t, plan, _c in batch]
+    return [
+        JobOutcome.done(result)
+        if isinstance(result, ProcessResult)
+        else JobOutcome.failed(plan.uid, result)
+        for (_t, plan, _c), result in zip(batch, results, strict=True)
+    ]
 
 
 def process_many(

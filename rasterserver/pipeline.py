@@ -28,13 +28,15 @@ and a file written before the kill is adopted by the next run of the same comput
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
 import socket
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import exists, select
+from sqlalchemy import exists, select, update
+from sqlalchemy.orm import Session
 
 from rasterserver import __version__
 from rasterserver.archive import Archive
@@ -66,12 +68,13 @@ from rasterserver.hashing import canonical_json_sha256
 from rasterserver.integrity import VerifyReport, verify_derived
 from rasterserver.optics import Station
 from rasterserver.raster import Raster
-from rasterserver.records import Image, Record
+from rasterserver.records import Record
 from rasterserver.registry import Registry, get_registry
 from rasterserver.result_rows import add_or_adopt, result_row
 from rasterserver.runner import INTERRUPTED, ReapReport, current_runner, reap_runs
 from rasterserver.stage import StageContext
 from rasterserver.store.derived import DerivedStore
+from rasterserver.worker import input_record, work
 
 __all__ = [
     "DEFAULT_TARGET",
@@ -153,6 +156,29 @@ def _now() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
 
 
+def _stored(s: Session, acquisition_id: int, keys: list[str]) -> dict[str, CachedResult]:
+    """The stored results of ``acquisition_id`` among the chain ``keys``."""
+    query = select(
+        StageResult.chain_key,
+        StageResult.id,
+        StageResult.store_path,
+        StageResult.output_checksum,
+        StageResult.reason,
+    ).where(StageResult.acquisition_id == acquisition_id, StageResult.chain_key.in_(keys))
+    return {key: CachedResult(*rest) for key, *rest in s.execute(query)}
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """A calibration row's parsed documents and the checksums that enter chain keys."""
+
+    row_id: int
+    sha256: str
+    station: Station
+    raster: Raster
+    raster_sha256: str
+
+
 class Pipeline:
     """Processing of archived acquisitions with stored results, provenance and reuse.
 
@@ -168,6 +194,10 @@ class Pipeline:
         self.archive = archive
         self.registry = registry or get_registry()
         self.derived = DerivedStore(archive.settings.archive, resolve=self.registry.record_type)
+        # per request and per calibration row: a job plans thousands of acquisitions with one
+        # chain and a few calibrations (calibration rows never change once stored)
+        self._chains: dict[str, list[ChainStep]] = {}
+        self._documents: dict[int, _Inputs] = {}
 
     # --- the three phases ------------------------------------------------------------------
 
@@ -180,6 +210,7 @@ class Pipeline:
         calibration: tuple[str, int | None] | None = None,
         until: str = DEFAULT_TARGET,
         frame_index: int | None = None,
+        load_input: bool = True,
     ) -> Plan:
         """Resolve the chain, the frame and the calibration; find stored results; open a run.
 
@@ -199,6 +230,11 @@ class Pipeline:
             attached at ingest. It must belong to the acquisition's station.
         frame_index : int, optional
             Frame to process; the first ``raster`` frame by default.
+        load_input : bool, optional
+            Read the input record here (the raw frame, or the stored result the computing
+            starts from) into ``plan.input_record``. False leaves it to whoever computes
+            (:func:`rasterserver.worker.work`, on a worker): the coordinator then touches
+            no file.
 
         Returns
         -------
@@ -214,8 +250,26 @@ class Pipeline:
         IntegrityError
             A stored result to be reused is missing or altered.
         """
-        steps = resolve_chain(chain, params=params, until=until, registry=self.registry)
+        steps = self._steps(chain, params, until)
         acquisition = self.archive.acquisition(uid)
+        calibration_id: int | None = None
+        problem: BaseException | None = None
+        keys: list[str] = []
+        try:
+            frame = self._frame(acquisition, frame_index)
+            inputs = self._inputs(acquisition, calibration)
+            calibration_id = inputs.row_id
+            check_frame_fits((frame.height, frame.width), inputs.station)
+            keys = chain_keys(
+                frame.sha256,
+                frame.index,
+                steps,
+                calibration_sha=inputs.sha256,
+                raster_sha=inputs.raster_sha256,
+            )
+        except Exception as exc:  # recorded in the run below, then raised
+            problem = exc
+        # one transaction: the run opened and the stored results looked up
         with self.archive.session() as s:
             # a run its killed process left "running" must not look like work in progress
             # beside the new one
@@ -228,101 +282,169 @@ class Pipeline:
                 host=socket.gethostname(),
                 runner=current_runner(),
                 package_version=__version__,
+                calibration_id=calibration_id,
             )
             s.add(run)
+            stored = _stored(s, acquisition.id, keys) if keys else {}
         try:
-            return self._plan(acquisition, run, steps, calibration, frame_index)
+            if problem is not None:
+                raise problem
+            return self._plan(acquisition, run.id, steps, keys, stored, frame, inputs, load_input)
         except BaseException as exc:
             self.fail(run.id, exc)
             raise
 
+    def _steps(
+        self,
+        chain: Mapping[str, str] | None,
+        params: Mapping[str, Mapping[str, Any]] | None,
+        until: str,
+    ) -> list[ChainStep]:
+        # resolved once per request: a job plans thousands of acquisitions with one chain
+        key = json.dumps([chain or {}, params or {}, until], sort_keys=True, default=repr)
+        steps = self._chains.get(key)
+        if steps is None:
+            steps = resolve_chain(chain, params=params, until=until, registry=self.registry)
+            self._chains[key] = steps
+        return list(steps)
+
     def _plan(
         self,
         acquisition: Acquisition,
-        run: PipelineRun,
+        run_id: int,
         steps: list[ChainStep],
-        calibration: tuple[str, int | None] | None,
-        frame_index: int | None,
+        keys: list[str],
+        rows: dict[str, CachedResult],
+        frame: Frame,
+        inputs: _Inputs,
+        load_input: bool,
     ) -> Plan:
         uid = acquisition.uid
-        frame = self._frame(acquisition, frame_index)
-        cal_row, station, raster = self._calibration(acquisition, calibration)
-        with self.archive.session() as s:
-            s.get(PipelineRun, run.id).calibration_id = cal_row.id  # type: ignore[union-attr]
-        check_frame_fits((frame.height, frame.width), station)
-        raster_sha = canonical_json_sha256(raster.to_dict())
-        keys = chain_keys(
-            frame.sha256, frame.index, steps, calibration_sha=cal_row.sha256, raster_sha=raster_sha
-        )
-        with self.archive.session() as s:
-            rows = {
-                row.chain_key: row
-                for row in s.scalars(
-                    select(StageResult).where(
-                        StageResult.acquisition_id == acquisition.id,
-                        StageResult.chain_key.in_(keys),
-                    )
-                )
-            }
         cached: list[CachedResult | None] = []
         for key in keys:
             row = rows.get(key)
             if row is None or (cached and cached[-1] is None):
                 cached.append(None)
                 continue
-            cached.append(CachedResult(row.id, row.store_path, row.output_checksum, row.reason))
+            cached.append(row)
         first = next((i for i, c in enumerate(cached) if c is None), len(steps))
-        context = StageContext(calibration=station, raster=raster)
-        input_record: Record | None = None
-        input_checksum = ""
-        if first < len(steps):
-            if first == 0:
-                # read-only, SHA-256 verified against the file: the raw frame is never touched
-                pixels = self.archive.read_frame(uid, frame.index)
-                input_record = Image(pixels, role=frame.role)
-            else:
-                previous = cached[first - 1]
-                assert previous is not None
-                input_record = self._load(previous)
-            input_checksum = input_record.content_hash()
-        return Plan(
+        plan = Plan(
             uid=uid,
             acquisition_id=acquisition.id,
-            run_id=run.id,
+            run_id=run_id,
             frame_index=frame.index,
-            calibration_id=cal_row.id,
+            calibration_id=inputs.row_id,
             steps=steps,
             keys=keys,
             cached=cached,
             first=first,
-            input_record=input_record,
-            input_checksum=input_checksum,
-            context=context,
+            input_record=None,
+            input_checksum="",
+            context=StageContext(calibration=inputs.station, raster=inputs.raster),
+            frame_role=frame.role,
         )
+        if load_input and plan.needs_computing:
+            plan.input_record = input_record(plan, self.archive.settings.archive, self.derived)
+            plan.input_checksum = plan.input_record.content_hash()
+        return plan
 
     def compute(self, plan: Plan) -> Computation:
-        """Compute the steps of ``plan`` without stored results, in this process."""
-        if plan.input_record is None:
-            return Computation({}, {}, socket.gethostname())
+        """Compute and store (files only) the steps of ``plan`` without stored results, here.
+
+        See :func:`rasterserver.worker.work`; every computed record is kept in the result.
+        """
         try:
-            return compute(plan.input_record, plan.to_compute, plan.context, registry=self.registry)
+            return work(plan, self.archive.settings.archive, registry=self.registry, keep="all")
         except BaseException as exc:
             self.fail(plan.run_id, exc)
             raise
 
     def commit(self, plan: Plan, computation: Computation) -> ProcessResult:
-        """Store the computed records and their provenance; finish the run.
+        """Store the computed records' provenance; finish the run.
 
         Files are written (durably) before their rows; a crash in between leaves files that
         the next run adopts, because their names follow from their chain keys.
         """
         try:
-            return self._commit(plan, computation)
-        except BaseException as exc:
+            (outcome,) = self.commit_many([(plan, computation)])
+        except BaseException as exc:  # the catalogue went away (commit_many reports the rest)
             self.fail(plan.run_id, exc)
             raise
+        if isinstance(outcome, BaseException):
+            raise outcome
+        return outcome
 
-    def _commit(self, plan: Plan, computation: Computation) -> ProcessResult:
+    def commit_many(
+        self, done: Sequence[tuple[Plan, Computation]]
+    ) -> list[ProcessResult | BaseException]:
+        """:meth:`commit` for several acquisitions, in one transaction when all goes well.
+
+        Each acquisition's rows go in a savepoint of their own: one failing (its run is then
+        marked failed) does not undo the others. Records the computation did not write
+        (plain :func:`~rasterserver.chain.compute`) are written here first.
+
+        Returns
+        -------
+        list of ProcessResult or BaseException
+            Per acquisition, in order: its result, or the error that failed it.
+        """
+        outcomes: list[ProcessResult | BaseException | None] = [None] * len(done)
+        ready: list[int] = []
+        for position, (plan, computation) in enumerate(done):
+            try:
+                self._store_files(plan, computation)
+            except Exception as exc:
+                outcomes[position] = exc
+                continue
+            ready.append(position)
+        try:
+            with self.archive.session() as s:
+                for position in ready:
+                    plan, computation = done[position]
+                    try:
+                        with s.begin_nested():
+                            outcomes[position] = self._rows(s, plan, computation)
+                    except Exception as exc:
+                        outcomes[position] = exc
+        except Exception as exc:  # the transaction itself failed: nothing of it is stored
+            for position in ready:
+                outcomes[position] = exc
+        results: list[ProcessResult | BaseException] = []
+        for (plan, computation), outcome in zip(done, outcomes, strict=True):
+            assert outcome is not None
+            if isinstance(outcome, ProcessResult):
+                self._finish(outcome, computation)
+            else:
+                self.fail(plan.run_id, outcome)
+            results.append(outcome)
+        return results
+
+    def _store_files(self, plan: Plan, computation: Computation) -> None:
+        missing = [s for s in plan.to_compute if s.kind not in computation.stored]
+        if not missing:
+            return
+        input_checksum = plan.input_checksum
+        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+            if step.kind in computation.stored:
+                input_checksum = computation.stored[step.kind][0].output_checksum
+                continue
+            result = self.derived.write(
+                plan.uid,
+                computation.records[step.kind],
+                stage=step.kind,
+                plugin=step.plugin,
+                plugin_version=step.version,
+                params=step.params,
+                params_hash=step.params_hash,
+                chain_key=key,
+                input_checksum=input_checksum,
+                sync_dir=False,
+            )
+            computation.stored[step.kind] = (result, input_checksum)
+            input_checksum = result.output_checksum
+        self.derived.sync(plan.uid)
+
+    def _rows(self, s: Session, plan: Plan, computation: Computation) -> ProcessResult:
         outcomes: list[StepOutcome] = []
         for step, cached in zip(plan.steps[: plan.first], plan.cached[: plan.first], strict=True):
             assert cached is not None
@@ -338,85 +460,74 @@ class Pipeline:
                     cached.output_checksum,
                 )
             )
-        stored = []
-        input_checksum = plan.input_checksum
-        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
-            record = computation.records[step.kind]
-            result = self.derived.write(
-                plan.uid,
-                record,
-                stage=step.kind,
-                plugin=step.plugin,
-                plugin_version=step.version,
-                params=step.params,
-                params_hash=step.params_hash,
-                chain_key=key,
-                input_checksum=input_checksum,
-            )
-            stored.append((step, key, record, result, input_checksum))
-            input_checksum = result.output_checksum
         parent_id = outcomes[-1].result_id if outcomes else None
-        with self.archive.session() as s:
-            for step, key, record, result, in_sum in stored:
-                row, reused = add_or_adopt(
-                    s,
-                    result_row(
-                        record,
-                        acquisition_id=plan.acquisition_id,
-                        run_id=plan.run_id,
-                        parent_id=parent_id,
-                        calibration_id=(
-                            plan.calibration_id
-                            if {"calibration", "raster"} & set(step.requires)
-                            else None
-                        ),
-                        frame_index=plan.frame_index,
-                        stage=step.kind,
-                        plugin=step.plugin,
-                        plugin_version=step.version,
-                        plugin_package=step.package,
-                        params=step.params,
-                        params_hash=step.params_hash,
-                        chain_key=key,
-                        input_checksum=in_sum,
-                        output_checksum=result.output_checksum,
-                        store_path=result.path,
-                        host=computation.host,
-                        duration_s=computation.durations.get(step.kind, 0.0),
+        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+            stored, in_sum = computation.stored[step.kind]
+            row, reused = add_or_adopt(
+                s,
+                result_row(
+                    record_kind=stored.record_kind,
+                    reason=stored.reason,
+                    acquisition_id=plan.acquisition_id,
+                    run_id=plan.run_id,
+                    parent_id=parent_id,
+                    calibration_id=(
+                        plan.calibration_id
+                        if {"calibration", "raster"} & set(step.requires)
+                        else None
                     ),
+                    frame_index=plan.frame_index,
+                    stage=step.kind,
+                    plugin=step.plugin,
+                    plugin_version=step.version,
+                    plugin_package=step.package,
+                    params=step.params,
+                    params_hash=step.params_hash,
+                    chain_key=key,
+                    input_checksum=in_sum,
+                    output_checksum=stored.output_checksum,
+                    store_path=stored.path,
+                    host=computation.host,
+                    duration_s=computation.durations.get(step.kind, 0.0),
+                ),
+            )
+            parent_id = row.id
+            outcomes.append(
+                StepOutcome(
+                    step.kind,
+                    step.plugin,
+                    row.id,
+                    reused,
+                    row.duration_s,
+                    row.reason,
+                    row.store_path,
+                    row.output_checksum,
                 )
-                parent_id = row.id
-                outcomes.append(
-                    StepOutcome(
-                        step.kind,
-                        step.plugin,
-                        row.id,
-                        reused,
-                        row.duration_s,
-                        row.reason,
-                        row.store_path,
-                        row.output_checksum,
-                    )
-                )
-            run = s.get(PipelineRun, plan.run_id)
-            assert run is not None
-            run.status = "done"
-            run.finished_at = _now()
-            run.computed = sum(not o.reused for o in outcomes)
-            run.reused = sum(o.reused for o in outcomes)
-        final: Record | None = None
-        if computation.records and plan.steps:
-            final = computation.records.get(plan.steps[-1].kind)
-        if final is None and outcomes:
-            last = outcomes[-1]
+            )
+        s.execute(
+            update(PipelineRun)
+            .where(PipelineRun.id == plan.run_id)
+            .values(
+                status="done",
+                finished_at=_now(),
+                computed=sum(not o.reused for o in outcomes),
+                reused=sum(o.reused for o in outcomes),
+            )
+        )
+        return ProcessResult(plan.uid, plan.run_id, outcomes, None, dict(computation.records))
+
+    def _finish(self, result: ProcessResult, computation: Computation) -> None:
+        final = computation.records.get(result.steps[-1].kind) if result.steps else None
+        if final is None and result.steps:
+            last = result.steps[-1]
             final = self.derived.read(last.store_path, expected_checksum=last.output_checksum)
+        result.final = final
         log.info(
             "processed acquisition %s: %d stage(s) computed, %d reused",
-            plan.uid,
-            sum(not o.reused for o in outcomes),
-            sum(o.reused for o in outcomes),
+            result.uid,
+            result.computed,
+            result.reused,
         )
-        return ProcessResult(plan.uid, plan.run_id, outcomes, final, dict(computation.records))
 
     def process(
         self,
@@ -583,6 +694,20 @@ class Pipeline:
             f"acquisition {acquisition.uid} has no raster frame (frame roles: {roles}); "
             "give the frame index to process another one"
         )
+
+    def _inputs(
+        self, acquisition: Acquisition, wanted: tuple[str, int | None] | None
+    ) -> _Inputs:
+        """The calibration that applies (see :meth:`_calibration`), parsed once per row."""
+        if wanted is None and acquisition.calibration_id in self._documents:
+            return self._documents[acquisition.calibration_id]
+        row, station, raster = self._calibration(acquisition, wanted)
+        inputs = self._documents.get(row.id)
+        if inputs is None:
+            raster_sha = canonical_json_sha256(raster.to_dict())
+            inputs = _Inputs(row.id, row.sha256, station, raster, raster_sha)
+            self._documents[row.id] = inputs
+        return inputs
 
     def _calibration(
         self, acquisition: Acquisition, wanted: tuple[str, int | None] | None

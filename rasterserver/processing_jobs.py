@@ -478,7 +478,7 @@ def run_job(
     force : bool, optional
         Take a job whose coordinator cannot be checked (another host) as stopped.
     progress : callable, optional
-        Called with the job's status after each task (and once at the start).
+        Called with the job's status after each batch of tasks (and once at the start).
     registry : Registry, optional
         Where plugins are found.
     client : distributed.Client, optional
@@ -519,6 +519,14 @@ def run_job(
         job.resumed_at, job.resumed_count = resumed
         progress(job_status(archive, job))
 
+    def started(positions: list[int]) -> None:
+        with archive.session() as s:
+            s.execute(
+                update(ProcessingTask)
+                .where(ProcessingTask.job_id == job.id, ProcessingTask.position.in_(positions))
+                .values(attempts=ProcessingTask.attempts + 1)
+            )
+
     def pending() -> Iterator[tuple[int, str]]:
         after = -1
         while True:
@@ -535,38 +543,45 @@ def run_job(
                 )
             if not rows:
                 return
-            for position, uid in rows:
-                with archive.session() as s:
-                    s.execute(
-                        update(ProcessingTask)
-                        .where(ProcessingTask.job_id == job.id,
-                               ProcessingTask.position == position)
-                        .values(attempts=ProcessingTask.attempts + 1)
-                    )
-                yield position, uid
+            yield from rows
             after = rows[-1][0]
 
+    ended: list[tuple[int, JobOutcome]] = []
+
     def finished(position: int, outcome: JobOutcome) -> None:
-        state = "done" if outcome.status == "done" else "failed"
+        ended.append((position, outcome))
+
+    def flush() -> None:
+        # the tasks whose results the loop just committed, in one transaction: a task is
+        # marked after its results, so a kill in between only makes it redone (and reused)
+        if not ended:
+            return
         now = _now()
+        added = {"done": 0, "failed": 0}
         with archive.session() as s:
-            # only if still pending: the task is counted once whatever happens
-            marked = s.execute(
-                update(ProcessingTask)
-                .where(ProcessingTask.job_id == job.id, ProcessingTask.position == position,
-                       ProcessingTask.state == "pending")
-                .values(state=state, computed=outcome.computed, reused=outcome.reused,
-                        reason=outcome.reason[:10_000], error=outcome.error[:10_000],
-                        exit_code=outcome.exit_code, finished_at=now)
-            ).rowcount
-            if marked:
-                column = ProcessingJob.done if state == "done" else ProcessingJob.failed
+            for position, outcome in ended:
+                state = "done" if outcome.status == "done" else "failed"
+                # only if still pending: the task is counted once whatever happens
+                marked = s.execute(
+                    update(ProcessingTask)
+                    .where(ProcessingTask.job_id == job.id, ProcessingTask.position == position,
+                           ProcessingTask.state == "pending")
+                    .values(state=state, computed=outcome.computed, reused=outcome.reused,
+                            reason=outcome.reason[:10_000], error=outcome.error[:10_000],
+                            exit_code=outcome.exit_code, finished_at=now)
+                ).rowcount
+                if marked:
+                    added[state] += 1
+            if added["done"] or added["failed"]:
                 s.execute(
                     update(ProcessingJob)
                     .where(ProcessingJob.id == job.id)
-                    .values({column.key: column + 1, "progress_at": now})
+                    .values(done=ProcessingJob.done + added["done"],
+                            failed=ProcessingJob.failed + added["failed"], progress_at=now)
                 )
-                counts[state] += 1
+        ended.clear()
+        for state, count in added.items():
+            counts[state] += count
         report()
 
     def stop() -> StopReason:
@@ -589,7 +604,8 @@ def run_job(
     try:
         with open_engine(name, pipeline, client=client, n_workers=n_workers) as engine:
             stopped = run_tasks(pipeline, pending(), engine=engine, finished=finished,
-                                targets=job.targets, options=options, stop=stop)
+                                targets=job.targets, options=options, stop=stop, flush=flush,
+                                started=started)
     except KeyboardInterrupt:
         _finish(archive, job.id, me, state="paused")
         raise

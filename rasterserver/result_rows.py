@@ -20,14 +20,14 @@ from sqlalchemy.orm import Session
 
 from rasterserver import __version__
 from rasterserver.catalog.models import StageResult
-from rasterserver.records import Record
 
 __all__ = ["add_or_adopt", "result_row"]
 
 
 def result_row(
-    record: Record,
     *,
+    record_kind: str,
+    reason: str,
     acquisition_id: int,
     frame_index: int,
     stage: str,
@@ -46,12 +46,14 @@ def result_row(
     calibration_id: int | None = None,
     host: str | None = None,
 ) -> StageResult:
-    """A new, unsaved row for ``record`` stored at ``store_path``.
+    """A new, unsaved row for a result stored at ``store_path``.
 
     Parameters
     ----------
-    record : Record
-        The result; its kind and its ``reason`` (when it has one) go into the row.
+    record_kind : str
+        The result's record kind.
+    reason : str
+        Its ``reason`` (why it is empty, or a note; empty if it has none).
     host : str, optional
         Where it was computed; this host by default.
     acquisition_id, frame_index, stage, plugin, plugin_version, plugin_package, params, \
@@ -78,9 +80,9 @@ parent_id, calibration_id
         chain_key=chain_key,
         input_checksum=input_checksum,
         output_checksum=output_checksum,
-        record_kind=record.kind,
+        record_kind=record_kind,
         store_path=store_path,
-        reason=getattr(record, "reason", "") or "",
+        reason=reason,
         package_version=__version__,
         host=host or socket.gethostname(),
         duration_s=float(duration_s),

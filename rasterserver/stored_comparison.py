@@ -158,7 +158,8 @@ def _stored(
     )
     package = registry.info(stage.name).package or ""
     new = result_row(
-        record,
+        record_kind=stored.record_kind,
+        reason=stored.reason,
         acquisition_id=owner.acquisition_id,
         frame_index=owner.frame_index,
         stage=kind,

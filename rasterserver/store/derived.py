@@ -7,7 +7,7 @@ File layout (format version 1)
 ------------------------------
 Path: ``<root>/derived/<uid[0:2]>/<uid[2:4]>/<uid>.<stage>-<key>.h5``, where ``uid`` is the
 acquisition's uid, ``stage`` the stage kind (``points``, ``surface``, ...) and ``key`` the
-first 32 hex digits of the result's *chain key* (see :mod:`rasterserver.pipeline`). All
+first 32 hex digits of the result's *chain key* (see :mod:`rasterserver.chain`). All
 results of an acquisition therefore share its shard folder and its name prefix, and the name
 is a function of what was computed: asking for the same computation twice can only ever name
 the same file, and a result left behind by a crash is found again instead of duplicated.
@@ -46,7 +46,7 @@ import numpy as np
 from rasterserver import __version__
 from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFoundError
 from rasterserver.records import Record, record_type
-from rasterserver.store.durable import ensure_dir, fsync_file, publish
+from rasterserver.store.durable import ensure_dir, fsync_dir, fsync_file, publish
 from rasterserver.store.layout import shard_path, temp_path, validate_uid
 
 __all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredResult"]
@@ -92,11 +92,17 @@ class StoredResult:
     adopted : bool
         True when the file existed already (same chain key and content) and was reused, e.g.
         after a crash between writing the file and committing its catalogue row.
+    record_kind : str
+        The stored record's kind.
+    reason : str
+        The record's ``reason`` (why it is empty, or a note), empty if it has none.
     """
 
     path: str
     output_checksum: str
     adopted: bool = False
+    record_kind: str = ""
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -191,6 +197,8 @@ class DerivedStore:
         params_hash: str,
         chain_key: str,
         input_checksum: str,
+        sync_dir: bool = True,
+        checksum: str | None = None,
     ) -> StoredResult:
         """Store one stage result durably; never replaces a file.
 
@@ -208,7 +216,13 @@ class DerivedStore:
         params : Mapping
             The validated parameters, JSON-ready.
         params_hash, chain_key, input_checksum : str
-            Provenance (see :mod:`rasterserver.pipeline`).
+            Provenance (see :mod:`rasterserver.chain`).
+        sync_dir : bool, optional
+            Fsync the shard folder after publishing. False when several results of one
+            acquisition are written in a row (they share its folder): the caller then calls
+            :meth:`sync` once, before any catalogue row names them.
+        checksum : str, optional
+            ``record.content_hash()`` when the caller has it already.
 
         Returns
         -------
@@ -221,9 +235,10 @@ class DerivedStore:
         """
         final = self.path_for(uid, stage, chain_key)
         relative = final.relative_to(self.root).as_posix()
-        checksum = record.content_hash()
+        checksum = checksum or record.content_hash()
+        reason = str(getattr(record, "reason", "") or "")
         if final.exists():
-            return self._adopt(final, relative, chain_key, checksum)
+            return self._adopt(final, relative, chain_key, checksum, record.kind, reason)
         ensure_dir(final.parent)
         temp = temp_path(final)
         meta = {
@@ -251,16 +266,24 @@ class DerivedStore:
                     group.create_dataset(name, data=np.asarray(array))
             fsync_file(temp)
             try:
-                publish(temp, final)
+                publish(temp, final, sync_dir=sync_dir)
             except ConflictError:
                 # another writer published the same name between our check and now
-                return self._adopt(final, relative, chain_key, checksum)
+                return self._adopt(final, relative, chain_key, checksum, record.kind, reason)
         except Exception:
             temp.unlink(missing_ok=True)
             raise
-        return StoredResult(relative, checksum)
+        return StoredResult(relative, checksum, False, record.kind, reason)
 
-    def _adopt(self, final: Path, relative: str, chain_key: str, checksum: str) -> StoredResult:
+    def sync(self, uid: str) -> None:
+        """Fsync the shard folder of ``uid`` (see ``sync_dir`` in :meth:`write`)."""
+        folder = shard_path(self.area, uid, SUFFIX).parent
+        if folder.is_dir():
+            fsync_dir(folder)
+
+    def _adopt(
+        self, final: Path, relative: str, chain_key: str, checksum: str, kind: str, reason: str
+    ) -> StoredResult:
         try:
             meta = self.metadata(relative)
         except IntegrityError as exc:
@@ -269,7 +292,7 @@ class DerivedStore:
             raise ConflictError(
                 f"{relative} exists with other contents; derived files are write-once"
             )
-        return StoredResult(relative, checksum, adopted=True)
+        return StoredResult(relative, checksum, True, kind, reason)
 
     # --- reading ---------------------------------------------------------------------------
 

@@ -89,7 +89,7 @@ def ensure_dir(path: Path) -> None:
         fsync_dir(folder.parent)
 
 
-def publish(temp: Path, final: Path) -> None:
+def publish(temp: Path, final: Path, *, sync_dir: bool = True) -> None:
     """Give the complete file ``temp`` its final name, refusing to replace an existing file.
 
     ``link()`` + ``unlink()`` is used because ``rename()`` silently replaces its target: two
@@ -102,6 +102,10 @@ def publish(temp: Path, final: Path) -> None:
         Fully written and fsynced file, in the same folder as ``final``.
     final : Path
         Name to publish it under.
+    sync_dir : bool, optional
+        Fsync the folder (the new name) here. A caller that publishes several files into one
+        folder may pass False and call :func:`fsync_dir` once after the last, before anything
+        refers to them (the derived store's batches).
 
     The file gets the archive's mode (owner only, see :mod:`rasterserver.store.modes`)
     before it gets its name, so it is never readable by others under that name.
@@ -129,4 +133,5 @@ def publish(temp: Path, final: Path) -> None:
         os.rename(temp, final)
     else:
         temp.unlink()
-    fsync_dir(final.parent)
+    if sync_dir:
+        fsync_dir(final.parent)

@@ -1,0 +1,123 @@
+"""The work of one acquisition where it is computed: read the frame, run the chain, write files.
+
+:func:`work` is what an engine runs (:mod:`rasterserver.jobs`), in the coordinator process or
+on a Dask worker with the archive on shared storage. It needs no catalogue:
+
+* the raw frame is read by the worker itself, read-only and SHA-256 verified
+  (:meth:`rasterserver.store.raw.RawStore.read`), so frames do not travel through the
+  coordinator;
+* each computed record is written durably to the derived store under its chain-key name
+  (unique per computation, so two workers computing the same thing publish one file and the
+  second adopts it); the acquisition's shard folder, which holds all its results, is fsynced
+  once after the last file rather than once per file;
+* what comes back is small: paths, checksums, timings, and the final record only when asked.
+
+The coordinator then commits the catalogue rows (in batches, :meth:`rasterserver.pipeline.
+Pipeline.commit_many`). A row is committed only after :func:`work` returned, so it never
+names a file that is not on disk; a worker killed before returning leaves at most files
+without rows, which the rerun adopts (``verify`` reports them as orphaned meanwhile).
+"""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+from rasterserver.chain import Computation, Plan, compute
+from rasterserver.errors import IntegrityError, NotFoundError
+from rasterserver.records import Image, Record
+from rasterserver.registry import Registry, get_registry
+from rasterserver.store.derived import DerivedStore
+from rasterserver.store.raw import RawStore
+
+__all__ = ["input_record", "work"]
+
+
+def input_record(plan: Plan, root: Path, derived: DerivedStore) -> Record:
+    """The record the plan's first step to compute takes: given, the raw frame, or the stored
+    result before it.
+
+    Raises
+    ------
+    NotFoundError, IntegrityError
+        The frame or the stored result is missing or altered.
+    """
+    if plan.input_record is not None:
+        return plan.input_record
+    if plan.first == 0:
+        # read-only, SHA-256 verified against the file: the raw frame is never touched
+        pixels = RawStore(root).read(plan.uid, plan.frame_index)
+        return Image(pixels, role=plan.frame_role)
+    previous = plan.cached[plan.first - 1]
+    assert previous is not None
+    try:
+        return derived.read(previous.store_path, expected_checksum=previous.output_checksum)
+    except NotFoundError:
+        raise IntegrityError(
+            f"stored result {previous.store_path} is missing; run `rasterserver verify`"
+        ) from None
+
+
+def work(
+    plan: Plan,
+    root: Path | str,
+    *,
+    registry: Registry | None = None,
+    keep: str = "final",
+) -> Computation:
+    """Compute the steps of ``plan`` without stored results and store them durably.
+
+    Parameters
+    ----------
+    plan : Plan
+        From :meth:`rasterserver.pipeline.Pipeline.plan`.
+    root : Path or str
+        The archive root (the folder holding ``raw/`` and ``derived/``), as this process
+        sees it.
+    registry : Registry, optional
+        Where plugins are found; this process's own by default (a worker's).
+    keep : {"final", "all", "none"}, optional
+        Which records to send back besides their stored form: the last one (what
+        ``process`` shows), every one, or none.
+
+    Returns
+    -------
+    Computation
+        ``stored`` holds each computed step's :class:`~rasterserver.store.derived.
+        StoredResult`; ``records`` what ``keep`` asks for.
+    """
+    registry = registry or get_registry()
+    root = Path(root)
+    derived = DerivedStore(root, resolve=registry.record_type)
+    if plan.first >= len(plan.steps):
+        return Computation({}, {}, socket.gethostname())
+    record = input_record(plan, root, derived)
+    input_checksum = plan.input_checksum or record.content_hash()
+    computation = compute(record, plan.to_compute, plan.context, registry=registry)
+    stored = {}
+    for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+        result = computation.records[step.kind]
+        written = derived.write(
+            plan.uid,
+            result,
+            stage=step.kind,
+            plugin=step.plugin,
+            plugin_version=step.version,
+            params=step.params,
+            params_hash=step.params_hash,
+            chain_key=key,
+            input_checksum=input_checksum,
+            sync_dir=False,
+        )
+        stored[step.kind] = (written, input_checksum)
+        input_checksum = written.output_checksum
+    # every result of the acquisition is in its one shard folder: one fsync makes the names
+    # durable, before the coordinator may commit a row naming them
+    derived.sync(plan.uid)
+    computation.stored = stored
+    if keep != "all":
+        last = plan.steps[-1].kind
+        computation.records = (
+            {last: computation.records[last]} if keep == "final" and plan.steps else {}
+        )
+    return computation
