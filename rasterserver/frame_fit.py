@@ -150,9 +150,15 @@ def check_frames_fit(
 
 
 class _Stored(Protocol):
-    kind: str
-    station_id: int | None
-    calibration_id: int | None
+    # read-only, so that a catalogue row and an AcquisitionInfo (a named tuple) both fit
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def station_id(self) -> int | None: ...
+
+    @property
+    def calibration_id(self) -> int | None: ...
 
 
 def calibration_notice(archive: Archive, acquisition: _Stored) -> str | None:
