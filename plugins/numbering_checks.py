@@ -359,7 +359,7 @@ def pair_contradictions(
         return empty, empty, empty
     code = raster.code.astype(np.float64)
     expected = (code[pos[a]] - code[pos[b]]) * lam
-    keys, inv = _group(lid[a] * (int(lid.max()) + 1) + lid[b])
+    keys, inv = _group_pairs(lid[a], lid[b], int(lid.max()) + 1)
     counts = np.bincount(inv, minlength=keys.size)
     centre = np.bincount(inv, weights=lr, minlength=keys.size) / counts
     for window in (0.3, 0.15):  # a robust centre, as in code_evidence.level_statistics
@@ -474,6 +474,22 @@ def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inv = np.empty(keys.size, dtype=np.int64)
     inv[order] = group
     return sorted_keys[start], inv
+
+
+def _group_pairs(first: np.ndarray, second: np.ndarray, span: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_group` of the keys ``first * span + second`` (non-negative ids below
+    ``span``), by two radix passes when the ids fit in 16 bits."""
+    if span > 65536:
+        return _group(first * span + second)
+    order = np.argsort(second.astype(np.uint16), kind="stable")
+    order = order[np.argsort(first[order].astype(np.uint16), kind="stable")]
+    keys = first[order] * span + second[order]
+    start = np.empty(keys.size, dtype=bool)
+    start[:1] = True
+    np.not_equal(keys[1:], keys[:-1], out=start[1:])
+    inv = np.empty(keys.size, dtype=np.int64)
+    inv[order] = np.cumsum(start) - 1
+    return keys[start], inv
 
 
 def by_line(lid: np.ndarray) -> np.ndarray:
