@@ -79,7 +79,7 @@ class CalibrationDocument(StrictDocument):
         base = proj - cam
         across = float(np.linalg.norm(base - (base @ along) * along))
         needed = max(
-            MIN_BASE_MM, MIN_BASE_FRACTION * max(np.linalg.norm(cam), np.linalg.norm(proj))
+            MIN_BASE_MM, MIN_BASE_FRACTION * float(max(np.linalg.norm(cam), np.linalg.norm(proj)))
         )
         if across < needed:
             raise refuse(

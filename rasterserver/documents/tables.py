@@ -8,6 +8,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel
+
 from rasterserver.documents.calibration_document import CalibrationDocument
 from rasterserver.documents.raster_document import RasterDocument
 
@@ -119,7 +121,7 @@ def fill_format_tables(markdown: str) -> str:
 
 
 #: The schema files of ``docs/schemas/``, by the document they describe.
-SCHEMA_FILES = {
+SCHEMA_FILES: dict[str, type[BaseModel]] = {
     "calibration.schema.json": CalibrationDocument,
     "raster.schema.json": RasterDocument,
 }
@@ -136,7 +138,7 @@ def json_schemas() -> dict[str, str]:
     """
     texts = {}
     for name, model in SCHEMA_FILES.items():
-        schema = {"$schema": "https://json-schema.org/draft/2020-12/schema"}
+        schema: dict[str, Any] = {"$schema": "https://json-schema.org/draft/2020-12/schema"}
         schema |= model.model_json_schema()
         texts[name] = json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
     return texts
