@@ -281,6 +281,7 @@ def _keyed(archive: Archive, source: str, key: str, fingerprint: str) -> Acquisi
             raise ConflictError(
                 f"idempotency key {key!r} was used before for a different upload")
         uid = s.scalar(select(Acquisition.uid).where(Acquisition.id == row.acquisition_id))
+    assert uid is not None  # the key's foreign key names an existing acquisition
     return archive.acquisition(uid)
 
 

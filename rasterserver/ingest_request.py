@@ -56,10 +56,10 @@ class IngestRequest:
                                     "convert_color": self.convert_color}
         if spec.idempotency_key is None:
             return ingest_many(archive, [spec], **decoding)[0], False
-        metadata = {"kind": spec.kind, "visit_date": spec.visit_date, "station": spec.station,
-                    "calibration_version": spec.calibration_version,
-                    "acquired_at": spec.acquired_at, "operator": spec.operator,
-                    "notes": spec.notes}
+        metadata: dict[str, Any] = {
+            "kind": spec.kind, "visit_date": spec.visit_date, "station": spec.station,
+            "calibration_version": spec.calibration_version, "acquired_at": spec.acquired_at,
+            "operator": spec.operator, "notes": spec.notes}
         return ingest_once(archive, spec.frames, source=spec.source, key=spec.idempotency_key,
                            patient=spec.patient, **decoding, **metadata)
 

@@ -45,7 +45,7 @@ __all__ = [
 class FrameInfo(NamedTuple):
     """A frame's catalogue entry, as :func:`find` and :func:`info` give it."""
 
-    index: int
+    index: int  # type: ignore[assignment]  # the frame's index, hiding tuple.index
     role: str
     height: int
     width: int
