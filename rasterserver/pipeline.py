@@ -32,22 +32,18 @@ import json
 import logging
 import socket
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import exists, select, update
-from sqlalchemy.orm import Session
+from sqlalchemy import exists, select
 
 from rasterserver import __version__
 from rasterserver.archive import Archive
 from rasterserver.catalog.models import (
     Acquisition,
-    Calibration,
     Frame,
     PipelineRun,
     StageResult,
 )
-from rasterserver.catalog.models import Station as StationRow
 from rasterserver.chain import (
     DEFAULT_TARGET,
     DEFAULT_TARGETS,
@@ -61,16 +57,13 @@ from rasterserver.chain import (
     resolve_chain,
     run_chain,
 )
-from rasterserver.documents import calibration_from_document, raster_from_document
-from rasterserver.errors import InputError, IntegrityError, NotFoundError, RasterServerError
+from rasterserver.errors import IntegrityError, NotFoundError, RasterServerError
 from rasterserver.frame_fit import check_frame_fits
-from rasterserver.hashing import canonical_json_sha256
 from rasterserver.integrity import VerifyReport, verify_derived
-from rasterserver.optics import Station
-from rasterserver.raster import Raster
+from rasterserver.plan_inputs import ChainInputs, InputsCache, raster_frame, stored_results
 from rasterserver.records import Record
 from rasterserver.registry import Registry, get_registry
-from rasterserver.result_rows import add_or_adopt, result_row
+from rasterserver.result_rows import ProcessResult, StepOutcome, commit_rows
 from rasterserver.runner import INTERRUPTED, ReapReport, current_runner, reap_runs
 from rasterserver.stage import StageContext
 from rasterserver.store.derived import DerivedStore
@@ -98,85 +91,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class StepOutcome:
-    """How one stage of a processed acquisition came about."""
-
-    kind: str
-    plugin: str
-    result_id: int
-    reused: bool
-    duration_s: float
-    reason: str
-    store_path: str
-    output_checksum: str
-
-
-@dataclass
-class ProcessResult:
-    """The outcome of processing one acquisition.
-
-    Attributes
-    ----------
-    uid : str
-        The acquisition.
-    run_id : int
-        Its :class:`PipelineRun` row.
-    steps : list of StepOutcome
-        One per stage, in order.
-    final : Record or None
-        The last stage's record (loaded from its file when reused).
-    records : dict of str to Record
-        Records computed in this run (reused ones are not loaded).
-    """
-
-    uid: str
-    run_id: int
-    steps: list[StepOutcome]
-    final: Record | None = None
-    records: dict[str, Record] = field(default_factory=dict)
-
-    @property
-    def computed(self) -> int:
-        """Number of stages computed in this run."""
-        return sum(not s.reused for s in self.steps)
-
-    @property
-    def reused(self) -> int:
-        """Number of stages whose stored result was reused."""
-        return sum(s.reused for s in self.steps)
-
-    @property
-    def reason(self) -> str:
-        """The last stage's reason (why it is empty, or a note)."""
-        return self.steps[-1].reason if self.steps else ""
-
-
 def _now() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
-
-
-def _stored(s: Session, acquisition_id: int, keys: list[str]) -> dict[str, CachedResult]:
-    """The stored results of ``acquisition_id`` among the chain ``keys``."""
-    query = select(
-        StageResult.chain_key,
-        StageResult.id,
-        StageResult.store_path,
-        StageResult.output_checksum,
-        StageResult.reason,
-    ).where(StageResult.acquisition_id == acquisition_id, StageResult.chain_key.in_(keys))
-    return {key: CachedResult(*rest) for key, *rest in s.execute(query)}
-
-
-@dataclass(frozen=True)
-class _Inputs:
-    """A calibration row's parsed documents and the checksums that enter chain keys."""
-
-    row_id: int
-    sha256: str
-    station: Station
-    raster: Raster
-    raster_sha256: str
 
 
 class Pipeline:
@@ -197,7 +113,7 @@ class Pipeline:
         # per request and per calibration row: a job plans thousands of acquisitions with one
         # chain and a few calibrations (calibration rows never change once stored)
         self._chains: dict[str, list[ChainStep]] = {}
-        self._documents: dict[int, _Inputs] = {}
+        self._inputs = InputsCache(archive)
 
     # --- the three phases ------------------------------------------------------------------
 
@@ -256,8 +172,8 @@ class Pipeline:
         problem: BaseException | None = None
         keys: list[str] = []
         try:
-            frame = self._frame(acquisition, frame_index)
-            inputs = self._inputs(acquisition, calibration)
+            frame = raster_frame(acquisition, frame_index)
+            inputs = self._inputs.get(acquisition, calibration)
             calibration_id = inputs.row_id
             check_frame_fits((frame.height, frame.width), inputs.station)
             keys = chain_keys(
@@ -285,7 +201,7 @@ class Pipeline:
                 calibration_id=calibration_id,
             )
             s.add(run)
-            stored = _stored(s, acquisition.id, keys) if keys else {}
+            stored = stored_results(s, acquisition.id, keys) if keys else {}
         try:
             if problem is not None:
                 raise problem
@@ -316,7 +232,7 @@ class Pipeline:
         keys: list[str],
         rows: dict[str, CachedResult],
         frame: Frame,
-        inputs: _Inputs,
+        inputs: ChainInputs,
         load_input: bool,
     ) -> Plan:
         uid = acquisition.uid
@@ -403,7 +319,7 @@ class Pipeline:
                     plan, computation = done[position]
                     try:
                         with s.begin_nested():
-                            outcomes[position] = self._rows(s, plan, computation)
+                            outcomes[position] = commit_rows(s, plan, computation)
                     except Exception as exc:
                         outcomes[position] = exc
         except Exception as exc:  # the transaction itself failed: nothing of it is stored
@@ -443,78 +359,6 @@ class Pipeline:
             computation.stored[step.kind] = (result, input_checksum)
             input_checksum = result.output_checksum
         self.derived.sync(plan.uid)
-
-    def _rows(self, s: Session, plan: Plan, computation: Computation) -> ProcessResult:
-        outcomes: list[StepOutcome] = []
-        for step, cached in zip(plan.steps[: plan.first], plan.cached[: plan.first], strict=True):
-            assert cached is not None
-            outcomes.append(
-                StepOutcome(
-                    step.kind,
-                    step.plugin,
-                    cached.result_id,
-                    True,
-                    0.0,
-                    cached.reason,
-                    cached.store_path,
-                    cached.output_checksum,
-                )
-            )
-        parent_id = outcomes[-1].result_id if outcomes else None
-        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
-            stored, in_sum = computation.stored[step.kind]
-            row, reused = add_or_adopt(
-                s,
-                result_row(
-                    record_kind=stored.record_kind,
-                    reason=stored.reason,
-                    acquisition_id=plan.acquisition_id,
-                    run_id=plan.run_id,
-                    parent_id=parent_id,
-                    calibration_id=(
-                        plan.calibration_id
-                        if {"calibration", "raster"} & set(step.requires)
-                        else None
-                    ),
-                    frame_index=plan.frame_index,
-                    stage=step.kind,
-                    plugin=step.plugin,
-                    plugin_version=step.version,
-                    plugin_package=step.package,
-                    params=step.params,
-                    params_hash=step.params_hash,
-                    chain_key=key,
-                    input_checksum=in_sum,
-                    output_checksum=stored.output_checksum,
-                    store_path=stored.path,
-                    host=computation.host,
-                    duration_s=computation.durations.get(step.kind, 0.0),
-                ),
-            )
-            parent_id = row.id
-            outcomes.append(
-                StepOutcome(
-                    step.kind,
-                    step.plugin,
-                    row.id,
-                    reused,
-                    row.duration_s,
-                    row.reason,
-                    row.store_path,
-                    row.output_checksum,
-                )
-            )
-        s.execute(
-            update(PipelineRun)
-            .where(PipelineRun.id == plan.run_id)
-            .values(
-                status="done",
-                finished_at=_now(),
-                computed=sum(not o.reused for o in outcomes),
-                reused=sum(o.reused for o in outcomes),
-            )
-        )
-        return ProcessResult(plan.uid, plan.run_id, outcomes, None, dict(computation.records))
 
     def _finish(self, result: ProcessResult, computation: Computation) -> None:
         final = computation.records.get(result.steps[-1].kind) if result.steps else None
@@ -678,73 +522,6 @@ class Pipeline:
         return verify_derived(self.archive.catalog, self.derived, progress=progress)
 
     # --- helpers ---------------------------------------------------------------------------
-
-    def _frame(self, acquisition: Acquisition, index: int | None) -> Frame:
-        frames = sorted(acquisition.frames, key=lambda f: f.index)
-        if index is not None:
-            for frame in frames:
-                if frame.index == index:
-                    return frame
-            raise NotFoundError(f"acquisition {acquisition.uid} has no frame {index}")
-        for frame in frames:
-            if frame.role == "raster":
-                return frame
-        roles = ", ".join(sorted({f.role for f in frames})) or "none"
-        raise InputError(
-            f"acquisition {acquisition.uid} has no raster frame (frame roles: {roles}); "
-            "give the frame index to process another one"
-        )
-
-    def _inputs(
-        self, acquisition: Acquisition, wanted: tuple[str, int | None] | None
-    ) -> _Inputs:
-        """The calibration that applies (see :meth:`_calibration`), parsed once per row."""
-        if wanted is None and acquisition.calibration_id in self._documents:
-            return self._documents[acquisition.calibration_id]
-        row, station, raster = self._calibration(acquisition, wanted)
-        inputs = self._documents.get(row.id)
-        if inputs is None:
-            raster_sha = canonical_json_sha256(raster.to_dict())
-            inputs = _Inputs(row.id, row.sha256, station, raster, raster_sha)
-            self._documents[row.id] = inputs
-        return inputs
-
-    def _calibration(
-        self, acquisition: Acquisition, wanted: tuple[str, int | None] | None
-    ) -> tuple[Calibration, Station, Raster]:
-        with self.archive.session() as s:
-            if wanted is not None:
-                station_name, version = wanted
-                row = self.archive.calibration(station_name, version, s)
-                if acquisition.station_id is not None and row.station_id != acquisition.station_id:
-                    own_row = s.get(StationRow, acquisition.station_id)
-                    own = own_row.name if own_row is not None else "?"
-                    raise InputError(
-                        f"calibration {station_name}:{row.version} belongs to station "
-                        f"{station_name!r} but acquisition {acquisition.uid} was recorded at "
-                        f"station {own!r}"
-                    )
-            elif acquisition.calibration_id is not None:
-                row = s.get(Calibration, acquisition.calibration_id)
-                assert row is not None
-            else:
-                raise NotFoundError(
-                    f"acquisition {acquisition.uid} has no calibration: give one with "
-                    "--calibration STATION:VERSION (or ingest with --station after storing a "
-                    "calibration of that station)"
-                )
-            raster_definition = row.raster.definition if row.raster is not None else None
-            station_name = row.station.name
-        label = f"calibration {station_name}:{row.version}"
-        station = calibration_from_document(row.parameters, source=label)
-        if raster_definition is not None:
-            raster = raster_from_document(raster_definition, source=f"the raster of {label}")
-        else:
-            try:
-                raster = station.raster_definition
-            except KeyError as exc:
-                raise InputError(f"the raster of {label} is unusable: {exc}") from None
-        return row, station, raster
 
     def _load(self, cached: CachedResult) -> Record:
         try:

@@ -32,7 +32,6 @@ import logging
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 from sqlalchemy import func, or_, select, update
@@ -41,6 +40,7 @@ from rasterserver.archive import Archive
 from rasterserver.catalog.job_models import JOB_STATES, ProcessingJob, ProcessingTask
 from rasterserver.errors import ConflictError, InputError, NotFoundError, RasterServerError
 from rasterserver.job_selection import Selection, resolve_selection
+from rasterserver.job_status import JobStatus, job_outcomes, job_status
 from rasterserver.jobs import JobOutcome, StopReason, engine_name, open_engine, run_tasks
 from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, resolve_chain
 from rasterserver.registry import Registry
@@ -70,11 +70,6 @@ _POLL_S = 0.25
 
 def _now() -> dt.datetime:
     return dt.datetime.now(dt.UTC)
-
-
-def to_utc(value: dt.datetime) -> dt.datetime:
-    """``value`` in UTC (the catalogue gives aware UTC times; a naive one is taken as UTC)."""
-    return value.replace(tzinfo=dt.UTC) if value.tzinfo is None else value.astimezone(dt.UTC)
 
 
 # --- creating and finding jobs -------------------------------------------------------------------
@@ -220,119 +215,6 @@ def list_jobs(
         query = query.where(ProcessingJob.state == state)
     with archive.session() as s:
         return list(s.scalars(query.limit(limit).offset(offset)))
-
-
-# --- status --------------------------------------------------------------------------------------
-
-
-@dataclass
-class JobStatus:
-    """A job as a user sees it: its row, whether its coordinator is gone, rate and ETA.
-
-    Attributes
-    ----------
-    job : ProcessingJob
-        The row.
-    interrupted : bool
-        Stored ``queued``/``running`` but its coordinator's process is gone: resumable.
-    left : int
-        Tasks not finished.
-    rate : float or None
-        Tasks finished per second by the current (or last) coordinator.
-    eta_s : float or None
-        Seconds to the end at that rate, while running.
-    """
-
-    job: ProcessingJob
-    interrupted: bool = False
-    left: int = 0
-    rate: float | None = None
-    eta_s: float | None = None
-    failures: list[dict[str, Any]] = field(default_factory=list)
-
-    @property
-    def state(self) -> str:
-        """The stored state, ``interrupted`` when its coordinator is gone."""
-        return "interrupted" if self.interrupted else self.job.state
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (``jobs show --json``)."""
-        job = self.job
-
-        def when(value: dt.datetime | None) -> str | None:
-            return None if value is None else to_utc(value).isoformat()
-
-        return {
-            "id": job.id,
-            "state": self.state,
-            "origin": job.origin,
-            "owner": job.owner,
-            "selection": job.selection,
-            "targets": job.targets,
-            "chain": job.chain,
-            "engine": job.engine,
-            "total": job.total,
-            "done": job.done,
-            "failed": job.failed,
-            "left": self.left,
-            "rate_per_s": self.rate,
-            "eta_s": self.eta_s,
-            "runner": describe_runner(job.runner) if job.runner else "",
-            "error": job.error,
-            "created_at": when(job.created_at),
-            "started_at": when(job.started_at),
-            "progress_at": when(job.progress_at),
-            "finished_at": when(job.finished_at),
-            "failures": self.failures,
-        }
-
-
-def _gone(job: ProcessingJob) -> bool:
-    return job.state in ("queued", "running") and bool(job.runner) and runner_gone(job.runner)
-
-
-def job_status(archive: Archive, job: ProcessingJob, *, failures: int = 0) -> JobStatus:
-    """What :class:`JobStatus` says of ``job``, with up to ``failures`` failed tasks."""
-    left = job.total - job.done - job.failed
-    status = JobStatus(job, interrupted=_gone(job), left=left)
-    if job.resumed_at is not None and job.progress_at is not None:
-        spent = (to_utc(job.progress_at) - to_utc(job.resumed_at)).total_seconds()
-        finished = job.done + job.failed - job.resumed_count
-        if spent > 0 and finished > 0:
-            status.rate = finished / spent
-            if job.state == "running" and not status.interrupted:
-                status.eta_s = left / status.rate
-    if failures:
-        with archive.session() as s:
-            rows = s.scalars(
-                select(ProcessingTask)
-                .where(ProcessingTask.job_id == job.id, ProcessingTask.state == "failed")
-                .order_by(ProcessingTask.position)
-                .limit(failures)
-            )
-            status.failures = [
-                {"uid": t.uid, "error": t.error, "exit_code": t.exit_code} for t in rows
-            ]
-    return status
-
-
-def job_outcomes(archive: Archive, job_id: str, *, limit: int | None = None) -> list[JobOutcome]:
-    """The outcomes of a job's finished tasks, in the selection's order."""
-    query = (
-        select(ProcessingTask)
-        .where(ProcessingTask.job_id == job_id, ProcessingTask.state != "pending")
-        .order_by(ProcessingTask.position)
-    )
-    if limit is not None:
-        query = query.limit(limit)
-    with archive.session() as s:
-        return [
-            JobOutcome(
-                t.uid, "done" if t.state == "done" else "failed", t.computed, t.reused,
-                t.reason, t.error, exit_code=t.exit_code,
-            )
-            for t in s.scalars(query)
-        ]
 
 
 # --- pause, cancel -------------------------------------------------------------------------------

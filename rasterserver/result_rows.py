@@ -12,16 +12,73 @@ from __future__ import annotations
 import datetime as dt
 import socket
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError as SQLIntegrityError
 from sqlalchemy.orm import Session
 
 from rasterserver import __version__
-from rasterserver.catalog.models import StageResult
+from rasterserver.catalog.models import PipelineRun, StageResult
+from rasterserver.chain import Computation, Plan
+from rasterserver.records import Record
 
-__all__ = ["add_or_adopt", "result_row"]
+__all__ = ["ProcessResult", "StepOutcome", "add_or_adopt", "commit_rows", "result_row"]
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """How one stage of a processed acquisition came about."""
+
+    kind: str
+    plugin: str
+    result_id: int
+    reused: bool
+    duration_s: float
+    reason: str
+    store_path: str
+    output_checksum: str
+
+
+@dataclass
+class ProcessResult:
+    """The outcome of processing one acquisition.
+
+    Attributes
+    ----------
+    uid : str
+        The acquisition.
+    run_id : int
+        Its :class:`PipelineRun` row.
+    steps : list of StepOutcome
+        One per stage, in order.
+    final : Record or None
+        The last stage's record (loaded from its file when reused).
+    records : dict of str to Record
+        Records computed in this run (reused ones are not loaded).
+    """
+
+    uid: str
+    run_id: int
+    steps: list[StepOutcome]
+    final: Record | None = None
+    records: dict[str, Record] = field(default_factory=dict)
+
+    @property
+    def computed(self) -> int:
+        """Number of stages computed in this run."""
+        return sum(not s.reused for s in self.steps)
+
+    @property
+    def reused(self) -> int:
+        """Number of stages whose stored result was reused."""
+        return sum(s.reused for s in self.steps)
+
+    @property
+    def reason(self) -> str:
+        """The last stage's reason (why it is empty, or a note)."""
+        return self.steps[-1].reason if self.steps else ""
 
 
 def result_row(
@@ -137,3 +194,85 @@ def add_or_adopt(
             raise
         return existing, True
     return row, False
+
+
+def commit_rows(s: Session, plan: Plan, computation: Computation) -> ProcessResult:
+    """Add the rows of ``plan``'s computed steps (files already durable) and finish its run.
+
+    In ``s``'s transaction; a row whose result another process stored meanwhile is adopted.
+
+    Returns
+    -------
+    ProcessResult
+        Without its final record (the caller adds it).
+    """
+    outcomes: list[StepOutcome] = []
+    for step, cached in zip(plan.steps[: plan.first], plan.cached[: plan.first], strict=True):
+        assert cached is not None
+        outcomes.append(
+            StepOutcome(
+                step.kind,
+                step.plugin,
+                cached.result_id,
+                True,
+                0.0,
+                cached.reason,
+                cached.store_path,
+                cached.output_checksum,
+            )
+        )
+    parent_id = outcomes[-1].result_id if outcomes else None
+    for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+        stored, in_sum = computation.stored[step.kind]
+        row, reused = add_or_adopt(
+            s,
+            result_row(
+                record_kind=stored.record_kind,
+                reason=stored.reason,
+                acquisition_id=plan.acquisition_id,
+                run_id=plan.run_id,
+                parent_id=parent_id,
+                calibration_id=(
+                    plan.calibration_id
+                    if {"calibration", "raster"} & set(step.requires)
+                    else None
+                ),
+                frame_index=plan.frame_index,
+                stage=step.kind,
+                plugin=step.plugin,
+                plugin_version=step.version,
+                plugin_package=step.package,
+                params=step.params,
+                params_hash=step.params_hash,
+                chain_key=key,
+                input_checksum=in_sum,
+                output_checksum=stored.output_checksum,
+                store_path=stored.path,
+                host=computation.host,
+                duration_s=computation.durations.get(step.kind, 0.0),
+            ),
+        )
+        parent_id = row.id
+        outcomes.append(
+            StepOutcome(
+                step.kind,
+                step.plugin,
+                row.id,
+                reused,
+                row.duration_s,
+                row.reason,
+                row.store_path,
+                row.output_checksum,
+            )
+        )
+    s.execute(
+        update(PipelineRun)
+        .where(PipelineRun.id == plan.run_id)
+        .values(
+            status="done",
+            finished_at=dt.datetime.now(dt.UTC),
+            computed=sum(not o.reused for o in outcomes),
+            reused=sum(o.reused for o in outcomes),
+        )
+    )
+    return ProcessResult(plan.uid, plan.run_id, outcomes, None, dict(computation.records))

@@ -1,0 +1,258 @@
+"""Where the chain of each acquisition runs: here (:class:`InProcess`) or on Dask (:class:`OnDask`).
+
+The coordinator loop (:func:`rasterserver.jobs.run_tasks`) is the same for every engine; an
+engine only runs :func:`rasterserver.worker.work` (read the frame, compute, write the derived
+files) and hands back a future. :func:`engine_name` picks one for a job, :func:`open_engine`
+starts and stops it, :func:`dask_client` connects to a scheduler or starts a ``LocalCluster``
+with Dask's INFO logs kept off the terminal (:func:`quiet_dask_logs`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rasterserver.chain import Computation, Plan
+from rasterserver.pipeline import Pipeline
+from rasterserver.worker import work
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+__all__ = [
+    "IN_PROCESS_BATCH",
+    "LOCAL_CLUSTER_MIN",
+    "Engine",
+    "InProcess",
+    "OnDask",
+    "dask_client",
+    "engine_name",
+    "open_engine",
+    "quiet_dask_logs",
+]
+
+log = logging.getLogger(__name__)
+
+#: From how many acquisitions a job asked for without ``--dask``/``--scheduler`` starts a
+#: ``LocalCluster``; None: never. Measured on the 2-core development machine (BENCHMARKS.md,
+#: "Processing jobs"): the coordinator's own work (planning, reading frames, writing derived
+#: files, committing rows) is most of each acquisition's time, so two local worker processes
+#: beside it were slower than computing in the coordinator. Change it when the coordinator's
+#: share drops (issue 16, throughput).
+LOCAL_CLUSTER_MIN: int | None = None
+
+#: Acquisitions the in-process engine computes ahead of committing them.
+IN_PROCESS_BATCH = 4
+
+
+class Engine:
+    """Where :func:`rasterserver.pipeline.compute` runs; the coordinator loop is the same.
+
+    Attributes
+    ----------
+    name : str
+        ``"in-process"``, ``"local-cluster"`` or the scheduler's address (stored with a job).
+    in_flight : int
+        Acquisitions the coordinator keeps submitted ahead of the results.
+    """
+
+    name: str = ""
+    in_flight: int = 1
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Start computing what ``plan`` has not stored; a future of its :class:`Computation`."""
+        raise NotImplementedError
+
+
+class InProcess(Engine):
+    """Compute here, at once: the future returned is already done.
+
+    A few acquisitions are computed ahead of committing them (``in_flight``), so their rows
+    go to the catalogue in one transaction.
+    """
+
+    name = "in-process"
+
+    def __init__(self, pipeline: Pipeline, *, in_flight: int | None = None) -> None:
+        self.pipeline = pipeline
+        self.in_flight = max(1, in_flight or IN_PROCESS_BATCH)
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Compute and write the files now; the future holds the result or the exception."""
+        future: cf.Future[Computation] = cf.Future()
+        try:
+            future.set_result(
+                work(plan, self.pipeline.archive.settings.archive,
+                     registry=self.pipeline.registry)
+            )
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+
+
+class OnDask(Engine):
+    """Compute on the cluster of a Dask ``client`` (workers use their own plugin registry).
+
+    Workers read the raw frame and write the derived files themselves
+    (:func:`rasterserver.worker.work`): the archive must be at the same path on every worker
+    (shared storage), ``root`` says where.
+
+    Parameters
+    ----------
+    client : distributed.Client
+        A connected client.
+    name : str
+        What to call the engine (``"local-cluster"`` or the scheduler's address).
+    root : Path
+        The archive root as the workers see it.
+    in_flight : int, optional
+        Acquisitions submitted ahead; by default four times the cluster's worker threads, so
+        that every worker has the next acquisitions waiting while the coordinator commits a
+        batch.
+    """
+
+    def __init__(
+        self, client: Client, *, name: str, root: Path, in_flight: int | None = None
+    ) -> None:
+        self.client = client
+        self.name = name
+        self.root = str(root)
+        if in_flight is None:
+            threads = sum(client.nthreads().values()) or 1
+            in_flight = max(8, 4 * threads)
+        self.in_flight = max(1, in_flight)
+        # concurrent.futures futures: the loop waits on them as on the in-process ones
+        self._executor = client.get_executor(pure=False)
+
+    def submit(self, plan: Plan) -> cf.Future[Computation]:
+        """Send the plan (chain, keys, station data; no pixels) to a worker."""
+        return self._executor.submit(work, plan, self.root)
+
+
+def quiet_dask_logs() -> None:
+    """Keep Dask's INFO lines (cluster started, worker joined, ...) off the user's terminal.
+
+    Its warnings and errors still show. With ``--verbose`` (root logger at INFO) nothing is
+    changed. Worker processes of a ``LocalCluster`` read the environment variable.
+    """
+    if logging.getLogger().isEnabledFor(logging.INFO):
+        return
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    for name in ("distributed", "dask"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    try:
+        import dask
+
+        dask.config.set({"logging.distributed": "warning"})
+    except ImportError:  # pragma: no cover - dask is a dependency
+        pass
+
+
+@contextmanager
+def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -> Iterator[Client]:
+    """A Dask client for the scheduler at ``scheduler``, or for a new ``LocalCluster``.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        Scheduler address (``tcp://host:8786``); a local cluster when None.
+    n_workers : int, optional
+        Worker processes of the local cluster (default: one per core).
+
+    Yields
+    ------
+    distributed.Client
+    """
+    quiet_dask_logs()
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler) as client:
+            yield client
+        return
+    # a worker samples its own stack every 10 ms for the dashboard's profile, which this
+    # cluster does not serve: a few percent of every core for nothing
+    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
+    # one thread per worker: the stages are numpy code that is fastest single-threaded
+    # per frame, and parallel across frames
+    with (
+        LocalCluster(
+            n_workers=n_workers or os.cpu_count() or 1,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        yield client
+
+
+def engine_name(
+    count: int,
+    *,
+    dask: bool | None = None,
+    scheduler: str | None = None,
+    default_scheduler: str | None = None,
+) -> str:
+    """Which engine a job of ``count`` acquisitions runs on: ``"in-process"``,
+    ``"local-cluster"`` or a scheduler address.
+
+    An explicit ``scheduler`` wins; ``dask=False`` computes here; ``dask=True`` uses
+    ``default_scheduler`` (``RASTERSERVER_DASK_SCHEDULER``) or a ``LocalCluster``. Unsaid
+    (``dask=None``): one acquisition is computed here; more go to ``default_scheduler`` if
+    one is set, else to a ``LocalCluster`` only from :data:`LOCAL_CLUSTER_MIN` acquisitions.
+    """
+    if scheduler:
+        return scheduler
+    if dask is False:
+        return "in-process"
+    if dask is True:
+        return default_scheduler or "local-cluster"
+    if count <= 1:
+        return "in-process"
+    if default_scheduler:
+        return default_scheduler
+    if LOCAL_CLUSTER_MIN is not None and count >= LOCAL_CLUSTER_MIN:
+        return "local-cluster"
+    return "in-process"
+
+
+@contextmanager
+def open_engine(
+    name: str,
+    pipeline: Pipeline,
+    *,
+    client: Client | None = None,
+    n_workers: int | None = None,
+    in_flight: int | None = None,
+) -> Iterator[Engine]:
+    """The engine called ``name`` (see :func:`engine_name`), started and stopped here.
+
+    Parameters
+    ----------
+    name : str
+        ``"in-process"``, ``"local-cluster"`` or a scheduler address.
+    pipeline : Pipeline
+        The coordinator's pipeline (the in-process engine uses its registry).
+    client : distributed.Client, optional
+        Use this client's cluster (``name`` is then only a label).
+    n_workers : int, optional
+        Workers of a local cluster.
+    in_flight : int, optional
+        Acquisitions submitted ahead on Dask.
+    """
+    root = pipeline.archive.settings.archive
+    if client is not None:
+        yield OnDask(client, name=name, root=root, in_flight=in_flight)
+        return
+    if name == "in-process":
+        yield InProcess(pipeline, in_flight=in_flight)
+        return
+    scheduler = None if name == "local-cluster" else name
+    with dask_client(scheduler=scheduler, n_workers=n_workers) as own:
+        yield OnDask(own, name=name, root=root, in_flight=in_flight)

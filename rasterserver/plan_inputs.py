@@ -1,0 +1,151 @@
+"""What a plan needs from the catalogue besides the chain: the frame, the calibration and
+raster documents in force, and the results already stored under the plan's chain keys.
+
+Calibration rows never change once stored, so :class:`InputsCache` parses each one once per
+:class:`~rasterserver.pipeline.Pipeline`: a job plans thousands of acquisitions with a few.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from rasterserver.archive import Archive
+from rasterserver.catalog.models import Acquisition, Calibration, Frame, StageResult
+from rasterserver.catalog.models import Station as StationRow
+from rasterserver.chain import CachedResult
+from rasterserver.documents import calibration_from_document, raster_from_document
+from rasterserver.errors import InputError, NotFoundError
+from rasterserver.hashing import canonical_json_sha256
+from rasterserver.optics import Station
+from rasterserver.raster import Raster
+
+__all__ = ["ChainInputs", "InputsCache", "load_calibration", "raster_frame", "stored_results"]
+
+
+@dataclass(frozen=True)
+class ChainInputs:
+    """A calibration row's parsed documents and the checksums that enter chain keys."""
+
+    row_id: int
+    sha256: str
+    station: Station
+    raster: Raster
+    raster_sha256: str
+
+
+class InputsCache:
+    """:class:`ChainInputs` per calibration row, parsed once.
+
+    Parameters
+    ----------
+    archive : Archive
+        Where calibration rows are read.
+    """
+
+    def __init__(self, archive: Archive) -> None:
+        self.archive = archive
+        self._by_row: dict[int, ChainInputs] = {}
+
+    def get(
+        self, acquisition: Acquisition, wanted: tuple[str, int | None] | None
+    ) -> ChainInputs:
+        """The inputs of ``acquisition`` (see :func:`load_calibration`)."""
+        attached = acquisition.calibration_id
+        if wanted is None and attached is not None and attached in self._by_row:
+            return self._by_row[attached]
+        row, station, raster = load_calibration(self.archive, acquisition, wanted)
+        inputs = self._by_row.get(row.id)
+        if inputs is None:
+            raster_sha = canonical_json_sha256(raster.to_dict())
+            inputs = ChainInputs(row.id, row.sha256, station, raster, raster_sha)
+            self._by_row[row.id] = inputs
+        return inputs
+
+
+def stored_results(s: Session, acquisition_id: int, keys: list[str]) -> dict[str, CachedResult]:
+    """The stored results of ``acquisition_id`` among the chain ``keys``."""
+    query = select(
+        StageResult.chain_key,
+        StageResult.id,
+        StageResult.store_path,
+        StageResult.output_checksum,
+        StageResult.reason,
+    ).where(StageResult.acquisition_id == acquisition_id, StageResult.chain_key.in_(keys))
+    return {key: CachedResult(*rest) for key, *rest in s.execute(query)}
+
+
+def raster_frame(acquisition: Acquisition, index: int | None) -> Frame:
+    """The frame to process: ``index``, or the acquisition's first ``raster`` frame.
+
+    Raises
+    ------
+    NotFoundError, InputError
+        No such frame; no raster frame.
+    """
+    frames = sorted(acquisition.frames, key=lambda f: f.index)
+    if index is not None:
+        for frame in frames:
+            if frame.index == index:
+                return frame
+        raise NotFoundError(f"acquisition {acquisition.uid} has no frame {index}")
+    for frame in frames:
+        if frame.role == "raster":
+            return frame
+    roles = ", ".join(sorted({f.role for f in frames})) or "none"
+    raise InputError(
+        f"acquisition {acquisition.uid} has no raster frame (frame roles: {roles}); "
+        "give the frame index to process another one"
+    )
+
+
+def load_calibration(
+    archive: Archive, acquisition: Acquisition, wanted: tuple[str, int | None] | None
+) -> tuple[Calibration, Station, Raster]:
+    """The calibration row that applies to ``acquisition``, with its parsed documents.
+
+    ``wanted`` (station, version or None for the newest) overrides the one attached at
+    ingest; it must be of the acquisition's station.
+
+    Raises
+    ------
+    NotFoundError
+        Unknown station or calibration; none attached and none given.
+    InputError
+        A calibration of another station; an invalid document.
+    """
+    with archive.session() as s:
+        if wanted is not None:
+            station_name, version = wanted
+            row = archive.calibration(station_name, version, s)
+            if acquisition.station_id is not None and row.station_id != acquisition.station_id:
+                own_row = s.get(StationRow, acquisition.station_id)
+                own = own_row.name if own_row is not None else "?"
+                raise InputError(
+                    f"calibration {station_name}:{row.version} belongs to station "
+                    f"{station_name!r} but acquisition {acquisition.uid} was recorded at "
+                    f"station {own!r}"
+                )
+        elif acquisition.calibration_id is not None:
+            row = s.get(Calibration, acquisition.calibration_id)
+            assert row is not None
+        else:
+            raise NotFoundError(
+                f"acquisition {acquisition.uid} has no calibration: give one with "
+                "--calibration STATION:VERSION (or ingest with --station after storing a "
+                "calibration of that station)"
+            )
+        raster_definition = row.raster.definition if row.raster is not None else None
+        station_name = row.station.name
+    label = f"calibration {station_name}:{row.version}"
+    station = calibration_from_document(row.parameters, source=label)
+    if raster_definition is not None:
+        raster = raster_from_document(raster_definition, source=f"the raster of {label}")
+    else:
+        try:
+            raster = station.raster_definition
+        except KeyError as exc:
+            raise InputError(f"the raster of {label} is unusable: {exc}") from None
+    return row, station, raster
