@@ -6,7 +6,7 @@ import os
 import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -74,7 +74,7 @@ def serve(
         engine.dispose()
     # refuse to start on an old schema, with the message that says what to run
     Archive(resolved).close()
-    common = {
+    common: dict[str, Any] = {  # keyword arguments of uvicorn.run
         "host": host,
         "port": port,
         "access_log": False,
