@@ -48,7 +48,7 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import open3d as o3d
@@ -424,7 +424,8 @@ def posture_sway(
     shift = rng.uniform(-translation, translation, 3)
     turn = rng.uniform(-rotation, rotation, 3)
     limits = {"inclination": 25.0, "lateral_lean": 15.0, "turn": 30.0}
-    changes = {
+    # float fields of BackParameters; replace() rejects an unknown name at run time
+    changes: dict[str, Any] = {
         name: float(np.clip(getattr(params, name) + d, -limits[name], limits[name]))
         for name, d in zip(limits, turn, strict=True)
     }
@@ -484,7 +485,13 @@ class _Anatomy:
     def y_c7(self) -> float:
         return self.params.offset_y - _C7_FRACTION * self.params.trunk_length
 
-    def y_of(self, t: np.ndarray) -> np.ndarray:
+    @overload
+    def y_of(self, t: float) -> float: ...
+
+    @overload
+    def y_of(self, t: np.ndarray) -> np.ndarray: ...
+
+    def y_of(self, t: float | np.ndarray) -> float | np.ndarray:
         return self.y_c7 + np.asarray(t) * self.length
 
     def t_of(self, y: np.ndarray) -> np.ndarray:

@@ -134,7 +134,7 @@ class RasterLight:
         Computed in the dtype of ``v`` (float32 for the renderer); NaN ``v`` gives 0.
         """
         v = np.asarray(v)
-        dtype = v.dtype if v.dtype in (np.float32, np.float64) else np.float64
+        dtype = v.dtype if v.dtype in (np.float32, np.float64) else np.dtype(np.float64)
         v = v.astype(dtype, copy=False)
         # the table's nearest line may be the neighbour within one cell of a midpoint; the
         # neighbour count above already covers that slack, so no exact correction is needed

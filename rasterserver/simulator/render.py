@@ -214,7 +214,7 @@ def _ideal_grid(camera: Camera, pad: int = 1) -> np.ndarray:
     key = (camera.key(), pad)
     grid = _IDEAL_GRID_CACHE.get(key)
     if grid is None:
-        w, h = camera.width, camera.height
+        h, w = camera.shape  # ints (width and height are typed float on the base class)
         u, v = np.meshgrid(
             np.arange(-pad, w + pad, dtype=np.float64), np.arange(-pad, h + pad, dtype=np.float64)
         )
@@ -271,7 +271,7 @@ def _band_directions(camera: Camera, s: int, row0: int, row1: int, margin: int) 
     the second derivative of the distortion, ~6 k1 x / f**2 per px**2).
     """
     grid = _ideal_grid(camera, margin + 1)
-    w = camera.width + 2 * margin
+    w = camera.shape[1] + 2 * margin
     n = row1 - row0
     out = np.empty((n * s, w * s, 2), dtype=np.float64)
     offs = _subsample_offsets(s)
@@ -552,7 +552,7 @@ def render(
     timings["shadow_rays"] += tt.get("shadow_rays", 0.0)
 
     # pass 2, all sub-samples, in bands of rows
-    fine = np.empty((he * s, we * s), dtype=np.float32)
+    fine: np.ndarray = np.empty((he * s, we * s), dtype=np.float32)
     # with odd s the middle sub-sample column of every pixel lies on x = c exactly: the
     # exact line rows are bracketed on those samples
     c = s // 2 if s % 2 == 1 else None

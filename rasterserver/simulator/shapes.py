@@ -29,7 +29,7 @@ __all__ = ["cylinder", "plane", "sphere", "step", "surface_distance", "tilted_pl
 _DEFAULT_ALBEDO = 0.8
 
 
-def _vector(name: str, value: Sequence[float], size: int = 3) -> np.ndarray:
+def _vector(name: str, value: Sequence[float] | np.ndarray, size: int = 3) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (size,) or not np.all(np.isfinite(arr)):
         raise InputError(f"{name} must be {size} finite numbers, got {value!r}")
@@ -84,7 +84,7 @@ def _chord_spacing(radius: float, max_error: float) -> float:
 def plane(
     *,
     point: Sequence[float] = (0.0, 0.0, 0.0),
-    normal: Sequence[float] = (0.0, 0.0, -1.0),
+    normal: Sequence[float] | np.ndarray = (0.0, 0.0, -1.0),
     size: tuple[float, float] = (1000.0, 1000.0),
     albedo: float = _DEFAULT_ALBEDO,
 ) -> Scene:

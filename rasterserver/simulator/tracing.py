@@ -64,9 +64,10 @@ class Tracer:
             triangles = np.asarray(obj.mesh.triangles, dtype=np.int64)
             if triangles.size == 0:
                 raise ValueError(f"scene object {obj.name!r} has no triangles")
+            # open3d's generated stubs drop the defaults (None) of Tensor's dtype and device
             gid = self._rc.add_triangles(
-                o3d.core.Tensor(vertices.astype(np.float32)),
-                o3d.core.Tensor(triangles.astype(np.uint32)),
+                o3d.core.Tensor(vertices.astype(np.float32)),  # type: ignore[call-overload]
+                o3d.core.Tensor(triangles.astype(np.uint32)),  # type: ignore[call-overload]
             )
             geometry_to_object[int(gid)] = index
             corners.append(vertices[triangles])  # (T, 3 corners, 3)
