@@ -16,7 +16,7 @@ from rasterserver.archive import Archive
 from rasterserver.catalog.models import Acquisition, Calibration, Frame, StageResult
 from rasterserver.catalog.models import Station as StationRow
 from rasterserver.chain import CachedResult
-from rasterserver.documents import calibration_from_document, raster_from_document
+from rasterserver.documents import calibration_raster, stored_calibration
 from rasterserver.errors import InputError, NotFoundError
 from rasterserver.hashing import canonical_json_sha256
 from rasterserver.optics import Station
@@ -139,13 +139,7 @@ def load_calibration(
             )
         raster_definition = row.raster.definition if row.raster is not None else None
         station_name = row.station.name
-    label = f"calibration {station_name}:{row.version}"
-    station = calibration_from_document(row.parameters, source=label)
-    if raster_definition is not None:
-        raster = raster_from_document(raster_definition, source=f"the raster of {label}")
-    else:
-        try:
-            raster = station.raster_definition
-        except KeyError as exc:
-            raise InputError(f"the raster of {label} is unusable: {exc}") from None
+    label = f"{station_name}:{row.version}"
+    station = stored_calibration(row.parameters, label=label)
+    raster = calibration_raster(station, raster_definition, source=f"calibration {label}")
     return row, station, raster
