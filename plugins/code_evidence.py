@@ -113,8 +113,10 @@ def level_statistics(
         total = np.bincount(key[near], weights=lr[near], minlength=n_keys)
         n_near = np.bincount(key[near], minlength=n_keys)
         centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
-    spread = np.bincount(key, weights=np.abs(lr - centre[key]), minlength=n_keys)
-    spread /= np.maximum(counts, 1)
+    # (bincount with weights gives floats; numpy's stubs say integers, so no in-place divide)
+    spread = np.bincount(key, weights=np.abs(lr - centre[key]), minlength=n_keys) / np.maximum(
+        counts, 1
+    )
     groups = np.flatnonzero(counts)
     return groups // span, groups % span, centre[groups], counts[groups], spread[groups]
 

@@ -26,7 +26,13 @@ from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import Field
-from rasterserver_plugins.code_evidence import (
+
+from rasterserver.errors import InputError
+from rasterserver.raster import Raster
+from rasterserver.records_lines import NumberedLines, OrderedLines
+from rasterserver.stage import Stage, StageContext, StageParams
+
+from .code_evidence import (
     CodeFit,
     ComponentNumbering,
     code_fit,
@@ -36,7 +42,7 @@ from rasterserver_plugins.code_evidence import (
     observed_kinds,
     reliability,
 )
-from rasterserver_plugins.numbering_checks import (
+from .numbering_checks import (
     by_line,
     column_order_conflicts,
     contact_votes,
@@ -45,11 +51,6 @@ from rasterserver_plugins.numbering_checks import (
     pair_contradictions,
     plausible_distance,
 )
-
-from rasterserver.errors import InputError
-from rasterserver.raster import Raster
-from rasterserver.records_lines import NumberedLines, OrderedLines
-from rasterserver.stage import Stage, StageContext, StageParams
 
 __all__ = [
     "CodeWindowNumbering",

@@ -156,12 +156,12 @@ def contact_votes(
     if k.size:
         # one vote per column; tallied per (a, b, delta) and entered in the order of each
         # group's first column (the dictionaries' order is that of a column-by-column loop)
-        ca, cb = comp[k], comp[k + 1]
-        delta = lev[k] + 1 - lev[k + 1]  # offset(b) - offset(a)
+        comp_a, comp_b = comp[k], comp[k + 1]
+        deltas = lev[k] + 1 - lev[k + 1]  # offset(b) - offset(a)
         n_comp = int(comp.max()) + 1
-        d0 = int(delta.min())
-        span = int(delta.max()) - d0 + 1
-        key = (ca * n_comp + cb) * span + (delta - d0)
+        d0 = int(deltas.min())
+        span = int(deltas.max()) - d0 + 1
+        key = (comp_a * n_comp + comp_b) * span + (deltas - d0)
         groups, first, count = np.unique(key, return_index=True, return_counts=True)
         for i in np.argsort(first, kind="stable"):
             g = int(groups[i])
