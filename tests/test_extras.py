@@ -112,3 +112,27 @@ def test_other_errors_are_not_taken_for_a_missing_extra() -> None:
     wrapped.__cause__ = ModuleNotFoundError("x", name="fastapi.routing")
     found = missing_extra(wrapped)
     assert found is not None and found.extra == "server" and found.module == "fastapi"
+
+
+def test_process_with_dask_without_the_dask_extra_names_it(tmp_path: Path) -> None:
+    """The real command on a real archive: `process --all --dask` where dask.distributed
+    cannot be imported exits 8 with the extra to install (the job stays resumable)."""
+    from rasterserver.archive import Archive
+    from rasterserver.cli import main
+    from rasterserver.config import Settings, sqlite_url
+    from rasterserver.demo import simulate_visits
+    from rasterserver.optics import default_station
+    from rasterserver.simulated_visits import archive_visits
+
+    root = tmp_path / "archive"
+    settings = Settings(archive=root, database_url=sqlite_url(root))
+    url = settings.database_url
+    assert main(["--archive", str(root), "--database-url", url, "db", "upgrade"]) == 0
+    with Archive(settings) as archive:
+        archive_visits(
+            archive, simulate_visits(1, supersample=1), station=default_station(), patient="P1"
+        )
+    done = _without(["distributed", "dask"], ["process", "--all", "--dask"], tmp_path)
+    assert done.returncode == 8, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "pip install 'rasterserver[dask]'" in done.stderr and "--no-dask" in done.stderr
