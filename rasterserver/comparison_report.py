@@ -34,10 +34,11 @@ def write_trends_plot(table: list[dict[str, Any]], path: Path) -> None:
         ax = fig.add_subplot((n + 1) // 2, 2, k + 1)
         dates = [dt.datetime.fromisoformat(v["date"]) for v in row["visits"]]
         values = [np.nan if v["value"] is None else v["value"] for v in row["visits"]]
-        ax.plot(dates, values, "o-", color="#1f4e79")
+        # matplotlib's stubs take no datetimes; its unit converters plot them (a date axis)
+        ax.plot(dates, values, "o-", color="#1f4e79")  # type: ignore[arg-type]
         for d, v, visit in zip(dates, values, row["visits"], strict=True):
             if visit["flagged"]:
-                ax.plot(d, v, "o", color="#c00000", markersize=9, fillstyle="none")
+                ax.plot(d, v, "o", color="#c00000", markersize=9, fillstyle="none")  # type: ignore[arg-type]
         ax.set_title(f"{parameter_label(row['parameter'])} ({row['unit']})", fontsize=9)
         ax.tick_params(labelsize=7)
     fig.tight_layout()

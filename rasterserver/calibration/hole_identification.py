@@ -171,7 +171,7 @@ def find_patterns(
             continue
         predicted = np.einsum("ij,tjk->tik", np.column_stack([layout, np.ones(7)]), maps)
         dist, idx = tree.query(predicted.reshape(-1, 2))
-        dist, idx = dist.reshape(-1, 7), idx.reshape(-1, 7)
+        dist, idx = np.asarray(dist).reshape(-1, 7), np.asarray(idx).reshape(-1, 7)
         tol = np.maximum(tolerance * np.sqrt(sv[:, 0] * sv[:, 1]) * radius_mm, 1.5)
         hit = dist <= tol[:, None]
         enough = hit.sum(axis=1) >= 5

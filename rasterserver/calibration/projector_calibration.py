@@ -419,7 +419,8 @@ def calibrate_projector(
     names = ("rx", "ry", "rz", "ty", "tz", "fy", "cy", *(DISTORTION_TERMS[i] for i in free_dist))
     s2 = float((fit.fun**2).sum() / max(fit.fun.size - fit.x.size, 1))
     try:
-        cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
+        jac = np.asarray(fit.jac)  # dense with method "lm" (the stubs allow sparse too)
+        cov = np.linalg.inv(jac.T @ jac) * s2
         sigma = {nm: float(np.sqrt(max(cov[i, i], 0.0))) for i, nm in enumerate(names)}
     except np.linalg.LinAlgError:
         sigma = {nm: float("nan") for nm in names}

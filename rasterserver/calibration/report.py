@@ -151,7 +151,10 @@ def plot_residuals(
     """
     bounds = bounds or Bounds()
     background = np.mean([f.astype(np.float32) for f in frames.off.values()], axis=0)
-    grey = cv2.normalize(background, None, 40, 200, cv2.NORM_MINMAX).astype(np.uint8)
+    # OpenCV's stubs make dst required; None (a new array) is what its documentation allows
+    grey = cv2.normalize(  # type: ignore[call-overload]
+        background, None, 40, 200, cv2.NORM_MINMAX
+    ).astype(np.uint8)
     canvas = cv2.cvtColor(
         cv2.resize(grey, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST),
         cv2.COLOR_GRAY2BGR,

@@ -31,13 +31,19 @@ def signed_distances(
     if len(vertices) == 0 or len(mesh.triangles) == 0:
         return out
     scene = o3d.t.geometry.RaycastingScene()
+    # open3d's generated stubs drop the defaults (None) of Tensor's dtype and device
     scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
+        o3d.core.Tensor(  # type: ignore[call-overload]
+            np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+        ),
+        o3d.core.Tensor(  # type: ignore[call-overload]
+            np.ascontiguousarray(mesh.triangles, dtype=np.uint32)
+        ),
     )
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     rays = np.concatenate([np.hstack([vertices, n]), np.hstack([vertices, -n])]).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    rays_t = o3d.core.Tensor(rays)  # type: ignore[call-overload]  # (stubs: see above)
+    hit = scene.cast_rays(rays_t)["t_hit"].numpy().astype(np.float64)
     ahead, behind = hit[: len(vertices)], hit[len(vertices) :]
     signed = np.where(ahead <= behind, ahead, -behind)
     ok = np.isfinite(signed) & (np.abs(signed) <= limit)
@@ -211,7 +217,7 @@ def asymmetry_change(
     if len(moved):
         gap, index = cKDTree(moved).query(a_map.vertices, distance_upper_bound=reach)
         near = np.isfinite(gap)
-        change[near] = b_map.distance[index[near]] - a_map.distance[near]
+        change[near] = b_map.distance[np.asarray(index)[near]] - a_map.distance[near]
     return DistanceMap(
         a_map.vertices, a_map.triangles, a_map.normals, change, what="asymmetry change (mm)"
     )
