@@ -325,7 +325,7 @@ def _grid_delaunay(
         return x0, y0, np.full((ny, nx), np.nan)
     z = griddata(xy, samples.z, (gx, gy), method="linear")
     dist, _ = cKDTree(xy).query(np.column_stack([gx.ravel(), gy.ravel()]))
-    z[dist.reshape(ny, nx) > max_gap] = np.nan
+    z[np.asarray(dist).reshape(ny, nx) > max_gap] = np.nan
     return x0, y0, z
 
 

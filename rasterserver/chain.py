@@ -223,10 +223,10 @@ def resolve_chain(
                 f"{what}: unknown stage kind(s) {', '.join(unknown)}; stages: {', '.join(kinds)}"
             )
     for kind, name in chain.items():
-        stage = registry.get(name)
-        if stage.stage != kind:
+        named = registry.get(name)
+        if named.stage != kind:
             raise InputError(
-                f"plugin {stage.name!r} implements stage {stage.stage!r}, not {kind!r}"
+                f"plugin {named.name!r} implements stage {named.stage!r}, not {kind!r}"
             )
     for kind, given in params.items():
         # parameters of stages outside the chain are still checked: a misspelt one is a mistake

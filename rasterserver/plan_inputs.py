@@ -74,7 +74,10 @@ def stored_results(s: Session, acquisition_id: int, keys: list[str]) -> dict[str
         StageResult.output_checksum,
         StageResult.reason,
     ).where(StageResult.acquisition_id == acquisition_id, StageResult.chain_key.in_(keys))
-    return {key: CachedResult(*rest) for key, *rest in s.execute(query)}
+    return {
+        key: CachedResult(result_id, store_path, checksum, reason)
+        for key, result_id, store_path, checksum, reason in s.execute(query)
+    }
 
 
 def raster_frame(acquisition: Acquisition, index: int | None) -> Frame:
@@ -129,8 +132,9 @@ def load_calibration(
                     f"station {own!r}"
                 )
         elif acquisition.calibration_id is not None:
-            row = s.get(Calibration, acquisition.calibration_id)
-            assert row is not None
+            own_calibration = s.get(Calibration, acquisition.calibration_id)
+            assert own_calibration is not None
+            row = own_calibration
         else:
             raise NotFoundError(
                 f"acquisition {acquisition.uid} has no calibration: give one with "

@@ -32,9 +32,9 @@ import logging
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import Table, func, or_, select, update
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.job_models import JOB_STATES, ProcessingJob, ProcessingTask
@@ -45,6 +45,9 @@ from rasterserver.jobs import JobOutcome, StopReason, engine_name, open_engine, 
 from rasterserver.pipeline import DEFAULT_TARGETS, Pipeline, resolve_chain
 from rasterserver.registry import Registry
 from rasterserver.runner import current_runner, describe_runner, runner_gone
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import CursorResult
 
 __all__ = [
     "JobStatus",
@@ -66,6 +69,12 @@ log = logging.getLogger(__name__)
 _PAGE = 500
 #: Seconds between two reads of the job's state by a coordinator (pause, cancel).
 _POLL_S = 0.25
+
+
+def _rowcount(result: object) -> int:
+    """Rows an UPDATE changed: Session.execute is typed Result, but for an UPDATE it gives a
+    CursorResult, which has the count."""
+    return cast("CursorResult[Any]", result).rowcount
 
 
 def _now() -> dt.datetime:
@@ -155,7 +164,8 @@ def create_job(
         s.flush()
         # one INSERT of many rows: a job of 10,000 acquisitions is created in one go
         s.execute(
-            ProcessingTask.__table__.insert(),
+            # a declarative class's __table__ is typed FromClause; this one is a Table
+            cast(Table, ProcessingTask.__table__).insert(),
             [
                 {
                     "job_id": job.id, "position": position, "uid": uid,
@@ -256,11 +266,11 @@ def _request(archive: Archive, job_id: str, state: str, allowed: Sequence[str]) 
         values: dict[str, Any] = {"state": state}
         if state == "cancelled":
             values["finished_at"] = _now()
-        changed = s.execute(
+        changed = _rowcount(s.execute(
             update(ProcessingJob)
             .where(ProcessingJob.id == job.id, ProcessingJob.state.in_(allowed))
             .values(**values)
-        ).rowcount
+        ))
     if not changed:
         current = find_job(archive, job.id)
         verb = "pause" if state == "paused" else "cancel"
@@ -295,7 +305,7 @@ def _take(archive: Archive, job_id: str, engine: str, *, force: bool) -> Process
             )
     now = _now()
     with archive.session() as s:
-        changed = s.execute(
+        changed = _rowcount(s.execute(
             update(ProcessingJob)
             .where(ProcessingJob.id == job.id, ProcessingJob.state == job.state,
                    ProcessingJob.runner == job.runner)
@@ -305,7 +315,7 @@ def _take(archive: Archive, job_id: str, engine: str, *, force: bool) -> Process
                 resumed_at=now, resumed_count=ProcessingJob.done + ProcessingJob.failed,
                 progress_at=now, finished_at=None,
             )
-        ).rowcount
+        ))
     if not changed:  # another coordinator took it in between
         raise ConflictError(f"job {job.id} was taken by another process meanwhile")
     return find_job(archive, job.id)
@@ -315,7 +325,7 @@ def _check_chain(job: ProcessingJob, registry: Registry | None) -> dict[str, Any
     """The job's plan options, after checking its plugins are still the versions it began
     with (results of a job are one computation, not a mixture)."""
     chain = job.chain
-    options = {
+    options: dict[str, Any] = {
         "chain": chain.get("chain") or None,
         "params": chain.get("params") or None,
         "calibration": tuple(chain["calibration"]) if chain.get("calibration") else None,
@@ -444,14 +454,14 @@ def run_job(
             for position, outcome in ended:
                 state = "done" if outcome.status == "done" else "failed"
                 # only if still pending: the task is counted once whatever happens
-                marked = s.execute(
+                marked = _rowcount(s.execute(
                     update(ProcessingTask)
                     .where(ProcessingTask.job_id == job.id, ProcessingTask.position == position,
                            ProcessingTask.state == "pending")
                     .values(state=state, computed=outcome.computed, reused=outcome.reused,
                             reason=outcome.reason[:10_000], error=outcome.error[:10_000],
                             exit_code=outcome.exit_code, finished_at=now)
-                ).rowcount
+                ))
                 if marked:
                     added[state] += 1
             if added["done"] or added["failed"]:

@@ -32,9 +32,10 @@ import os
 import socket
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 if TYPE_CHECKING:
+    from sqlalchemy.engine import CursorResult
     from sqlalchemy.orm import Session
 
 __all__ = [
@@ -284,12 +285,13 @@ def reap_runs(
             report.marked += 1
             continue
         # only if still running: its process may have finished it since it was read
-        done = s.execute(
+        # Session.execute is typed Result; an UPDATE gives a CursorResult (its rowcount)
+        done = cast("CursorResult[Any]", s.execute(
             update(PipelineRun)
             .where(PipelineRun.id == run_id, PipelineRun.status == "running")
             .values(status="failed", finished_at=dt.datetime.now(dt.UTC), error=error)
             .execution_options(synchronize_session=False)
-        )
+        ))
         if done.rowcount:
             report.marked += 1
             log.warning("pipeline run %d marked failed: %s", run_id, error)
