@@ -43,7 +43,7 @@ def _job(status: JobStatus, svc: object, root: object = "", *, outcomes: bool = 
     return JobOut(
         id=job.id, status=state, done=job.done, failed=job.failed, left=status.left,
         total=job.total, rate_per_s=status.rate, eta_s=status.eta_s,
-        created_at=utc(job.created_at),  # type: ignore[arg-type]
+        created_at=utc(job.created_at),
         started_at=utc(job.started_at), progress_at=utc(job.progress_at),
         finished_at=utc(job.finished_at),
         error=scrub_paths(error, root),
