@@ -5,8 +5,8 @@ parameters, calibration) and one task row per acquisition the selection resolved
 transaction: it exists whole or not at all. A coordinator (:func:`run_job`: the
 ``rasterserver process`` or ``jobs resume`` command, or a thread of the HTTP server) takes the
 job by writing itself as its ``runner``, runs the pending tasks through the one loop of
-:func:`rasterserver.jobs.run_tasks`, and marks each task done with the job's counts in one
-transaction after the task's results are committed.
+:func:`rasterserver.jobs.run_tasks`, and marks the tasks of each batch done with the job's
+counts in one transaction after the batch's results are committed.
 
 Why nothing is lost or duplicated:
 
