@@ -196,3 +196,26 @@ def test_copies_kept_for_a_light_start_agree() -> None:
     assert export.ExportFormat is export_choices.ExportFormat
     assert export.ExportWhat is export_choices.ExportWhat
     assert export.ExportFrame is export_choices.ExportFrame
+
+
+#: Command modules each command may load: its own (and the light helpers they share).
+_SHARED = {"rasterserver.commands.light_params"}
+OWN_MODULES = {
+    "help": _SHARED,
+    "list": {*_SHARED, "rasterserver.commands.listing", "rasterserver.commands.common"},
+    "verify": {*_SHARED, "rasterserver.commands.verify", "rasterserver.commands.common",
+               "rasterserver.commands.progress"},
+}
+
+
+@pytest.mark.parametrize("name", OWN_MODULES)
+def test_a_command_builds_itself_alone(name: str, archive: Path, tmp_path: Path) -> None:
+    """The lazy root group imports the module of the command run and no other; neither the
+    runner nor Pydantic (Typer's option coercion) loads for ``--help`` or ``list``."""
+    code, modules = hooked(_with_archive(COMMANDS[name], archive), tmp_path)
+    assert code == 0
+    commands = {m for m in modules if m.startswith("rasterserver.commands.")}
+    assert commands <= OWN_MODULES[name], sorted(commands - OWN_MODULES[name])
+    assert "rasterserver.runner" not in modules
+    if name != "verify":
+        assert not [m for m in modules if m == "pydantic" or m.startswith("pydantic.")]
