@@ -101,9 +101,9 @@ def _before_note(before: str) -> str:
 #: What ``list`` cannot start without, step by step: each line imports what the one before
 #: did and more (median CPU time of a fresh interpreter doing only that); the last lines are
 #: what it no longer loads (issue 17), for comparison.
-_TYPER = "import typer, typer._adapters"
+_TYPER = "import typer.main"
 LIST_STEPS = {
-    "Typer (with its pydantic adapters, which parse the options)": _TYPER,
+    "Typer (no Pydantic: the plain options are coerced without its adapters)": _TYPER,
     "+ SQLAlchemy Core": f"{_TYPER}, sqlalchemy",
     "+ the catalogue's reader (Catalog, listing on Core views, schema check without Alembic)":
         f"{_TYPER}, rasterserver.catalog.catalog, rasterserver.catalog.listing",
@@ -113,6 +113,14 @@ LIST_STEPS = {
         f"{_TYPER}, rasterserver.catalog.catalog, rasterserver.catalog.migrate",
     "no longer loaded: + rasterserver.archive (NumPy, h5py)":
         f"{_TYPER}, rasterserver.archive",
+    "no longer loaded: + Typer's Pydantic adapters (option coercion)":
+        f"{_TYPER}, typer._adapters",
+    "no longer loaded: + every command module (the lazy group imports the one run)":
+        f"{_TYPER}, " + ", ".join(
+            f"rasterserver.commands.{m}" for m in (
+                "analyse", "calibrate", "compare", "db", "demo", "diff", "export", "ingest",
+                "jobs", "listing", "patients", "plugins", "process", "prune", "reconstruct",
+                "runs", "serve", "simulate", "stations", "tokens", "verify")),
 }
 
 
@@ -208,8 +216,12 @@ the waits are a matter of the machine's load as much as of the code: `list`'s me
 time is {results["rasterserver list"]["median"] / results["rasterserver list"]["cpu"]:.1f}
 times its CPU time, which is what it costs on an idle machine
 ({results["rasterserver list"]["cpu"]:.2f} s of CPU; before: see the *before* rows).
-Next step for every command: Typer builds all the commands' options at each start (about
-0.08 s of `list`'s CPU, in `rasterserver.cli`), where a lazy group would build one.
+The root group is lazy (`rasterserver.cli.LazyGroup`): `--help` lists the commands from a
+table of names and one-line help (`rasterserver.commands.COMMANDS`, checked against the
+modules by a test) and imports no command module; a command imports its own module, and
+Typer builds its options alone. Plain option values (strings, integers, flags, paths without
+checks) are coerced without Typer's Pydantic adapters (`rasterserver.commands.light_params`,
+checked against Typer's own coercion by a test), so `list` loads no Pydantic.
 
 `--help`, `list` and `verify` load none of open3d, SciPy, Dask, matplotlib, FastAPI, uvicorn
 and the simulator (tests/commands/test_cli_imports.py). `list` opens the catalogue alone (a
