@@ -28,8 +28,8 @@ PACKAGES = {"rasterserver": "rasterserver", "plugins": "rasterserver_plugins",
 #: Cycles through imports inside functions, left from before issue 17, each as the sorted
 #: tuple of its modules: break them, and take them off. A new one fails the test.
 KNOWN_DEFERRED_CYCLES: set[tuple[str, ...]] = {
-    ("rasterserver.api.audit", "rasterserver.api.auth"),
-    ("rasterserver.commands.jobs", "rasterserver.commands.process"),
+    # the loading façades of the domain types (Raster.load, Station.from_json, Camera.from_dict,
+    # ...) call the document layer above them
     ("rasterserver.documents", "rasterserver.documents.calibration_document",
      "rasterserver.documents.loader", "rasterserver.documents.raster_document",
      "rasterserver.documents.tables", "rasterserver.documents.validation",
@@ -184,6 +184,9 @@ def test_no_import_cycle() -> None:
 
 def test_no_new_cycle_through_deferred_imports() -> None:
     found = set(cycles(import_graph(deferred=True)))
+    gone = sorted(KNOWN_DEFERRED_CYCLES - found)
+    assert not gone, "broken cycles still listed (take them off):\n" + "\n".join(
+        " <-> ".join(c) for c in gone)
     new = sorted(found - KNOWN_DEFERRED_CYCLES)
     assert not new, "cycles through imports in functions (break them):\n" + "\n".join(
         " <-> ".join(c) for c in new

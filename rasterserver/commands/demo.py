@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import settings
-from rasterserver.commands.process import ProcessingFailedError
+from rasterserver.commands.failures import ProcessingFailedError
 from rasterserver.errors import IntegrityError
 
 

@@ -163,8 +163,8 @@ def reprocess(
     """
     from rasterserver.chain_diff import DEFAULT_TARGETS
     from rasterserver.chain_spec import ChainSpec, parse_chain
+    from rasterserver.commands.failures import ProcessingFailedError
     from rasterserver.commands.jobs import job_progress
-    from rasterserver.commands.process import ProcessingFailedError
     from rasterserver.errors import ConflictError, InputError
     from rasterserver.processing_jobs import create_job, job_outcomes, run_job
 

@@ -247,7 +247,7 @@ def resume_command(
     is done; the failures' exit code when some failed (see `rasterserver process`); 4 when
     the job is finished, cancelled, or running in a live process; 3 for an unknown job.
     """
-    from rasterserver.commands.process import ProcessingFailedError
+    from rasterserver.commands.failures import ProcessingFailedError
     from rasterserver.errors import ConflictError
     from rasterserver.processing_jobs import job_outcomes, run_job
 

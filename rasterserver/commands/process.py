@@ -3,36 +3,17 @@
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
-from rasterserver.errors import InputError, RasterServerError
-
-if TYPE_CHECKING:
-    from rasterserver.jobs import JobOutcome
+from rasterserver.commands.failures import ProcessingFailedError
+from rasterserver.errors import InputError
 
 # The pipeline and the jobs (NumPy, the plugins, Dask) are imported when the command runs:
-# `--help` and the other commands start without them.
-
-
-class ProcessingFailedError(RasterServerError):
-    """Some acquisitions of a ``process`` command failed; each is listed with its reason.
-
-    The exit code says what kind of failure it was when they are all of one kind (3 for
-    unknown acquisitions or a missing calibration, 2 for frames that do not fit), else 1.
-    """
-
-    def __init__(self, message: str, *, exit_code: int) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-    @staticmethod
-    def code_of(failed: list[JobOutcome]) -> int:
-        """The failures' common exit code, or 1 when they differ."""
-        codes = {o.exit_code or 1 for o in failed}
-        return codes.pop() if len(codes) == 1 else 1
+# `--help` and the other commands start without them. ProcessingFailedError lives in
+# commands.failures (jobs raises it too) and stays importable from here.
 
 
 def parse_calibration(text: str | None) -> tuple[str, int | None] | None:
