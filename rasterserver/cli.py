@@ -16,12 +16,16 @@ import re
 import sys
 from collections.abc import Iterator, MutableMapping
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 import typer.main
 from typer.core import TyperCommand, TyperGroup
 from typer.models import CommandInfo
+
+if TYPE_CHECKING:
+    # the context type of the click that Typer vendors, which its group methods take
+    from typer._click import Context as ClickContext
 
 from rasterserver.commands import COMMANDS, command_module
 from rasterserver.commands.light_params import lighten
@@ -88,17 +92,17 @@ class LazyGroup(TyperGroup):
         self.commands = _LazyCommands(self.commands)
         self._listing = False
 
-    def get_command(self, ctx: typer.Context, cmd_name: str) -> Any:
+    def get_command(self, ctx: ClickContext, cmd_name: str) -> Any:
         if self._listing and cmd_name in COMMANDS:
             # the command list of --help: the table's line stands in for the command
             return TyperCommand(name=cmd_name, help=COMMANDS[cmd_name].help)
         return super().get_command(ctx, cmd_name)
 
-    def list_commands(self, ctx: typer.Context) -> list[str]:
+    def list_commands(self, ctx: ClickContext) -> list[str]:
         # Typer's own walks the mapping's items, which would build every command
         return list(self.commands)
 
-    def format_help(self, ctx: typer.Context, formatter: Any) -> None:
+    def format_help(self, ctx: ClickContext, formatter: Any) -> None:
         self._listing = True
         try:
             super().format_help(ctx, formatter)

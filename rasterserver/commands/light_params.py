@@ -81,7 +81,7 @@ def _light_value(descriptor: Any, value: Any) -> Any:
 
 if RuntimeParam is not None:
 
-    class _LightRuntimeParam(RuntimeParam):  # type: ignore[misc,valid-type]
+    class _LightRuntimeParam(RuntimeParam):
         """Typer's coercion contract: plain cases here, the rest through Typer's own."""
 
         descriptor: Any
