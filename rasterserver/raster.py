@@ -138,39 +138,11 @@ class Raster:
         """Serialise to JSON text."""
         return json.dumps(self.to_dict(), indent=indent)
 
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Raster:
-        """Inverse of :meth:`to_dict`, checked by
-        :func:`rasterserver.documents.raster_from_document`.
-
-        Raises
-        ------
-        InputError
-            The document is refused (the message names the field).
-        """
-        from rasterserver.documents import raster_from_document
-
-        return raster_from_document(data)
-
-    @classmethod
-    def from_json(cls, text: str) -> Raster:
-        """Parse and check JSON text (see :meth:`from_dict`)."""
-        from rasterserver.documents import load_raster_document
-
-        return load_raster_document(text)
-
     def save(self, path: str | Path) -> Path:
         """Write the JSON definition to ``path``."""
         path = Path(path)
         path.write_text(self.to_json() + "\n", encoding="utf-8")
         return path
-
-    @classmethod
-    def load(cls, path: str | Path) -> Raster:
-        """Read and check a JSON definition file (see :meth:`from_dict`)."""
-        from rasterserver.documents import load_raster_document
-
-        return load_raster_document(Path(path))
 
 
 def _kinds_to_bits(kinds: list[str] | np.ndarray) -> np.ndarray:

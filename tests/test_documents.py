@@ -19,6 +19,7 @@ from rasterserver.documents import (
     CalibrationDocument,
     RasterDocument,
     calibration_from_document,
+    device_from_document,
     fill_format_tables,
     load_calibration_document,
     load_raster_document,
@@ -27,7 +28,7 @@ from rasterserver.documents import (
 )
 from rasterserver.errors import InputError
 from rasterserver.optics import Station, default_station, rotation_matrix
-from rasterserver.raster import Raster, default_raster, make_raster
+from rasterserver.raster import default_raster, make_raster
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "formats.md"
 
@@ -341,7 +342,7 @@ def test_gravity_round_trips_and_the_default_station_knows_the_vertical(tmp_path
     tilted = np.array([0.0, math.cos(0.1), math.sin(0.1)])
     other = Station(station.camera, station.projector, gravity=tilted)
     assert other.to_dict()["gravity"] == tilted.tolist()
-    back = Station.load(other.save(tmp_path / "calibration.json"))
+    back = load_calibration_document(Path(other.save(tmp_path / "calibration.json")))
     assert back.gravity is not None
     np.testing.assert_array_equal(back.gravity, tilted)
     with pytest.raises(ValueError, match="unit vector"):
@@ -460,12 +461,12 @@ def test_loaders_accept_paths_bytes_and_text(tmp_path: Path) -> None:
     for data in (path, path.read_bytes(), path.read_text()):
         assert load_calibration_document(data).camera.shape == (604, 576)
     raster_path = default_raster().save(tmp_path / "raster.json")
-    assert Raster.load(raster_path).n_lines == 90
+    assert load_raster_document(Path(raster_path)).n_lines == 90
     assert load_raster_document(raster_path.read_bytes()).n_lines == 90
     with pytest.raises(InputError, match=r"raster\.json: this is a raster definition"):
         load_calibration_document(raster_path)
     with pytest.raises(InputError, match=r"calibration\.json: this is a calibration"):
-        Raster.load(path)
+        load_raster_document(Path(path))
     assert read_document(b"{}", what="x") == {}
 
 
@@ -501,12 +502,13 @@ def test_devices_read_alone_go_through_the_same_checks() -> None:
     from rasterserver.optics import Camera, Projector
 
     station = default_station()
-    camera = Camera.from_dict(station.camera.to_dict())
+    camera = device_from_document(Camera, station.camera.to_dict(), source="camera")
     assert isinstance(camera, Camera) and camera.shape == (604, 576)
-    assert isinstance(Projector.from_dict(station.projector.to_dict()), Projector)
+    projector = device_from_document(Projector, station.projector.to_dict(), source="projector")
+    assert isinstance(projector, Projector)
     broken = station.camera.to_dict() | {"K": [[0.0] * 3] * 3}
     with pytest.raises(InputError, match=r"^camera: K: focal lengths must be positive"):
-        Camera.from_dict(broken)
+        device_from_document(Camera, broken, source="camera")
 
 
 SCHEMAS = DOCS.parent / "schemas"

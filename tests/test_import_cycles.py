@@ -9,8 +9,7 @@ left out, as a package re-exporting its own submodules is no cycle of design.
 
 Two graphs: the load-time one (imports inside functions left out) must have no cycle at all.
 The full one (imports inside functions too: deferred to start faster, but still a dependency
-of design, as ``archive`` and ``repair`` importing each other was) must have none but those
-listed in :data:`KNOWN_DEFERRED_CYCLES`, which only shrinks.
+of design, as ``archive`` and ``repair`` importing each other was) must have none either.
 """
 
 from __future__ import annotations
@@ -24,19 +23,6 @@ ROOT = Path(__file__).resolve().parent.parent
 #: Source folder -> the package name it installs as (pyproject.toml's package-dir).
 PACKAGES = {"rasterserver": "rasterserver", "plugins": "rasterserver_plugins",
             "migrations": "rasterserver_migrations"}
-
-#: Cycles through imports inside functions, left from before issue 17, each as the sorted
-#: tuple of its modules: break them, and take them off. A new one fails the test.
-KNOWN_DEFERRED_CYCLES: set[tuple[str, ...]] = {
-    # the loading façades of the domain types (Raster.load, Station.from_json, Camera.from_dict,
-    # ...) call the document layer above them
-    ("rasterserver.documents", "rasterserver.documents.calibration_document",
-     "rasterserver.documents.loader", "rasterserver.documents.raster_document",
-     "rasterserver.documents.tables", "rasterserver.documents.validation",
-     "rasterserver.optics", "rasterserver.optics.devices", "rasterserver.optics.station",
-     "rasterserver.raster"),
-}
-
 
 def module_files() -> dict[str, Path]:
     """Every module of the packages by dotted name (a package by its own name)."""
@@ -182,14 +168,10 @@ def test_no_import_cycle() -> None:
     )
 
 
-def test_no_new_cycle_through_deferred_imports() -> None:
-    found = set(cycles(import_graph(deferred=True)))
-    gone = sorted(KNOWN_DEFERRED_CYCLES - found)
-    assert not gone, "broken cycles still listed (take them off):\n" + "\n".join(
-        " <-> ".join(c) for c in gone)
-    new = sorted(found - KNOWN_DEFERRED_CYCLES)
-    assert not new, "cycles through imports in functions (break them):\n" + "\n".join(
-        " <-> ".join(c) for c in new
+def test_no_cycle_through_deferred_imports() -> None:
+    found = cycles(import_graph(deferred=True))
+    assert not found, "cycles through imports in functions (break them):\n" + "\n".join(
+        " <-> ".join(c) for c in found
     )
 
 

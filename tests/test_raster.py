@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from rasterserver.documents import load_raster_document, raster_from_document
 from rasterserver.errors import InputError
 from rasterserver.raster import (
     DEFAULT_CODE,
@@ -68,7 +70,7 @@ def test_raster_json_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-de
         "kind": r.kinds[0],
         "width": float(r.widths[0]),
     }
-    back = Raster.load(r.save(tmp_path / "raster.json"))
+    back = load_raster_document(Path(r.save(tmp_path / "raster.json")))
     np.testing.assert_array_equal(back.positions, r.positions)
     np.testing.assert_array_equal(back.numbers, r.numbers)
     np.testing.assert_array_equal(back.widths, r.widths)
@@ -83,6 +85,6 @@ def test_custom_raster_and_validation() -> None:
     with pytest.raises(ValueError, match="kinds"):
         Raster("x", [1], [5.0], ("bold",), [1.0], window=1)
     with pytest.raises(InputError, match="format"):
-        Raster.from_dict({"format": "nope"})
+        raster_from_document({"format": "nope"})
     with pytest.raises(KeyError):
         get_raster("nope")

@@ -173,14 +173,6 @@ class PinholeDevice:
             "centre": self.centre.tolist(),
         }
 
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> PinholeDevice:
-        """Inverse of :meth:`to_dict`, checked by :mod:`rasterserver.documents`; ``centre`` is
-        derived (a stored one must agree)."""
-        from rasterserver.documents import device_from_document
-
-        return device_from_document(cls, data, source=cls.kind)
-
     def key(self) -> str:
         """Stable text identifying the model's parameters (for caches)."""
         return json.dumps(self.to_dict(), sort_keys=True)

@@ -127,39 +127,11 @@ class Station:
         """Serialise to the calibration JSON text."""
         return json.dumps(self.to_dict(), indent=indent)
 
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Station:
-        """Inverse of :meth:`to_dict`, checked by
-        :func:`rasterserver.documents.calibration_from_document`.
-
-        Raises
-        ------
-        InputError
-            The document is refused (the message names the field).
-        """
-        from rasterserver.documents import calibration_from_document
-
-        return calibration_from_document(data)
-
-    @classmethod
-    def from_json(cls, text: str) -> Station:
-        """Parse and check a calibration JSON text (see :meth:`from_dict`)."""
-        from rasterserver.documents import load_calibration_document
-
-        return load_calibration_document(text)
-
     def save(self, path: str | Path) -> Path:
         """Write the calibration JSON to ``path``."""
         path = Path(path)
         path.write_text(self.to_json() + "\n", encoding="utf-8")
         return path
-
-    @classmethod
-    def load(cls, path: str | Path) -> Station:
-        """Read and check a calibration JSON file (see :meth:`from_dict`)."""
-        from rasterserver.documents import load_calibration_document
-
-        return load_calibration_document(Path(path))
 
 
 def default_station(

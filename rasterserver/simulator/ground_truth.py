@@ -333,7 +333,7 @@ def load_ground_truth(path: str | Path) -> dict[str, Any]:
         :class:`~rasterserver.raster.Raster`; ``object_names`` (list), ``scene_metadata``
         and ``settings`` (dicts), ``seed`` (int).
     """
-    from rasterserver.raster import Raster
+    from rasterserver.documents import load_calibration_document, load_raster_document
 
     path = Path(path)
     arrays: dict[str, np.ndarray] = {}
@@ -369,8 +369,8 @@ def load_ground_truth(path: str | Path) -> dict[str, Any]:
         k[len("landmarks/") :]: v for k, v in arrays.items() if k.startswith("landmarks/")
     }
     out["object_names"] = json.loads(attrs["object_names"])
-    out["station"] = Station.from_json(attrs["station"])
-    out["raster"] = Raster.from_json(attrs["raster"])
+    out["station"] = load_calibration_document(attrs["station"])
+    out["raster"] = load_raster_document(attrs["raster"])
     out["scene_metadata"] = json.loads(attrs["scene_metadata"])
     out["settings"] = json.loads(attrs["settings"])
     out["seed"] = int(attrs["seed"])

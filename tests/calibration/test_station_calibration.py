@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 
 import cv2
 import geometry_truth as gt
@@ -15,6 +16,7 @@ from calibration_frames import rendered_dir
 from rasterserver.calibration import calibrate_station, load_control_points, load_frames
 from rasterserver.calibration.control_points import ControlPointFile, PlatePoints
 from rasterserver.calibration.station_calibration import CalibrationFrames, StationCalibration
+from rasterserver.documents import load_calibration_document, load_raster_document
 from rasterserver.errors import InputError
 from rasterserver.optics import Station, default_station
 from rasterserver.pipeline import run_chain
@@ -28,8 +30,8 @@ def inputs() -> tuple[CalibrationFrames, ControlPointFile, Raster, Station]:
     return (
         load_frames(folder),
         load_control_points(folder / "control_points.json"),
-        Raster.load(folder / "raster.json"),
-        Station.load(folder / "calibration.json"),
+        load_raster_document(Path(folder / "raster.json")),
+        load_calibration_document(Path(folder / "calibration.json")),
     )
 
 
@@ -95,7 +97,7 @@ def test_back_reconstructed_with_the_estimate_matches_the_truth(result, inputs) 
 def test_calibration_document_round_trips(result, tmp_path) -> None:
     res, _ = result
     path = res.station.save(tmp_path / "calibration.json")
-    back = Station.load(path)
+    back = load_calibration_document(Path(path))
     assert np.allclose(back.camera.K, res.station.camera.K)
     # the vertical is the control points' +Y, whatever the camera's pose
     assert res.station.gravity is not None and back.gravity is not None

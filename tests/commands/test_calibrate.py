@@ -14,7 +14,7 @@ import pytest
 from rasterserver.archive import Archive
 from rasterserver.cli import main
 from rasterserver.config import Settings
-from rasterserver.optics import Station
+from rasterserver.documents import calibration_from_document, load_calibration_document
 from rasterserver.pipeline import Pipeline
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "calibration"))
@@ -53,7 +53,7 @@ def test_dry_run_reports_and_stores_nothing(tmp_path: Path, capsys) -> None:
     assert code == 0, out
     assert "c0-high-6" in out and "verdict: PASS" in out and "dry run: nothing stored" in out
     assert report.stat().st_size > 10_000 and report.with_suffix(".txt").exists()
-    station = Station.load(tmp_path / "cal.json")
+    station = load_calibration_document(Path(tmp_path / "cal.json"))
     assert station.camera.width == 576
 
 
@@ -138,8 +138,8 @@ def test_calibrate_stores_a_version_and_old_acquisitions_reprocess_with_it(
 
     exported = tmp_path / "v2.json"
     assert cli("export-calibration", f"{gt.STATION_NAME}:2", "-o", str(exported)) == 0
-    station = Station.load(exported)
-    assert np.allclose(station.camera.K, Station.from_dict(rows[1].parameters).camera.K)
+    station = load_calibration_document(Path(exported))
+    assert np.allclose(station.camera.K, calibration_from_document(rows[1].parameters).camera.K)
     assert json.loads(exported.read_text())["name"] == gt.STATION_NAME
 
 

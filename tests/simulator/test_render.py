@@ -7,10 +7,13 @@ model, which tests/test_optics.py checks against OpenCV), never taken from the r
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
 
+from rasterserver.documents import load_calibration_document
 from rasterserver.optics import Station, default_station, rotation_matrix
 from rasterserver.simulator.ground_truth import load_ground_truth, save_ground_truth
 from rasterserver.simulator.io import write_simulation
@@ -310,7 +313,7 @@ def test_ground_truth_files_round_trip(sphere_scene: Scene, tmp_path) -> None:  
     paths = write_simulation(tmp_path / "out", r, sphere_scene, st, stem="ball")
     assert set(paths) == {"image_png", "image_npy", "ground_truth", "calibration", "raster"}
     assert all(p.exists() for p in paths.values())
-    assert Station.load(paths["calibration"]).to_json() == st.to_json()
+    assert load_calibration_document(Path(paths["calibration"])).to_json() == st.to_json()
     np.testing.assert_array_equal(np.load(paths["image_npy"]), r.image)
 
 
