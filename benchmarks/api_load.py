@@ -46,11 +46,11 @@ import httpx
 import numpy as np
 from sqlalchemy import select
 
-from rasterserver.api import auth
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import AuditEvent
 from rasterserver.catalog.models import Acquisition
 from rasterserver.config import Settings, sqlite_url
+from rasterserver.services import auth
 from rasterserver.store.hashing import frame_sha256
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -1,7 +1,7 @@
 """Where the researchers' pseudonym key lives: outside the catalogue.
 
 The key turns site identifiers into pseudonyms and sets every patient's date shift
-(:mod:`rasterserver.api.pseudonym`). Whoever holds it with a copy of the research data can
+(:mod:`rasterserver.services.pseudonyms`). Whoever holds it with a copy of the research data can
 re-identify the patients, so it must not travel with the catalogue: a database dump or
 backup handed to someone must not carry it. It is read, in this order, from
 

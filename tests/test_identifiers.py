@@ -85,9 +85,9 @@ def test_different_names_have_different_keys() -> None:
 
 
 def test_the_archive_and_the_accounts_apply_the_rules(settings: Settings) -> None:
-    from rasterserver.api import auth
     from rasterserver.archive import Archive
     from rasterserver.optics import default_station
+    from rasterserver.services import auth
 
     with Archive.create(settings) as archive:
         patient = archive.add_patient("e\u0301-P1")

@@ -240,8 +240,8 @@ def test_failures_are_counted_and_a_running_job_is_not_taken_twice(settings: Set
 
 
 def test_a_job_started_over_http_is_a_catalogue_job(settings: Settings, capsys) -> None:
-    from rasterserver.api.jobs import JobRunner
     from rasterserver.cli import main
+    from rasterserver.services.jobs import JobRunner
 
     archive, uids = many(settings, 2)
     runner = JobRunner(archive)

@@ -2,8 +2,8 @@
 
 :func:`create_app` builds the app for one archive. The routers reach the services through
 ``request.app.state.services``: the same :class:`~rasterserver.archive.Archive` and
-:class:`~rasterserver.pipeline.Pipeline` the CLI uses, plus the API's own pieces (jobs,
-pseudonyms, metrics).
+:class:`~rasterserver.pipeline.Pipeline` the CLI uses, the services of
+:mod:`rasterserver.services` (jobs, pseudonyms, the audit trail, tokens), and metrics.
 
 Settings (environment, or :class:`ApiSettings` arguments):
 
@@ -36,22 +36,22 @@ from typing import Any, TypeVar
 
 import anyio
 from fastapi import FastAPI
-from sqlalchemy import select
 
 from rasterserver import __version__
-from rasterserver.api.audit import RequestMiddleware, audit_writer
-from rasterserver.api.audit_index import AuditIndexer
+from rasterserver.api.audit import RequestMiddleware
 from rasterserver.api.errors import LimitsMiddleware, install_handlers
 from rasterserver.api.gate import AuthGate
-from rasterserver.api.jobs import JobRunner
 from rasterserver.api.metrics import Metrics
-from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.api.roles import RESEARCHER
-from rasterserver.api.token_cache import token_cache_for
 from rasterserver.archive import Archive
-from rasterserver.catalog.auth_models import ApiAccount
 from rasterserver.config import Settings
 from rasterserver.pipeline import Pipeline
+from rasterserver.services.audit import audit_writer
+from rasterserver.services.audit_index import AuditIndexer
+from rasterserver.services.auth import has_role
+from rasterserver.services.jobs import JobRunner
+from rasterserver.services.pseudonyms import Pseudonymiser
+from rasterserver.services.token_cache import token_cache_for
 
 T = TypeVar("T")
 
@@ -99,21 +99,23 @@ class ApiSettings:
 
 
 class Services:
-    """What the routers call: the archive, its pipeline, jobs, pseudonyms, metrics, the
-    audit trail's writer and indexer, and the token cache."""
+    """What the routers call: the archive and its catalogue, its pipeline, jobs, pseudonyms,
+    metrics, the audit trail's writer and indexer, and the token cache."""
 
     def __init__(self, settings: Settings, api: ApiSettings) -> None:
         self.settings = settings
         self.api = api
         # a connection for each request thread, the job threads, the audit writer and indexer
         self.archive = Archive(settings, connections=api.threads + api.job_workers + 2)
+        #: The database handle of the services that need no more (auth, audit, listings)
+        self.catalog = self.archive.catalog
         self.pipeline = Pipeline(self.archive)
         self.jobs = JobRunner(self.archive, workers=api.job_workers)
         self.pseudonyms = Pseudonymiser(self.archive)
         self.metrics = Metrics()
-        self.audit = audit_writer(self.archive)
-        self.audit_index = AuditIndexer(self.archive)
-        self.token_cache = token_cache_for(self.archive.engine)  # None on SQLite
+        self.audit = audit_writer(self.catalog)
+        self.audit_index = AuditIndexer(self.catalog)
+        self.token_cache = token_cache_for(self.catalog.engine)  # None on SQLite
         # SQLite answers in-process, PostgreSQL over a socket: see read()
         self.reads_inline = self.archive.engine.dialect.name == "sqlite"
 
@@ -132,9 +134,7 @@ class Services:
 
     def has_researchers(self) -> bool:
         """Whether any account has the researcher role (whose requests use pseudonyms)."""
-        with self.archive.engine.connect() as conn:
-            return conn.execute(select(ApiAccount.id).where(ApiAccount.role == RESEARCHER)
-                                .limit(1)).first() is not None
+        return has_role(self.catalog, RESEARCHER)
 
     def warm_pseudonyms(self) -> None:
         """Fill the pseudonym table; a failure only means the first look-up will do it."""
@@ -150,7 +150,8 @@ class Services:
         self.jobs.close()
         self.audit.close()
         self.audit_index.close()
-        self.token_cache and self.token_cache.close()
+        if self.token_cache is not None:
+            self.token_cache.close()
         self.archive.close()
 
 

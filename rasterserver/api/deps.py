@@ -8,8 +8,10 @@ from typing import TYPE_CHECKING, Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 
-from rasterserver.api.audit import AuditNote, note_of
-from rasterserver.api.auth import Principal, authorize
+from rasterserver.api.audit import note_of
+from rasterserver.api.auth import authorize
+from rasterserver.services.audit import AuditNote
+from rasterserver.services.auth import Principal
 
 if TYPE_CHECKING:
     from rasterserver.api.app import Services

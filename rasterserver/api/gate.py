@@ -19,9 +19,10 @@ from typing import Any
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from rasterserver.api.audit import AuditNote, note_of_scope
-from rasterserver.api.auth import Principal, authenticate, cached_owner
+from rasterserver.api.audit import note_of_scope
 from rasterserver.api.errors import all_routes
+from rasterserver.services.audit import AuditNote
+from rasterserver.services.auth import Principal, authenticate, cached_owner
 
 #: Where the gate leaves the caller for :func:`rasterserver.api.auth.authorize`.
 PRINCIPAL_KEY = "rasterserver.principal"
@@ -56,7 +57,7 @@ class AuthGate:
     app : ASGIApp
         The application.
     services : object
-        The app's services (``archive``, ``token_cache``, ``read``).
+        The app's services (``catalog``, ``token_cache``, ``read``).
     routes : list
         The app's routes (``app.router.routes``), to find the route's name and so its rule.
     """
@@ -80,7 +81,7 @@ class AuthGate:
         from rasterserver.api.roles import PUBLIC, allowed
 
         route = self._route(scope)
-        name = getattr(route, "name", None)
+        name: str = getattr(route, "name", None) or ""
         if route is None or name in PUBLIC:
             await self.app(scope, receive, send)
             return
@@ -90,7 +91,7 @@ class AuthGate:
             cache = getattr(self.services, "token_cache", None)
             principal = cached_owner(cache, token)
             if principal is None:
-                principal = await self.services.read(authenticate, self.services.archive,
+                principal = await self.services.read(authenticate, self.services.catalog,
                                                      token, cache)
         # the audit trail names the route the refusal was for (see RequestMiddleware)
         scope["route"] = route

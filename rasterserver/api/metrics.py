@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import atexit
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest, values
 from prometheus_client.core import GaugeMetricFamily
@@ -34,7 +34,7 @@ MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 class _Gauges:
     """A collector of fixed gauge values, made afresh for each scrape."""
 
-    def __init__(self, gauges: dict[str, float]) -> None:
+    def __init__(self, gauges: Mapping[str, float]) -> None:
         self._gauges = gauges
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
@@ -103,7 +103,7 @@ class Metrics:
         self._requests.labels(method, route, str(status)).inc()
         self._seconds.labels(method, route).observe(seconds)
 
-    def render(self, extra: dict[str, float] | None = None) -> str:
+    def render(self, extra: Mapping[str, float] | None = None) -> str:
         """Return every metric in the Prometheus text format (version 0.0.4).
 
         Parameters
@@ -123,6 +123,7 @@ class Metrics:
             source = CollectorRegistry()
             MultiProcessCollector(source, path=self.multiproc_dir)
         else:
+            assert self.registry is not None  # made when not in multiprocess mode
             source = self.registry
         text_out = generate_latest(source)
         if extra:

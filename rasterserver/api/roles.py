@@ -10,7 +10,7 @@ The roles:
     Uploads acquisitions, nothing else (a service account on an acquisition station).
 ``researcher``
     Reads patients, acquisitions, frames, results, analyses and exports, pseudonymised
-    (see :mod:`rasterserver.api.pseudonym`); writes nothing.
+    (see :mod:`rasterserver.services.pseudonyms`); writes nothing.
 
 A route missing from :data:`RULES` is refused to everyone (and a test fails), so a new
 route cannot go out unprotected by accident.

@@ -1,4 +1,8 @@
-"""Rows to response bodies, pseudonymised for the researcher role in one place."""
+"""Rows to response bodies, pseudonymised for the researcher role in one place.
+
+The routers hand the records the services return to these functions; they do not touch
+the catalogue's ORM types themselves.
+"""
 
 from __future__ import annotations
 
@@ -9,14 +13,31 @@ from typing import Any
 import orjson
 from fastapi import Response
 
-from rasterserver.api.auth import Principal
 from rasterserver.api.deps import utc
-from rasterserver.api.pseudonym import Pseudonymiser
+from rasterserver.api.errors import scrub_paths
 from rasterserver.api.roles import RESEARCHER
-from rasterserver.api.schemas import PatientOut, VisitOut
+from rasterserver.api.schemas import (
+    CalibrationOut,
+    PatientOut,
+    RasterOut,
+    ResultOut,
+    RunOut,
+    StationOut,
+    VisitOut,
+)
 from rasterserver.archive import AcquisitionInfo, PatientInfo
-from rasterserver.catalog.models import Patient, Visit
+from rasterserver.catalog.models import (
+    Calibration,
+    Patient,
+    PipelineRun,
+    Raster,
+    StageResult,
+    Station,
+    Visit,
+)
 from rasterserver.errors import InputError
+from rasterserver.services.auth import Principal
+from rasterserver.services.pseudonyms import Pseudonymiser
 
 
 def pseudonymised(caller: Principal) -> bool:
@@ -108,3 +129,58 @@ def refuse_date_filters_for(caller: Principal, *values: object) -> None:
     """Researchers see shifted dates; filtering on true dates would leak them."""
     if pseudonymised(caller) and any(v is not None for v in values):
         raise InputError("date filters are not available on pseudonymised data")
+
+
+#: How a caller sees a record's times (see :func:`patient_clock`).
+Clock = Callable[[dt.datetime | None], dt.datetime | None]
+
+
+def result_out(row: StageResult, clock: Clock) -> ResultOut:
+    """A stored stage result, its times as ``clock`` shows them (:func:`patient_clock`)."""
+    return ResultOut(
+        id=row.id, stage=row.stage, plugin=row.plugin, plugin_version=row.plugin_version,
+        plugin_package=row.plugin_package, frame_index=row.frame_index, params=row.params,
+        params_hash=row.params_hash, chain_key=row.chain_key,
+        input_checksum=row.input_checksum, output_checksum=row.output_checksum,
+        record_kind=row.record_kind, calibration_id=row.calibration_id, reason=row.reason,
+        package_version=row.package_version, duration_s=row.duration_s,
+        created_at=clock(row.created_at))
+
+
+def run_out(row: PipelineRun, clock: Clock, archive_root: object) -> RunOut:
+    """A pipeline run, its times as ``clock`` shows them, paths in its error scrubbed."""
+    return RunOut(id=row.id, status=row.status, chain=row.chain,
+                  started_at=clock(row.started_at),
+                  finished_at=clock(row.finished_at),
+                  error=scrub_paths(row.error, archive_root),
+                  computed=row.computed, reused=row.reused)
+
+
+# Researchers get no times of stations, calibrations and rasters: the period a calibration
+# applied brackets the true dates of the acquisitions made with it (a researcher sees which
+# calibration each used), which would undo the patients' date shifts.
+
+
+def station_out(row: Station, caller: Principal | None = None) -> StationOut:
+    """A station as ``caller`` may see it (no times for researchers, see above)."""
+    hide = caller is not None and pseudonymised(caller)
+    return StationOut(name=row.name, description=row.description,
+                      created_at=None if hide else utc(row.created_at))
+
+
+def calibration_out(row: Calibration, station: str,
+                    caller: Principal | None = None) -> CalibrationOut:
+    """A calibration of ``station`` as ``caller`` may see it."""
+    hide = caller is not None and pseudonymised(caller)
+    return CalibrationOut(
+        station=station, version=row.version, sha256=row.sha256, raster_id=row.raster_id,
+        parameters=row.parameters, residuals=row.residuals,
+        valid_from=None if hide else utc(row.valid_from), notes=None if hide else row.notes,
+        created_at=None if hide else utc(row.created_at))
+
+
+def raster_out(row: Raster, caller: Principal | None = None) -> RasterOut:
+    """A raster as ``caller`` may see it."""
+    hide = caller is not None and pseudonymised(caller)
+    return RasterOut(name=row.name, sha256=row.sha256, definition=row.definition,
+                     created_at=None if hide else utc(row.created_at))

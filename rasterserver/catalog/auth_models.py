@@ -116,7 +116,7 @@ class AuditEventPatient(Base):
     (as before migration 0007), a list of a hundred patients wrote into a hundred places of
     the index, and every group commit rewrote hundreds of pages: a quarter of the server's
     work under load. "Who saw patient X" is answered by :class:`AuditPatientIndex`, which
-    :mod:`rasterserver.api.audit_index` fills from these rows in large sorted batches.
+    :mod:`rasterserver.services.audit_index` fills from these rows in large sorted batches.
 
     No foreign keys, on purpose. The links are written in the same transaction as their
     event, by one function, with patient ids just read from the catalogue; neither events

@@ -10,14 +10,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from types import ModuleType
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from rasterserver.commands.common import open_archive, parse_datetime
+from rasterserver.commands.common import open_catalog, parse_datetime
 from rasterserver.errors import InputError
 from rasterserver.identifiers import lookup_key
 from rasterserver.times import TIME_RULE
+
+if TYPE_CHECKING:
+    from rasterserver.catalog.catalog import Catalog
 
 users = typer.Typer(
     help="API accounts: people and service accounts (stations).", no_args_is_help=True
@@ -31,9 +34,9 @@ keys = typer.Typer(help="The researchers' pseudonym key (kept outside the catalo
 
 
 def _auth() -> ModuleType:
-    # imported by the commands that use it: the HTTP API (FastAPI) would cost every other
-    # command a fifth of a second at start
-    from rasterserver.api import auth
+    # imported by the commands that use it: the ORM and the account tables cost other
+    # commands' start-up
+    from rasterserver.services import auth
 
     return auth
 
@@ -48,39 +51,36 @@ def user_add(
     ] = False,
 ) -> None:
     """Create an API account."""
-    with open_archive(ctx) as archive:
+    with open_catalog(ctx) as catalog:
         p = _auth().add_account(
-            archive, name, role=role, kind="service" if service_account else "user"
+            catalog, name, role=role, kind="service" if service_account else "user"
         )
-        _admin_event(archive, "C", "user add", f"account {p.name} ({p.kind}, {p.role}) created")
+        _admin_event(catalog, "C", "user add", f"account {p.name} ({p.kind}, {p.role}) created")
     typer.echo(f"account {p.name} ({p.kind}, {p.role}) created")
 
 
-def _admin_event(archive: object, action: str, what: str, detail: str) -> None:
-    from rasterserver.api.audit import record_admin_action
+def _admin_event(catalog: Catalog, action: str, what: str, detail: str) -> None:
+    from rasterserver.services.audit import record_admin_action
 
-    record_admin_action(archive, action=action, what=what, detail=detail)  # type: ignore[arg-type]
+    record_admin_action(catalog, action=action, what=what, detail=detail)
 
 
 @users.command("list")
 def user_list(ctx: typer.Context) -> None:
     """List API accounts (name, role, kind, and "disabled" for a disabled one)."""
-    from sqlalchemy import select
-
-    from rasterserver.catalog.auth_models import ApiAccount
-
-    with open_archive(ctx) as archive, archive.session() as s:
-        for a in s.scalars(select(ApiAccount).order_by(ApiAccount.name)):
-            state = "\tdisabled" if a.disabled_at is not None else ""
-            typer.echo(f"{a.name}\t{a.role}\t{a.kind}{state}")
+    with open_catalog(ctx) as catalog:
+        found = _auth().account_states(catalog)
+    for a, disabled in found:
+        state = "\tdisabled" if disabled else ""
+        typer.echo(f"{a.name}\t{a.role}\t{a.kind}{state}")
 
 
 def _set_disabled(ctx: typer.Context, name: str, disabled: bool) -> None:
     word = "disabled" if disabled else "enabled"
-    with open_archive(ctx) as archive:
-        changed = _auth().set_account_disabled(archive, name, disabled)
+    with open_catalog(ctx) as catalog:
+        changed = _auth().set_account_disabled(catalog, name, disabled)
         if changed:
-            _admin_event(archive, "U", f"user {word[:-1]}", f"account {name} {word}")
+            _admin_event(catalog, "U", f"user {word[:-1]}", f"account {name} {word}")
     typer.echo(f"account {name} {word}" if changed else f"account {name} was {word} already")
 
 
@@ -130,19 +130,19 @@ def token_create(
 ) -> None:
     """Create a token and print it ONCE: only its SHA-256 is kept. Every token expires."""
     until = parse_datetime(expires_at, "--expires-at")
-    with open_archive(ctx) as archive:
+    with open_catalog(ctx) as catalog:
         # the same account if the names differ only in case or look-alike characters
         if service_account and not any(
             lookup_key(p.name) == lookup_key(account)
-            for p in _auth().accounts(archive, limit=1_000_000)
+            for p in _auth().accounts(catalog, limit=1_000_000)
         ):
-            p = _auth().add_account(archive, account, role=role or "station", kind="service")
-            _admin_event(archive, "C", "token create",
+            p = _auth().add_account(catalog, account, role=role or "station", kind="service")
+            _admin_event(catalog, "C", "token create",
                          f"account {p.name} ({p.kind}, {p.role}) created")
-        token = _auth().create_token(archive, account, label=label, days=days,
+        token = _auth().create_token(catalog, account, label=label, days=days,
                                      expires_at=until)
-        info = _auth().tokens(archive, account=account)[-1]
-        _admin_event(archive, "C", "token create",
+        info = _auth().tokens(catalog, account=account)[-1]
+        _admin_event(catalog, "C", "token create",
                      f"token {info.id} ({info.prefix}...) for account {info.account}, "
                      f"expires {info.expires_at:%Y-%m-%d %H:%M} UTC")
     typer.echo(f"expires {info.expires_at:%Y-%m-%d %H:%M} UTC", err=True)
@@ -156,8 +156,8 @@ def token_list(
 ) -> None:
     """List tokens: id, account, role, prefix, created, state (active, revoked, expired,
     account disabled), expires, label."""
-    with open_archive(ctx) as archive:
-        for t in _auth().tokens(archive, account=account):
+    with open_catalog(ctx) as catalog:
+        for t in _auth().tokens(catalog, account=account):
             state = t.state()
             if state == "revoked":
                 state = f"revoked {t.revoked_at:%Y-%m-%d %H:%M}"
@@ -176,9 +176,9 @@ def token_revoke(
     ],
 ) -> None:
     """Revoke a token; it is refused from the next request on."""
-    with open_archive(ctx) as archive:
-        owner = _auth().revoke_token(archive, token_id)
-        _admin_event(archive, "U", "token revoke", f"token {token_id} of account {owner} revoked")
+    with open_catalog(ctx) as catalog:
+        owner = _auth().revoke_token(catalog, token_id)
+        _admin_event(catalog, "U", "token revoke", f"token {token_id} of account {owner} revoked")
     typer.echo(f"token {token_id} revoked")
 
 
@@ -193,14 +193,14 @@ def audit_export(
     until: Annotated[str | None, typer.Option(help="Before this time (as --since).")] = None,
 ) -> None:
     """Export the audit trail as a FHIR R4 Bundle of AuditEvent resources (JSON)."""
-    from rasterserver.api.audit import audit_events, fhir_bundle
     from rasterserver.output_files import check_output, output_file
+    from rasterserver.services.audit_trail import audit_events, fhir_bundle
 
     if out is not None:
         check_output(out, what="--out")
-    with open_archive(ctx) as archive:
+    with open_catalog(ctx) as catalog:
         events = audit_events(
-            archive,
+            catalog,
             patient=patient,
             since=parse_datetime(since, "--since"),
             until=parse_datetime(until, "--until"),
@@ -242,9 +242,9 @@ def keys_rotate_pseudonyms(
                          "for good; run again with --yes to do it")
     if keep_old is not None and keep_old.exists():
         raise InputError(f"--keep-old {keep_old} exists; name a new file")
-    with open_archive(ctx) as archive:
+    with open_catalog(ctx) as catalog:
         path = rotate_key(settings(ctx), keep_old=keep_old)
-        _admin_event(archive, "U", "keys rotate-pseudonyms",
+        _admin_event(catalog, "U", "keys rotate-pseudonyms",
                      "pseudonym key rotated" + (" (old key kept)" if keep_old else ""))
     typer.echo(f"new pseudonym key in {path}; restart the servers to use it")
 

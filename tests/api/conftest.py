@@ -11,10 +11,10 @@ import pytest
 import uvicorn
 from api_helpers import PATIENT_ID, PATIENT_NAME, ROLES, LiveServer, free_port
 
-from rasterserver.api import auth
 from rasterserver.api.app import ApiSettings, create_app
 from rasterserver.archive import Archive
 from rasterserver.config import Settings, sqlite_url
+from rasterserver.services import auth
 
 
 @pytest.fixture

@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from rasterserver.api import auth
-from rasterserver.api.audit import AuditNote, write_events
-from rasterserver.api.pseudonym import MAX_SHIFT_DAYS, Pseudonymiser, load_key
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import ApiToken
 from rasterserver.cli import main
 from rasterserver.config import Settings, sqlite_url
 from rasterserver.errors import ConflictError, InputError, NotFoundError
+from rasterserver.services import auth
+from rasterserver.services.audit import AuditNote, write_events
+from rasterserver.services.pseudonyms import MAX_SHIFT_DAYS, Pseudonymiser, load_key
 
 
 @pytest.fixture
@@ -106,8 +106,8 @@ def test_cli_users_tokens_and_fhir_audit_export(archive: Archive, tmp_path: Path
 def test_a_job_whose_process_is_gone_reports_failed(archive: Archive) -> None:
     import socket
 
-    from rasterserver.api.jobs import JobRunner
     from rasterserver.catalog.job_models import ProcessingJob
+    from rasterserver.services.jobs import JobRunner
 
     with archive.session() as s:
         s.add(ProcessingJob(id="a" * 32, origin="http", owner="x", selection={"uids": ["u"]},

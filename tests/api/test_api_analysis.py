@@ -13,10 +13,10 @@ import pytest
 from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes, run_job
 from backshape_truth import simulated
 
-from rasterserver.api.audit import audit_events
-from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.optics import default_station
 from rasterserver.records_analysis import LANDMARKS
+from rasterserver.services.audit_trail import audit_events
+from rasterserver.services.pseudonyms import Pseudonymiser
 
 ACQUIRED = "2025-03-01T10:15:00+01:00"
 TRUE_TIME = dt.datetime(2025, 3, 1, 9, 15, tzinfo=dt.UTC)

@@ -17,8 +17,8 @@ from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, npy_bytes, run_job
 from backshape_truth import simulated
 from test_api_analysis import _calibrate
 
-from rasterserver.api.audit import audit_events
-from rasterserver.api.pseudonym import Pseudonymiser
+from rasterserver.services.audit_trail import audit_events
+from rasterserver.services.pseudonyms import Pseudonymiser
 
 FIRST, SECOND = "2024-03-01T10:15:00+01:00", "2025-03-11T10:15:00+01:00"
 INTERVAL = dt.timedelta(days=375)

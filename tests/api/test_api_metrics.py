@@ -14,9 +14,9 @@ import httpx
 from api_helpers import PATIENT_ID, LiveServer, free_port
 from prometheus_client.parser import text_string_to_metric_families
 
-from rasterserver.api import auth
 from rasterserver.archive import Archive
 from rasterserver.config import Settings, sqlite_url
+from rasterserver.services import auth
 
 
 def _samples(text_out: str) -> dict[tuple[str, frozenset], float]:

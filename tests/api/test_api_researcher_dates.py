@@ -39,10 +39,10 @@ from backshape_truth import simulated
 from sqlalchemy import Date, DateTime, select
 from test_api_analysis import _calibrate
 
-from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.api.roles import RESEARCHER, RULES
 from rasterserver.catalog import auth_models as _auth_models  # noqa: F401  (its tables)
 from rasterserver.catalog.models import Base
+from rasterserver.services.pseudonyms import Pseudonymiser
 
 # a fixed key, so that the patient's shift is known and not zero (a zero shift would make
 # every check below pass or fail by chance)

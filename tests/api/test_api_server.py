@@ -15,10 +15,10 @@ from api_helpers import PATIENT_ID, PATIENT_NAME, LiveServer, frame, npy_bytes
 from sqlalchemy import select, text
 
 from rasterserver.api.app import ApiSettings
-from rasterserver.api.audit import audit_events
-from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.catalog.auth_models import AuditEvent
 from rasterserver.config import Settings, sqlite_url
+from rasterserver.services.audit_trail import audit_events
+from rasterserver.services.pseudonyms import Pseudonymiser
 
 
 def _upload(live: LiveServer, role: str = "clinician", **data: str):
@@ -137,7 +137,7 @@ def test_audit_rows_for_reads_writes_and_refusals(live: LiveServer) -> None:
 
 
 def test_tokens_revoked_or_invalid_are_refused(live: LiveServer) -> None:
-    from rasterserver.api import auth
+    from rasterserver.services import auth
 
     with live.client("clinician") as c:
         assert c.get("/patients").status_code == 200
@@ -231,7 +231,7 @@ def test_metrics_name_route_templates_only(live: LiveServer) -> None:
 
 
 def test_no_data_leaves_without_its_audit_row(live_sqlite: LiveServer, monkeypatch) -> None:
-    from rasterserver.api import audit
+    from rasterserver.services import audit
 
     def broken(*_args, **_kwargs) -> None:
         raise OSError("disk full")

@@ -11,8 +11,8 @@ from collections.abc import Callable
 
 from api_helpers import LiveServer
 
-from rasterserver.api import auth
-from rasterserver.api.audit import audit_events
+from rasterserver.services import auth
+from rasterserver.services.audit_trail import audit_events
 
 
 def until(check: Callable[[], bool], timeout: float = 10.0) -> bool:

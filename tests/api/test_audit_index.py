@@ -11,19 +11,14 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select, text, update
 
-from rasterserver.api import audit_index
-from rasterserver.api.audit import (
-    AuditNote,
-    AuditRecord,
-    audit_events,
-    audit_record,
-    insert_records,
-)
-from rasterserver.api.audit_index import AuditIndexer, index_patient_links
-from rasterserver.api.auth import Principal
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import AuditIndexMark, AuditPatientIndex
 from rasterserver.config import Settings
+from rasterserver.services import audit_index
+from rasterserver.services.audit import AuditNote, AuditRecord, audit_record, insert_records
+from rasterserver.services.audit_index import AuditIndexer, index_patient_links
+from rasterserver.services.audit_trail import audit_events
+from rasterserver.services.auth import Principal
 
 PATIENTS = [f"P-{n}" for n in range(12)]
 

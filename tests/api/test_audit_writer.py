@@ -8,12 +8,12 @@ from collections.abc import Sequence
 import pytest
 from sqlalchemy import func, select
 
-from rasterserver.api.audit import AuditNote, AuditRecord, audit_record, insert_records
-from rasterserver.api.audit_writer import AuditWriter
-from rasterserver.api.auth import Principal
 from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import AuditEvent, AuditEventPatient
 from rasterserver.config import Settings
+from rasterserver.services.audit import AuditNote, AuditRecord, audit_record, insert_records
+from rasterserver.services.audit_writer import AuditWriter
+from rasterserver.services.auth import Principal
 
 
 @pytest.fixture
@@ -143,7 +143,7 @@ def test_one_batch_links_each_event_to_its_own_patients(archive: Archive) -> Non
 def test_request_ids_are_unique_time_ordered_and_per_process() -> None:
     import os
 
-    from rasterserver.api.audit import new_request_id
+    from rasterserver.services.audit import new_request_id
 
     ids = [new_request_id() for _ in range(10_000)]
     assert len(set(ids)) == len(ids)

@@ -13,7 +13,7 @@ import pytest
 from api_helpers import PATIENT_ID, LiveServer, frame, npy_bytes
 
 from rasterserver.api.app import ApiSettings
-from rasterserver.api.audit import audit_events
+from rasterserver.services.audit_trail import audit_events
 
 BIG = 250 * 1024 * 1024
 

@@ -18,12 +18,12 @@ import pytest
 from api_helpers import LiveServer
 from sqlalchemy import event, text
 
-from rasterserver.api import auth
 from rasterserver.api.app import ApiSettings, Services
-from rasterserver.api.token_cache import CHANNEL, TokenCache, token_cache_for
 from rasterserver.archive import Archive
 from rasterserver.cli import main
 from rasterserver.config import Settings, sqlite_url
+from rasterserver.services import auth
+from rasterserver.services.token_cache import CHANNEL, TokenCache, token_cache_for
 
 pytestmark = pytest.mark.timeout(60)
 

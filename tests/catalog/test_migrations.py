@@ -55,10 +55,11 @@ def test_0004_links_the_patients_of_recorded_events_and_guards_its_downgrade(
 ) -> None:
     from sqlalchemy import text
 
-    from rasterserver.api.audit import AuditNote, audit_events, write_events
-    from rasterserver.api.auth import Principal
     from rasterserver.archive import Archive
     from rasterserver.config import Settings
+    from rasterserver.services.audit import AuditNote, write_events
+    from rasterserver.services.audit_trail import audit_events
+    from rasterserver.services.auth import Principal
 
     engine = make_engine(database_url)
     migrate.upgrade(engine, "0003")

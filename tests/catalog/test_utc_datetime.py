@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from sqlalchemy import select, text
 
-from rasterserver.api import auth
 from rasterserver.archive import Archive, FrameSource
 from rasterserver.catalog.auth_models import ApiToken
 from rasterserver.catalog.models import Acquisition, Patient, Visit
@@ -16,6 +15,7 @@ from rasterserver.catalog.utc_datetime import NaiveDatetimeError
 from rasterserver.config import Settings
 from rasterserver.errors import InputError
 from rasterserver.optics import default_station
+from rasterserver.services import auth
 
 PLUS_FIVE = dt.timezone(dt.timedelta(hours=5))
 #: the instant of 2025-03-01T10:15+05:00

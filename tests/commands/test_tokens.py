@@ -11,11 +11,11 @@ from pathlib import Path
 
 from installed_cli import TRACEBACK, describe, run_installed
 
-from rasterserver.api import auth
-from rasterserver.api.audit import audit_events
 from rasterserver.archive import Archive
 from rasterserver.config import Settings
 from rasterserver.pseudonym_key import read_key_file
+from rasterserver.services import auth
+from rasterserver.services.audit_trail import audit_events
 
 
 def _run(settings: Settings, *args: str, env: dict[str, str] | None = None):
@@ -90,7 +90,7 @@ def test_rotate_pseudonyms(settings: Settings, tmp_path: Path) -> None:
     assert _run(settings, "db", "upgrade").returncode == 0
     key_file = settings.archive / "config" / "pseudonym.key"
     with Archive(settings) as archive:
-        from rasterserver.api.pseudonym import Pseudonymiser
+        from rasterserver.services.pseudonyms import Pseudonymiser
 
         old = Pseudonymiser(archive).key
     unconfirmed = _run(settings, "keys", "rotate-pseudonyms")

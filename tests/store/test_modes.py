@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rasterserver.api.pseudonym import Pseudonymiser
 from rasterserver.archive import Archive, FrameSource
 from rasterserver.config import Settings
 from rasterserver.records_surface import Surface
+from rasterserver.services.pseudonyms import Pseudonymiser
 from rasterserver.store.derived import DerivedStore
 from rasterserver.store.modes import GROUP_ACCESS_ENV
 

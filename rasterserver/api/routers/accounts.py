@@ -6,10 +6,10 @@ from typing import Annotated
 
 from fastapi import Query
 
-from rasterserver.api import auth
 from rasterserver.api.deps import NoteDep, PageDep, ServicesDep, protected_router
 from rasterserver.api.fields import Role
 from rasterserver.api.schemas import AccountIn, AccountOut
+from rasterserver.services import auth
 
 router = protected_router("accounts")
 
@@ -20,14 +20,14 @@ def list_accounts(
     role: Annotated[Role | None, Query()] = None,
 ) -> list[AccountOut]:
     """Accounts by name, optionally of one role."""
-    found = auth.accounts(svc.archive, limit=page.limit, offset=page.offset, role=role)
+    found = auth.accounts(svc.catalog, limit=page.limit, offset=page.offset, role=role)
     return [AccountOut(name=p.name, role=p.role, kind=p.kind) for p in found]
 
 
 @router.post("/accounts", name="add_account", response_model=AccountOut, status_code=201)
 def add_account(body: AccountIn, svc: ServicesDep, note: NoteDep) -> AccountOut:
     """Create a user or service account; give it a token with `rasterserver token create`."""
-    p = auth.add_account(svc.archive, body.name, role=body.role, kind=body.kind)
+    p = auth.add_account(svc.catalog, body.name, role=body.role, kind=body.kind)
     # the audit event says which account was made, with which role
     note.detail = f"account {p.name} ({p.kind}, {p.role}) created"
     return AccountOut(name=p.name, role=p.role, kind=p.kind)

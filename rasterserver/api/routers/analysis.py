@@ -18,7 +18,6 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from rasterserver.analysis import DOCUMENT_FORMAT, Analysis, acquisition_analysis
-from rasterserver.api.auth import Principal
 from rasterserver.api.deps import (
     CallerDep,
     NoteDep,
@@ -29,6 +28,7 @@ from rasterserver.api.deps import (
 )
 from rasterserver.api.views import acquisition_body, json_response, pseudonymised
 from rasterserver.archive import AcquisitionInfo
+from rasterserver.services.auth import Principal
 
 router = protected_router("analysis")
 

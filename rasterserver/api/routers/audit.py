@@ -6,10 +6,10 @@ from typing import Annotated, Any, Literal
 
 from fastapi import Query
 
-from rasterserver.api.audit import audit_events, event_dict, fhir_bundle
 from rasterserver.api.deps import PageDep, ServicesDep, protected_router, utc
 from rasterserver.api.fields import Instant
 from rasterserver.api.schemas import AuditOut
+from rasterserver.services.audit_trail import audit_events, event_dict, fhir_bundle
 from rasterserver.times import TIME_RULE
 
 router = protected_router("audit")
@@ -26,7 +26,7 @@ def get_audit(
     until: Annotated[Instant | None, Query(description="Before (as since).")] = None,
 ) -> list[AuditOut] | dict[str, Any]:
     """Audit events, oldest first, by patient, actor and time."""
-    events = audit_events(svc.archive, patient=patient, actor=actor, since=utc(since),
+    events = audit_events(svc.catalog, patient=patient, actor=actor, since=utc(since),
                           until=utc(until), limit=page.limit, offset=page.offset)
     if format == "fhir":
         return fhir_bundle(events)

@@ -17,11 +17,11 @@ from fastapi import Query
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
-from rasterserver.api.auth import Principal
 from rasterserver.api.deps import CallerDep, NoteDep, ServicesDep, Uid, protected_router
 from rasterserver.api.routers.analysis import AcquisitionRef
 from rasterserver.api.routers.patients import PatientRef
 from rasterserver.api.views import acquisition_body, json_response, pseudonymised, resolve_patient
+from rasterserver.services.auth import Principal
 from rasterserver.visit_comparison import COMPARISON_FORMAT, TwoVisits
 
 router = protected_router("comparison")

@@ -19,7 +19,7 @@ router = APIRouter(tags=["service"])
 def health(svc: ServicesDep) -> Health:
     """Liveness and the catalogue's schema revision; needs no token."""
     return Health(status="ok", version=__version__,
-                  schema_revision=migrate.current_revision(svc.archive.engine))
+                  schema_revision=migrate.current_revision(svc.catalog.engine))
 
 
 @router.get("/metrics", name="metrics", response_class=PlainTextResponse,

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Path, Query
-from sqlalchemy import or_, select
 
 from rasterserver.api.deps import CallerDep, NoteDep, PageDep, ServicesDep, protected_router
 from rasterserver.api.fields import Day, Sex
@@ -17,9 +16,8 @@ from rasterserver.api.views import (
     resolve_patient,
     visit_out,
 )
-from rasterserver.catalog.models import Patient, Visit
 from rasterserver.errors import InputError
-from rasterserver.identifiers import lookup_key
+from rasterserver.services.patients import find_patients, patient_visits
 
 router = protected_router("patients")
 
@@ -43,18 +41,8 @@ def list_patients(
     else:
         if identifier_prefix is not None and pseudonymised(caller):
             raise InputError("researchers cannot filter on identifiers")
-        # the archive service lists without filters; this query is the API's own
-        query = select(Patient).order_by(Patient.identifier)
-        if identifier_prefix is not None:
-            # as look-ups do: ignoring case and look-alike characters
-            query = query.where(or_(
-                Patient.identifier_key.startswith(lookup_key(identifier_prefix),
-                                                  autoescape=True),
-                Patient.identifier.startswith(identifier_prefix, autoescape=True)))
-        if sex is not None:
-            query = query.where(Patient.sex == sex)
-        with svc.archive.session() as s:
-            rows = list(s.scalars(query.limit(page.limit).offset(page.offset)))
+        rows = find_patients(svc.catalog, identifier_prefix=identifier_prefix, sex=sex,
+                             limit=page.limit, offset=page.offset)
     for p in rows:
         note.touch(p.id)
     return [patient_out(p, caller, svc.pseudonyms) for p in rows]
@@ -86,15 +74,8 @@ def list_visits(
     identifier = resolve_patient(caller, patient, svc.pseudonyms)
     row = svc.archive.patient(identifier)
     note.touch(row.id)
-    # the archive service has no visit listing yet; this is the one query of its own
-    query = select(Visit).where(Visit.patient_id == row.id)
-    if since is not None:
-        query = query.where(Visit.visit_date >= since)
-    if until is not None:
-        query = query.where(Visit.visit_date < until)
-    with svc.archive.session() as s:
-        visits = list(s.scalars(query.order_by(Visit.visit_date)
-                                .limit(page.limit).offset(page.offset)))
+    visits = patient_visits(svc.catalog, row.id, since=since, until=until, limit=page.limit,
+                            offset=page.offset)
     return [visit_out(v, row.identifier, caller, svc.pseudonyms) for v in visits]
 
 

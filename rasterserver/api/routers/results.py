@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import tempfile
-from collections.abc import Callable
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -21,10 +19,8 @@ from rasterserver.api.deps import (
     protected_router,
     utc,
 )
-from rasterserver.api.errors import scrub_paths
 from rasterserver.api.schemas import ResultOut, RunOut
-from rasterserver.api.views import patient_clock, pseudonymised
-from rasterserver.catalog.models import PipelineRun, StageResult
+from rasterserver.api.views import Clock, patient_clock, pseudonymised, result_out, run_out
 from rasterserver.errors import NotFoundError
 from rasterserver.export import ExportFormat, ExportFrame, ExportWhat, select_export
 
@@ -35,28 +31,6 @@ Plugin = Annotated[str | None, Query(max_length=100, description="Only this plug
 
 _MEDIA = {"ply": "application/octet-stream", "obj": "text/plain", "stl": "model/stl",
           "csv": "text/csv"}
-
-
-Clock = Callable[[dt.datetime | None], dt.datetime | None]
-
-
-def _result(row: StageResult, clock: Clock) -> ResultOut:
-    return ResultOut(
-        id=row.id, stage=row.stage, plugin=row.plugin, plugin_version=row.plugin_version,
-        plugin_package=row.plugin_package, frame_index=row.frame_index, params=row.params,
-        params_hash=row.params_hash, chain_key=row.chain_key,
-        input_checksum=row.input_checksum, output_checksum=row.output_checksum,
-        record_kind=row.record_kind, calibration_id=row.calibration_id, reason=row.reason,
-        package_version=row.package_version, duration_s=row.duration_s,
-        created_at=clock(row.created_at))  # type: ignore[arg-type]
-
-
-def _run(row: PipelineRun, clock: Clock, archive_root: object) -> RunOut:
-    return RunOut(id=row.id, status=row.status, chain=row.chain,
-                  started_at=clock(row.started_at),  # type: ignore[arg-type]
-                  finished_at=clock(row.finished_at),
-                  error=scrub_paths(row.error, archive_root),
-                  computed=row.computed, reused=row.reused)
 
 
 def _touch(svc: ServicesDep, note: NoteDep, uid: str, caller: CallerDep | None = None) -> Clock:
@@ -78,7 +52,7 @@ def list_results(
     clock = _touch(svc, note, uid, caller)
     rows = [r for r in svc.pipeline.results(uid)
             if (stage is None or r.stage == stage) and (plugin is None or r.plugin == plugin)]
-    return [_result(r, clock) for r in rows[page.offset: page.offset + page.limit]]
+    return [result_out(r, clock) for r in rows[page.offset: page.offset + page.limit]]
 
 
 @router.get("/acquisitions/{uid}/results/{stage}", name="get_result", response_model=ResultOut,
@@ -97,7 +71,7 @@ def get_result(uid: Uid, stage: Annotated[str, Path(max_length=32)], request: Re
     etag = row.output_checksum + ("-pseudonymised" if pseudonymised(caller) else "")
     if (cached := not_modified(request, etag)) is not None:
         return cached
-    out = _result(row, clock)
+    out = result_out(row, clock)
     return Response(out.model_dump_json(), media_type="application/json",
                     headers={"ETag": f'"{etag}"'})
 
@@ -110,7 +84,7 @@ def list_runs(uid: Uid, svc: ServicesDep, caller: CallerDep, note: NoteDep, page
     clock = _touch(svc, note, uid, caller)
     rows = [r for r in svc.pipeline.runs(uid) if status is None or r.status == status]
     root = svc.settings.archive
-    return [_run(r, clock, root) for r in rows[page.offset: page.offset + page.limit]]
+    return [run_out(r, clock, root) for r in rows[page.offset: page.offset + page.limit]]
 
 
 @router.get("/acquisitions/{uid}/export", name="export_result", response_class=Response,

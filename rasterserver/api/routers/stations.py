@@ -6,7 +6,6 @@ from typing import Annotated
 
 from fastapi import Path, Query, Request, Response
 
-from rasterserver.api.auth import Principal
 from rasterserver.api.deps import (
     MAX_OFFSET,
     CallerDep,
@@ -24,38 +23,11 @@ from rasterserver.api.schemas import (
     StationIn,
     StationOut,
 )
-from rasterserver.api.views import pseudonymised
-from rasterserver.catalog.models import Calibration, Raster, Station
+from rasterserver.api.views import calibration_out, pseudonymised, raster_out, station_out
 
 router = protected_router("stations")
 
 StationName = Annotated[str, Path(max_length=100)]
-
-
-# Researchers get no times of stations, calibrations and rasters: the period a calibration
-# applied brackets the true dates of the acquisitions made with it (a researcher sees which
-# calibration each used), which would undo the patients' date shifts.
-
-
-def _station(row: Station, caller: Principal | None = None) -> StationOut:
-    hide = caller is not None and pseudonymised(caller)
-    return StationOut(name=row.name, description=row.description,
-                      created_at=None if hide else utc(row.created_at))
-
-
-def _calibration(row: Calibration, station: str, caller: Principal | None = None) -> CalibrationOut:
-    hide = caller is not None and pseudonymised(caller)
-    return CalibrationOut(
-        station=station, version=row.version, sha256=row.sha256, raster_id=row.raster_id,
-        parameters=row.parameters, residuals=row.residuals,
-        valid_from=None if hide else utc(row.valid_from), notes=None if hide else row.notes,
-        created_at=None if hide else utc(row.created_at))
-
-
-def _raster(row: Raster, caller: Principal | None = None) -> RasterOut:
-    hide = caller is not None and pseudonymised(caller)
-    return RasterOut(name=row.name, sha256=row.sha256, definition=row.definition,
-                     created_at=None if hide else utc(row.created_at))
 
 
 @router.get("/stations", name="list_stations", response_model=list[StationOut])
@@ -66,19 +38,19 @@ def list_stations(
     """Stations by name (there are few: filtered and paged here)."""
     rows = [s for s in svc.archive.stations()
             if name_prefix is None or s.name.startswith(name_prefix)]
-    return [_station(s, caller) for s in rows[page.offset: page.offset + page.limit]]
+    return [station_out(s, caller) for s in rows[page.offset: page.offset + page.limit]]
 
 
 @router.post("/stations", name="add_station", response_model=StationOut, status_code=201)
 def add_station(body: StationIn, svc: ServicesDep) -> StationOut:
     """Register a station (a camera and projector set-up)."""
-    return _station(svc.archive.add_station(body.name, description=body.description))
+    return station_out(svc.archive.add_station(body.name, description=body.description))
 
 
 @router.get("/stations/{station}", name="get_station", response_model=StationOut)
 def get_station(station: StationName, svc: ServicesDep, caller: CallerDep) -> StationOut:
     """One station."""
-    return _station(svc.archive.station(station), caller)
+    return station_out(svc.archive.station(station), caller)
 
 
 @router.get("/stations/{station}/calibrations", name="list_calibrations",
@@ -88,7 +60,7 @@ def list_calibrations(
 ) -> list[CalibrationOut]:
     """The station's calibrations, oldest version first."""
     rows = svc.archive.calibrations(station)
-    return [_calibration(c, station, caller)
+    return [calibration_out(c, station, caller)
             for c in rows[page.offset: page.offset + page.limit]]
 
 
@@ -101,7 +73,7 @@ def add_calibration(station: StationName, body: CalibrationIn,
         station, body.parameters, residuals=body.residuals, raster=body.raster,
         valid_from=utc(body.valid_from), source_acquisition=body.source_acquisition,
         notes=body.notes, source="parameters")
-    return _calibration(row, station)
+    return calibration_out(row, station)
 
 
 @router.get("/stations/{station}/calibrations/{version}", name="get_calibration",
@@ -119,13 +91,13 @@ def get_calibration(
         return cached
     response.headers["ETag"] = f'"{etag}"'
     response.headers["Cache-Control"] = "private, max-age=31536000, immutable"
-    return _calibration(row, station, caller)
+    return calibration_out(row, station, caller)
 
 
 @router.post("/rasters", name="add_raster", response_model=RasterOut, status_code=201)
 def add_raster(body: RasterIn, svc: ServicesDep) -> RasterOut:
     """Store a raster diapositive definition (the same definition is stored once)."""
-    return _raster(svc.archive.add_raster(body.name, body.definition, source="definition"))
+    return raster_out(svc.archive.add_raster(body.name, body.definition, source="definition"))
 
 
 @router.get("/rasters/{name}", name="get_raster", response_model=RasterOut)
@@ -137,4 +109,4 @@ def get_raster(name: Annotated[str, Path(max_length=100)], request: Request,
     if (cached := not_modified(request, etag)) is not None:
         return cached
     response.headers["ETag"] = f'"{etag}"'
-    return _raster(row, caller)
+    return raster_out(row, caller)

@@ -1,6 +1,6 @@
 """The owners of API tokens, kept in memory on PostgreSQL and dropped when the database says so.
 
-Every request authenticates its bearer token (:func:`rasterserver.api.auth.authenticate`).
+Every request authenticates its bearer token (:func:`rasterserver.services.auth.authenticate`).
 On PostgreSQL that look-up is a network round trip, and under load it cost about a tenth of
 the CPU time of a request, on the server and in the database. A plain cache would let a
 revoked token keep working until the entry expired, which the API does not allow.
@@ -38,7 +38,7 @@ from sqlalchemy import Engine
 if TYPE_CHECKING:
     import psycopg
 
-    from rasterserver.api.auth import Principal
+    from rasterserver.services.auth import Principal
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ _CONNECT_OPTIONS: dict[str, Any] = {
 
 
 class TokenCache:
-    """Token digest → :class:`~rasterserver.api.auth.Principal`, invalidated by NOTIFY.
+    """Token digest → :class:`~rasterserver.services.auth.Principal`, invalidated by NOTIFY.
 
     Only tokens that were found are kept: a miss is never cached, so a token created a
     moment ago works at once, and forged tokens cannot fill the cache. A thread listens on

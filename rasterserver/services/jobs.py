@@ -14,9 +14,8 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from rasterserver.archive import Archive
 from rasterserver.errors import RasterServerError
 from rasterserver.pipeline import DEFAULT_TARGETS
 from rasterserver.processing_jobs import (
@@ -28,6 +27,9 @@ from rasterserver.processing_jobs import (
     list_jobs,
     run_job,
 )
+
+if TYPE_CHECKING:
+    from rasterserver.archive import Archive
 
 log = logging.getLogger(__name__)
 

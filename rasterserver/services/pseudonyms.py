@@ -18,13 +18,16 @@ import datetime as dt
 import hashlib
 import hmac
 import threading
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
 from rasterserver import pseudonym_key
-from rasterserver.archive import Archive
 from rasterserver.catalog.models import Patient
 from rasterserver.errors import NotFoundError
+
+if TYPE_CHECKING:
+    from rasterserver.archive import Archive
 
 PREFIX = "PS-"
 MAX_SHIFT_DAYS = 365

@@ -21,10 +21,13 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import threading
+from typing import TYPE_CHECKING, cast
 
 from sqlalchemy import (
+    CompoundSelect,
     Connection,
     Select,
+    Table,
     func,
     or_,
     select,
@@ -34,7 +37,6 @@ from sqlalchemy import (
 )
 from sqlalchemy.exc import OperationalError
 
-from rasterserver.archive import Archive
 from rasterserver.catalog.auth_models import (
     AuditEvent,
     AuditEventPatient,
@@ -42,6 +44,9 @@ from rasterserver.catalog.auth_models import (
     AuditPatientIndex,
 )
 from rasterserver.catalog.lookup import patient_id_of
+
+if TYPE_CHECKING:
+    from rasterserver.catalog.catalog import Catalog
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +63,10 @@ LEASE_S = 120.0
 #: :func:`committed_through`), during which the audit writers wait behind it.
 LOCK_WAIT_MS = 200
 
-_MARK = AuditIndexMark.__table__
-_LINKS = AuditEventPatient.__table__
-_INDEX = AuditPatientIndex.__table__
+# Tables, as Core sees them (the ORM declares __table__ as a FromClause)
+_MARK = cast(Table, AuditIndexMark.__table__)
+_LINKS = cast(Table, AuditEventPatient.__table__)
+_INDEX = cast(Table, AuditPatientIndex.__table__)
 
 
 def indexed_through() -> Select[tuple[int]]:
@@ -68,7 +74,7 @@ def indexed_through() -> Select[tuple[int]]:
     return select(func.coalesce(func.max(_MARK.c.indexed_through), 0))
 
 
-def patient_events(patient: str) -> Select[tuple[int]]:
+def patient_events(patient: str) -> CompoundSelect[tuple[int]]:
     """The ids of the audit events that touched the patient with site identifier ``patient``:
     those in the index, and those after its mark still only in the links."""
     pid = patient_id_of(patient)
@@ -113,10 +119,10 @@ class IndexerBusyError(Exception):
     """The indexer could not start its run now; nothing was changed."""
 
 
-def _take_lease(archive: Archive, lease_s: float) -> int | None:
+def _take_lease(catalog: Catalog, lease_s: float) -> int | None:
     """Claim the indexer's lease; return the mark, or None when another indexer holds it."""
     now = dt.datetime.now(dt.UTC)
-    with archive.write_lock(), archive.engine.begin() as conn:
+    with catalog.write_lock(), catalog.engine.begin() as conn:
         row = conn.execute(
             update(_MARK)
             .where(_MARK.c.id == 1,
@@ -157,7 +163,7 @@ _PG_ADD = text(
     "ON CONFLICT DO NOTHING")
 
 
-def _index_sqlite(archive: Archive, conn: Connection, mark: int, through: int,
+def _index_sqlite(catalog: Catalog, conn: Connection, mark: int, through: int,
                   chunk: int) -> int:
     for statement in _SQLITE_STAGE:
         conn.exec_driver_sql(statement)
@@ -180,7 +186,7 @@ def _index_sqlite(archive: Archive, conn: Connection, mark: int, through: int,
     try:
         while True:
             hi = min(lo + chunk - 1, last)
-            with archive.write_lock():
+            with catalog.write_lock():
                 if lo <= hi:
                     added += conn.execute(_SQLITE_ADD, {"lo": lo, "hi": hi}).rowcount
                 if hi >= last:
@@ -206,14 +212,14 @@ def _index_postgresql(conn: Connection, mark: int, through: int) -> int:
     return added
 
 
-def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
+def index_patient_links(catalog: Catalog, *, max_events: int = MAX_EVENTS,
                         chunk: int = CHUNK, lease_s: float = LEASE_S) -> int:
     """Add the patient links recorded since the mark to the index by patient.
 
     Parameters
     ----------
-    archive : Archive
-        The archive whose audit trail to index.
+    catalog : Catalog
+        The catalogue whose audit trail to index.
     max_events : int
         Most events to take in this run; the mark moves only as far.
     chunk : int
@@ -226,12 +232,12 @@ def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
     int
         Links added; 0 also when another indexer is at work.
     """
-    mark = _take_lease(archive, lease_s)
+    mark = _take_lease(catalog, lease_s)
     if mark is None:
         return 0
     done = False
     try:
-        with archive.engine.connect() as conn:
+        with catalog.engine.connect() as conn:
             try:
                 through = min(committed_through(conn), mark + max_events)
             except IndexerBusyError:
@@ -240,18 +246,18 @@ def index_patient_links(archive: Archive, *, max_events: int = MAX_EVENTS,
             if conn.dialect.name == "postgresql":
                 added = _index_postgresql(conn, mark, through)
             else:
-                added = _index_sqlite(archive, conn, mark, through, chunk)
+                added = _index_sqlite(catalog, conn, mark, through, chunk)
         done = True
         return added
     finally:
         if not done:
-            _release(archive)
+            _release(catalog)
 
 
-def _release(archive: Archive) -> None:
+def _release(catalog: Catalog) -> None:
     """Give the lease back after a failed run, so the next starts at once, not after it."""
     try:
-        with archive.write_lock(), archive.engine.begin() as conn:
+        with catalog.write_lock(), catalog.engine.begin() as conn:
             conn.execute(update(_MARK).where(_MARK.c.id == 1).values(lease_until=None))
     except Exception as exc:  # the lease runs out by itself; the run's own error matters
         log.warning("audit index lease not released: %s", type(exc).__name__)
@@ -264,14 +270,14 @@ class AuditIndexer:
 
     Parameters
     ----------
-    archive : Archive
-        The archive whose audit trail to index.
+    catalog : Catalog
+        The catalogue whose audit trail to index.
     every_s : float
         Seconds between runs.
     """
 
-    def __init__(self, archive: Archive, *, every_s: float = INDEX_EVERY_S) -> None:
-        self._archive = archive
+    def __init__(self, catalog: Catalog, *, every_s: float = INDEX_EVERY_S) -> None:
+        self._catalog = catalog
         self._every_s = every_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="audit-indexer", daemon=True)
@@ -280,7 +286,7 @@ class AuditIndexer:
     def _run(self) -> None:
         while not self._stop.wait(self._every_s):
             try:
-                index_patient_links(self._archive)
+                index_patient_links(self._catalog)
             except Exception as exc:  # retried next time; queries read the links meanwhile
                 # the type only: a database error's message can quote patient data
                 log.warning("audit index not brought up to date: %s", type(exc).__name__)
