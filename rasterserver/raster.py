@@ -16,13 +16,13 @@ The definition is data (JSON, format ``rasterserver.raster/1``, see ``docs/forma
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from rasterserver.json_document import JsonDocument
 
 #: ``format`` tag of the raster definition JSON.
 RASTER_FORMAT = "rasterserver.raster/1"
@@ -32,7 +32,7 @@ KINDS: tuple[LineKind, LineKind] = ("light", "heavy")
 
 
 @dataclass(frozen=True, eq=False)
-class Raster:
+class Raster(JsonDocument):
     """A raster diapositive definition.
 
     Attributes
@@ -134,15 +134,6 @@ class Raster:
             ],
         }
 
-    def to_json(self, *, indent: int | None = 2) -> str:
-        """Serialise to JSON text."""
-        return json.dumps(self.to_dict(), indent=indent)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the JSON definition to ``path``."""
-        path = Path(path)
-        path.write_text(self.to_json() + "\n", encoding="utf-8")
-        return path
 
 
 def _kinds_to_bits(kinds: list[str] | np.ndarray) -> np.ndarray:

@@ -163,7 +163,7 @@ def reprocess(
     """
     from rasterserver.chain_diff import DEFAULT_TARGETS
     from rasterserver.chain_spec import ChainSpec, parse_chain
-    from rasterserver.commands.failures import ProcessingFailedError
+    from rasterserver.commands.failures import raise_for_failures
     from rasterserver.commands.jobs import job_progress
     from rasterserver.errors import ConflictError, InputError
     from rasterserver.processing_jobs import create_job, job_outcomes, run_job
@@ -206,11 +206,7 @@ def reprocess(
             acquisitions = resolve_selection(archive, Selection(uids=tuple(u for u, _ in done)))
         _run_diff(ctx, previous, new, None, targets, out or Path(f"diff-{job.id[:8]}"),
                   as_json, quiet, acquisitions, strict=False)
-    if failed:
-        raise ProcessingFailedError(
-            f"{len(failed)} of {len(outcomes)} acquisition(s) failed, see above",
-            exit_code=ProcessingFailedError.code_of(failed),
-        )
+    raise_for_failures(failed, len(outcomes))
 
 
 def register(app: typer.Typer) -> None:

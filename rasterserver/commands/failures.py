@@ -30,3 +30,25 @@ class ProcessingFailedError(RasterServerError):
         """The failures' common exit code, or 1 when they differ."""
         codes = {o.exit_code or 1 for o in failed}
         return codes.pop() if len(codes) == 1 else 1
+
+
+def raise_for_failures(failed: list[JobOutcome], total: int) -> None:
+    """End a processing command with :class:`ProcessingFailedError` if any acquisition failed.
+
+    Parameters
+    ----------
+    failed : list of JobOutcome
+        The failed acquisitions' outcomes (each already listed to the user).
+    total : int
+        How many acquisitions the command processed, for the message.
+
+    Raises
+    ------
+    ProcessingFailedError
+        ``failed`` is not empty; its exit code is the failures' common one, else 1.
+    """
+    if failed:
+        raise ProcessingFailedError(
+            f"{len(failed)} of {total} acquisition(s) failed, see above",
+            exit_code=ProcessingFailedError.code_of(failed),
+        )

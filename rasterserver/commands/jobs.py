@@ -247,7 +247,7 @@ def resume_command(
     is done; the failures' exit code when some failed (see `rasterserver process`); 4 when
     the job is finished, cancelled, or running in a live process; 3 for an unknown job.
     """
-    from rasterserver.commands.failures import ProcessingFailedError
+    from rasterserver.commands.failures import raise_for_failures
     from rasterserver.errors import ConflictError
     from rasterserver.processing_jobs import job_outcomes, run_job
 
@@ -262,11 +262,7 @@ def resume_command(
         typer.echo(f"{outcome.uid}\tfailed\t{outcome.error}")
     if job.state in ("paused", "cancelled"):
         raise ConflictError(f"job {job.id} was {job.state} by another command")
-    if failed:
-        raise ProcessingFailedError(
-            f"{len(failed)} of {job.total} acquisition(s) failed, see above",
-            exit_code=ProcessingFailedError.code_of(failed),
-        )
+    raise_for_failures(failed, job.total)
 
 
 def register(app: typer.Typer) -> None:

@@ -8,12 +8,12 @@ from typing import Annotated
 import typer
 
 from rasterserver.commands.common import open_archive, parse_datetime
-from rasterserver.commands.failures import ProcessingFailedError
+from rasterserver.commands.failures import raise_for_failures
 from rasterserver.errors import InputError
 
 # The pipeline and the jobs (NumPy, the plugins, Dask) are imported when the command runs:
-# `--help` and the other commands start without them. ProcessingFailedError lives in
-# commands.failures (jobs raises it too) and stays importable from here.
+# `--help` and the other commands start without them. The failures' error is in
+# commands.failures, shared with jobs, diff and demo.
 
 
 def parse_calibration(text: str | None) -> tuple[str, int | None] | None:
@@ -192,11 +192,7 @@ def process(
                if status.job.state == "paused" else "")
         )
     failed = [o for o in outcomes if o.status == "failed"]
-    if failed:
-        raise ProcessingFailedError(
-            f"{len(failed)} of {len(outcomes)} acquisition(s) failed, see above",
-            exit_code=ProcessingFailedError.code_of(failed),
-        )
+    raise_for_failures(failed, len(outcomes))
 
 
 def register(app: typer.Typer) -> None:

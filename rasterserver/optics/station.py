@@ -3,13 +3,12 @@ form (``rasterserver.calibration/1``) and the nominal design."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rasterserver.json_document import JsonDocument
 from rasterserver.optics.devices import Camera, Projector
 
 if TYPE_CHECKING:
@@ -33,7 +32,7 @@ def rotation_matrix(rx_deg: float = 0.0, ry_deg: float = 0.0, rz_deg: float = 0.
 
 
 @dataclass(frozen=True, eq=False)
-class Station:
+class Station(JsonDocument):
     """A calibrated rasterstereography station: camera, projector and raster diapositive.
 
     Attributes
@@ -123,15 +122,6 @@ class Station:
             **({} if self.gravity is None else {"gravity": self.gravity.tolist()}),
         }
 
-    def to_json(self, *, indent: int | None = 2) -> str:
-        """Serialise to the calibration JSON text."""
-        return json.dumps(self.to_dict(), indent=indent)
-
-    def save(self, path: str | Path) -> Path:
-        """Write the calibration JSON to ``path``."""
-        path = Path(path)
-        path.write_text(self.to_json() + "\n", encoding="utf-8")
-        return path
 
 
 def default_station(
