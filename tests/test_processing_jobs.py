@@ -157,19 +157,26 @@ def _run_in_thread(archive: Archive, job_id: str, **kwargs) -> tuple[threading.T
     return thread, out
 
 
-def test_run_pause_resume_and_progress(settings: Settings) -> None:
+def test_run_pause_resume_and_progress(settings: Settings, monkeypatch) -> None:
     archive, uids = many(settings, 8)
+    # one acquisition per batch and the job's state asked after each: the pause, requested
+    # once two are done, is seen before the last (however fast the chain and the files)
+    monkeypatch.setattr("rasterserver.engines.IN_PROCESS_BATCH", 1)
+    monkeypatch.setattr("rasterserver.jobs.COMMIT_EVERY_S", 0.0)
+    monkeypatch.setattr("rasterserver.processing_jobs._POLL_S", 0.0)
     with archive:
         job, _ = create_job(archive, Selection(all=True), targets=["mesh"])
         seen: list[tuple[int, int]] = []
-        thread, out = _run_in_thread(
-            archive, job.id, dask=False,
-            progress=lambda st: seen.append((st.job.done + st.job.failed, st.job.total)),
-        )
-        wait_until(lambda: job_row(archive, job.id).done >= 2)
-        paused = pause_job(archive, job.id)
-        assert paused.state == "paused"
+        pauses: list[str] = []
+
+        def progress(st) -> None:
+            seen.append((st.job.done + st.job.failed, st.job.total))
+            if st.job.done >= 2 and not pauses:
+                pauses.append(pause_job(archive, job.id).state)
+
+        thread, out = _run_in_thread(archive, job.id, dask=False, progress=progress)
         thread.join(120)
+        assert pauses == ["paused"]
         assert "error" not in out, out.get("error")
         status = out["status"]
         assert status.job.state == "paused" and 2 <= status.job.done < 8
@@ -193,14 +200,23 @@ def test_run_pause_resume_and_progress(settings: Settings) -> None:
             cancel_job(archive, job.id)
 
 
-def test_cancel_stops_and_cannot_be_resumed(settings: Settings) -> None:
+def test_cancel_stops_and_cannot_be_resumed(settings: Settings, monkeypatch) -> None:
     archive, _uids = many(settings, 8)
+    # as in the pause test: the cancel, requested once one is done, is seen before the last
+    monkeypatch.setattr("rasterserver.engines.IN_PROCESS_BATCH", 1)
+    monkeypatch.setattr("rasterserver.jobs.COMMIT_EVERY_S", 0.0)
+    monkeypatch.setattr("rasterserver.processing_jobs._POLL_S", 0.0)
     with archive:
         job, _ = create_job(archive, Selection(all=True), targets=["mesh"])
-        thread, out = _run_in_thread(archive, job.id, dask=False)
-        wait_until(lambda: job_row(archive, job.id).done >= 1)
-        assert cancel_job(archive, job.id).state == "cancelled"
+        cancels: list[str] = []
+
+        def progress(st) -> None:
+            if st.job.done >= 1 and not cancels:
+                cancels.append(cancel_job(archive, job.id).state)
+
+        thread, out = _run_in_thread(archive, job.id, dask=False, progress=progress)
         thread.join(120)
+        assert cancels == ["cancelled"]
         status = out["status"]
         assert status.job.state == "cancelled" and status.job.done < 8
         assert status.job.finished_at is not None

@@ -12,18 +12,23 @@ results of an acquisition therefore share its shard folder and its name prefix, 
 is a function of what was computed: asking for the same computation twice can only ever name
 the same file, and a result left behind by a crash is found again instead of duplicated.
 
-Root attributes (strings unless noted): ``format`` (``"rasterserver-derived"``),
-``format_version`` (integer 1), ``acquisition`` (uid), ``stage``, ``plugin``,
-``plugin_version``, ``params`` (canonical JSON), ``params_hash``, ``chain_key``,
-``input_checksum`` (content hash of the input record), ``output_checksum`` (content hash of
-the stored record, :meth:`rasterserver.records.Record.content_hash`), ``record_kind``,
-``created_utc`` and ``writer``.
+Root attributes: ``format`` (``"rasterserver-derived"``), ``format_version`` (integer 2) and
+``provenance``, one JSON object (canonical, sorted keys) with the strings ``acquisition``
+(uid), ``stage``, ``plugin``, ``plugin_version``, ``params`` (canonical JSON), ``params_hash``,
+``chain_key``, ``input_checksum`` (content hash of the input record), ``output_checksum``
+(content hash of the stored record, :meth:`rasterserver.records.Record.content_hash`),
+``record_kind``, ``created_utc`` and ``writer``. Format version 1 (written until November
+2026) held the same strings as one root attribute each; both are read.
 
-Group ``/record``: one dataset per field of the record as :meth:`Record.to_arrays` gives them
-(scalars as scalar datasets, strings as fixed-length UTF-8 byte strings). Any HDF5 reader can
-open the files; the store rebuilds the record in Python with the class its ``resolve`` callable
-names for the kind (the pipeline passes its plugin registry's, so a fresh process knows every
-installed plugin's record kinds whatever it has imported).
+Group ``/record``: one contiguous dataset per field of the record as :meth:`Record.to_arrays`
+gives them (scalars as scalar datasets, strings as fixed-length byte strings; no chunking or
+filters: the arrays are small). Any HDF5 reader can open the files; the store rebuilds the
+record in Python with the class its ``resolve`` callable names for the kind (the pipeline
+passes its plugin registry's, so a fresh process knows every installed plugin's record kinds
+whatever it has imported).
+
+Files are built in memory (HDF5's core driver) and written with one ``write``: the per-file
+cost of a result is then a few h5py calls, one write and one fsync.
 
 Durability: written under a temporary name in the final folder, fsynced and published with a
 link that refuses to replace (:mod:`.durable`), like the raw store; files are opened without
@@ -46,13 +51,14 @@ import numpy as np
 from rasterserver import __version__
 from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFoundError
 from rasterserver.records import Record, record_type
-from rasterserver.store.durable import ensure_dir, fsync_dir, fsync_file, publish
+from rasterserver.store.durable import ensure_dir, fsync_dir, publish, write_synced
 from rasterserver.store.layout import shard_path, temp_path, validate_uid
 
 __all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredResult"]
 
 FORMAT_NAME = "rasterserver-derived"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+PROVENANCE = "provenance"
 AREA = "derived"
 SUFFIX = ".h5"
 KEY_DIGITS = 32
@@ -124,6 +130,59 @@ class DerivedEntry:
     uid: str | None = None
     stage: str | None = None
     key: str | None = None
+
+
+def _file_image(name: str, meta: Mapping[str, str], record: Record) -> bytes:
+    """The bytes of a derived HDF5 file (format version 2), built in memory.
+
+    HDF5's in-memory ("core") driver without a backing store: the library's many small writes
+    (superblock, object headers, heaps, each dataset) go to memory, and the finished image is
+    written to disk with one ``write`` and one ``fsync`` (:func:`.durable.write_synced`). The
+    image is byte for byte an ordinary HDF5 file. Provenance is one JSON attribute and the
+    datasets are made with h5py's low-level calls: per attribute and per dataset, h5py's
+    high-level layer costs more than HDF5 itself for arrays this small.
+    """
+    with h5py.File(
+        name, "w", driver="core", backing_store=False, locking=False, libver="earliest"
+    ) as h5:
+        h5.attrs["format"] = FORMAT_NAME
+        h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
+        h5.attrs[PROVENANCE] = json.dumps(dict(meta), sort_keys=True, separators=(",", ":"))
+        group = h5.create_group("record").id
+        for key, value in record.to_arrays().items():
+            _put(group, key, np.asarray(value))
+        h5.flush()
+        return bytes(h5.id.get_file_image())
+
+
+def _put(group: h5py.h5g.GroupID, name: str, array: np.ndarray) -> None:
+    # contiguous, no filters: what Group.create_dataset(name, data=array) makes, for less
+    if array.dtype.kind in "OUV":  # h5py's own rules for objects, unicode, void
+        h5py.Group(group).create_dataset(name, data=array)
+        return
+    if not array.flags.c_contiguous:
+        array = array.copy(order="C")  # (ascontiguousarray would turn a scalar into 1-d)
+    space = (
+        h5py.h5s.create(h5py.h5s.SCALAR) if array.ndim == 0 else h5py.h5s.create_simple(array.shape)
+    )
+    dataset = h5py.h5d.create(group, name.encode(), h5py.h5t.py_create(array.dtype), space)
+    if array.size:
+        dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, array)
+
+
+def _provenance(h5: h5py.File) -> dict[str, str]:
+    """The provenance strings of an open derived file, of either format version."""
+    if PROVENANCE in h5.attrs:
+        try:
+            meta = json.loads(_text(h5.attrs[PROVENANCE]))
+        except ValueError:
+            return {}
+        return (
+            {key: str(meta[key]) for key in _META_KEYS if key in meta}
+            if isinstance(meta, dict)
+            else {}
+        )
+    return {key: _text(h5.attrs[key]) for key in _META_KEYS if key in h5.attrs}
 
 
 def _text(value: Any) -> str:
@@ -256,15 +315,7 @@ class DerivedStore:
             "writer": f"rasterserver {__version__}",
         }
         try:
-            with h5py.File(temp, "w-", locking=False, libver="earliest") as h5:
-                h5.attrs["format"] = FORMAT_NAME
-                h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
-                for name, value in meta.items():
-                    h5.attrs[name] = value
-                group = h5.create_group("record")
-                for name, array in record.to_arrays().items():
-                    group.create_dataset(name, data=np.asarray(array))
-            fsync_file(temp)
+            write_synced(temp, _file_image(temp.name, meta, record))
             try:
                 publish(temp, final, sync_dir=sync_dir)
             except ConflictError:
@@ -307,7 +358,7 @@ class DerivedStore:
             Not a readable derived file.
         """
         with self._open(relative) as h5:
-            return {key: _text(h5.attrs[key]) for key in _META_KEYS if key in h5.attrs}
+            return _provenance(h5)
 
     def read(self, relative: str, *, expected_checksum: str | None = None) -> Record:
         """Load a stored result as its record class.
@@ -329,8 +380,9 @@ class DerivedStore:
         NotFoundError, IntegrityError
         """
         with self._open(relative) as h5:
-            kind = _text(h5.attrs.get("record_kind", ""))
-            stored = _text(h5.attrs.get("output_checksum", ""))
+            meta = _provenance(h5)
+            kind = meta.get("record_kind", "")
+            stored = meta.get("output_checksum", "")
             group = h5.get("record")
             if not isinstance(group, h5py.Group):
                 raise IntegrityError(f"{relative}: no record group")

@@ -21,7 +21,7 @@ from pathlib import Path
 from rasterserver.errors import ConflictError
 from rasterserver.store.modes import dir_mode, set_dir_mode, set_file_mode
 
-__all__ = ["ensure_dir", "fsync_dir", "fsync_file", "publish"]
+__all__ = ["ensure_dir", "fsync_dir", "fsync_file", "publish", "write_synced"]
 
 # Filesystems without hard links (some SMB/FUSE mounts) answer link() with one of these.
 _NO_LINK_ERRNOS = frozenset(
@@ -39,6 +39,36 @@ def fsync_file(path: Path) -> None:
     """
     fd = os.open(path, os.O_RDONLY)
     try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_synced(path: Path, data: bytes) -> None:
+    """Create ``path`` (it must not exist), write ``data`` and fsync it, with one open.
+
+    For files built in memory (the derived store's HDF5 images): one ``write`` and one
+    ``fsync`` on the descriptor that wrote them, instead of a library's many small writes
+    and a second open to fsync.
+
+    Parameters
+    ----------
+    path : Path
+        New file (a temporary name; :func:`publish` gives it its final one).
+    data : bytes
+        The whole contents.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists.
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        view = memoryview(data)
+        while view:
+            written = os.write(fd, view)
+            view = view[written:]
         os.fsync(fd)
     finally:
         os.close(fd)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
 from pathlib import Path
 
@@ -79,9 +80,53 @@ def test_files_are_plain_hdf5(tmp_path: Path) -> None:
     stored = _write(store, _points())
     with h5py.File(tmp_path / stored.path, "r") as h5:
         assert h5.attrs["format"] == "rasterserver-derived"
-        assert int(h5.attrs["format_version"]) == 1
+        assert int(h5.attrs["format_version"]) == 2
+        provenance = json.loads(h5.attrs["provenance"])
+        assert provenance["chain_key"] == KEY and provenance["acquisition"] == UID
         assert h5["record/x"].shape == (50,) and h5["record/x"].dtype == np.float64
+        assert h5["record/x"].chunks is None and h5["record/x"].compression is None
         assert h5["record/reason"][()].decode() == "3 peaks dropped; Wirbelsäule"
+        assert h5["record/col"].dtype == np.int32 and h5["record/area"].dtype == np.float32
+
+
+def _write_format_1(path: Path, record, *, chain_key: str = KEY) -> None:
+    """A file as the store wrote it before format version 2: one root attribute per string."""
+    meta = {
+        "acquisition": UID,
+        "stage": "points",
+        "plugin": "points.ray-plane",
+        "plugin_version": "1",
+        "params": '{"tolerance":1e-07}',
+        "params_hash": "ab" * 32,
+        "chain_key": chain_key,
+        "input_checksum": "cd" * 32,
+        "output_checksum": record.content_hash(),
+        "record_kind": record.kind,
+        "created_utc": "2026-11-01T10:00:00+00:00",
+        "writer": "rasterserver 0.9",
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w-", locking=False, libver="earliest") as h5:
+        h5.attrs["format"] = "rasterserver-derived"
+        h5.attrs["format_version"] = np.int64(1)
+        for name, value in meta.items():
+            h5.attrs[name] = value
+        group = h5.create_group("record")
+        for name, array in record.to_arrays().items():
+            group.create_dataset(name, data=np.asarray(array))
+
+
+@pytest.mark.parametrize("record", [_points(), Surface.empty("no points")], ids=["points", "empty"])
+def test_files_of_format_1_still_read_and_are_adopted(tmp_path: Path, record) -> None:
+    store = DerivedStore(tmp_path)
+    relative = store.relative_path(UID, "points", KEY)
+    _write_format_1(tmp_path / relative, record)
+    back = store.read(relative, expected_checksum=record.content_hash())
+    assert type(back) is type(record) and back == record
+    meta = store.metadata(relative)
+    assert meta["chain_key"] == KEY and meta["writer"] == "rasterserver 0.9"
+    # the same computation again adopts the old file instead of refusing it
+    assert _write(store, record).adopted
 
 
 def test_same_result_twice_is_adopted_other_content_refused(tmp_path: Path) -> None:
@@ -98,10 +143,11 @@ def test_same_result_twice_is_adopted_other_content_refused(tmp_path: Path) -> N
 def test_no_temporary_file_is_left_after_a_failed_write(tmp_path: Path, monkeypatch) -> None:
     store = DerivedStore(tmp_path)
 
-    def broken(_path: Path) -> None:
+    def broken(_fd: int) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr("rasterserver.store.derived.fsync_file", broken)
+    # fails after the temporary file exists: it must be removed
+    monkeypatch.setattr("rasterserver.store.durable.os.fsync", broken)
     with pytest.raises(OSError, match="disk full"):
         _write(store, _points())
     assert list(store.scan()) == []
