@@ -46,8 +46,9 @@ log = logging.getLogger(__name__)
 #: beside the coordinator and Dask's scheduler. Measure again on a machine with spare cores.
 LOCAL_CLUSTER_MIN: int | None = None
 
-#: Acquisitions the in-process engine computes ahead of committing them.
-IN_PROCESS_BATCH = 4
+#: Acquisitions the in-process engine computes ahead of committing them (and plans in one
+#: page, :meth:`rasterserver.pipeline.Pipeline.plan_many`).
+IN_PROCESS_BATCH = 16
 
 
 class Engine:

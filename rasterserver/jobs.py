@@ -36,6 +36,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from itertools import islice
 from typing import TYPE_CHECKING, Any, Literal
 
 from rasterserver.archive import Archive
@@ -274,16 +275,23 @@ def run_tasks(
             finished(task.index, task.outcome)
         return over
 
-    def advance(task: _Task) -> None:
-        # plan the task's next target: stored ones are committed here, the first that needs
-        # computing goes to the engine
+    def advance(task: _Task, first: Plan | BaseException | None = None) -> None:
+        # plan the task's next target (``first``: planned already, with its page): stored
+        # ones are committed here, the first that needs computing goes to the engine
         while task.targets:
             target = task.targets.pop(0)
-            try:
-                plan = pipeline.plan(task.uid, until=target, load_input=False, **options)
-            except Exception as exc:
-                close(task, JobOutcome.failed(task.uid, exc))
+            given, first = first, None
+            if isinstance(given, BaseException):
+                close(task, JobOutcome.failed(task.uid, given))
                 return
+            if given is not None:
+                plan = given
+            else:
+                try:
+                    plan = pipeline.plan(task.uid, until=target, load_input=False, **options)
+                except Exception as exc:
+                    close(task, JobOutcome.failed(task.uid, exc))
+                    return
             if not plan.needs_computing:  # everything stored already
                 if close(task, _commit(pipeline, [(task, plan, Computation({}, {}, ""))])[0]):
                     return
@@ -307,12 +315,24 @@ def run_tasks(
             stopping = ask()
         begun: list[int] = []
         while stopping is None and len(in_flight) < engine.in_flight:
-            item = next(source, None)
-            if item is None:
+            # a page of new tasks, their first target planned in bulk (a few queries for
+            # the page, not a few per acquisition: the coordinator's main cost)
+            room = engine.in_flight - len(in_flight)
+            page = [_Task(i, u, list(targets)) for i, u in islice(source, room)]
+            if not page:
                 break
-            index, uid = item
-            begun.append(index)
-            advance(_Task(index, uid, list(targets)))
+            begun.extend(task.index for task in page)
+            first: list[Plan | BaseException | None] = [None] * len(page)
+            if targets:
+                try:
+                    first = list(pipeline.plan_many(
+                        [task.uid for task in page], until=targets[0], load_input=False,
+                        **options,
+                    ))
+                except Exception as exc:  # the catalogue went away: each task fails alone
+                    first = [exc] * len(page)
+            for task, plan in zip(page, first, strict=True):
+                advance(task, plan)
             stopping = ask()
         if begun and started is not None:
             started(begun)

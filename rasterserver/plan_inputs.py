@@ -7,10 +7,11 @@ Calibration rows never change once stored, so :class:`InputsCache` parses each o
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, selectinload
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.models import Acquisition, Calibration, Frame, StageResult
@@ -22,7 +23,15 @@ from rasterserver.hashing import canonical_json_sha256
 from rasterserver.optics import Station
 from rasterserver.raster import Raster
 
-__all__ = ["ChainInputs", "InputsCache", "load_calibration", "raster_frame", "stored_results"]
+__all__ = [
+    "ChainInputs",
+    "InputsCache",
+    "acquisitions_by_uid",
+    "load_calibration",
+    "raster_frame",
+    "stored_results",
+    "stored_results_many",
+]
 
 
 @dataclass(frozen=True)
@@ -78,6 +87,50 @@ def stored_results(s: Session, acquisition_id: int, keys: list[str]) -> dict[str
         key: CachedResult(result_id, store_path, checksum, reason)
         for key, result_id, store_path, checksum, reason in s.execute(query)
     }
+
+
+def acquisitions_by_uid(s: Session, uids: Sequence[str]) -> dict[str, Acquisition]:
+    """The acquisitions among ``uids`` that exist, with their frames, in one query."""
+    query = (
+        select(Acquisition)
+        .options(selectinload(Acquisition.frames))
+        .where(Acquisition.uid.in_(list(uids)))
+    )
+    return {row.uid: row for row in s.scalars(query)}
+
+
+def stored_results_many(
+    s: Session, wanted: Mapping[int, list[str]], *, page: int = 40
+) -> dict[int, dict[str, CachedResult]]:
+    """:func:`stored_results` for many acquisitions (id → chain keys), a few queries in all.
+
+    ``page`` acquisitions per query: databases limit the parameters of a statement; the
+    query goes by acquisition id first, the unique index's leading column.
+
+    Returns
+    -------
+    dict
+        Acquisition id → chain key → stored result (only acquisitions with some).
+    """
+    found: dict[int, dict[str, CachedResult]] = {}
+    ids = sorted(i for i, keys in wanted.items() if keys)
+    for start in range(0, len(ids), page):
+        chunk = ids[start : start + page]
+        keys = sorted({key for i in chunk for key in wanted[i]})
+        query = select(
+            StageResult.acquisition_id,
+            StageResult.chain_key,
+            StageResult.id,
+            StageResult.store_path,
+            StageResult.output_checksum,
+            StageResult.reason,
+        ).where(StageResult.acquisition_id.in_(chunk), StageResult.chain_key.in_(keys))
+        for acquisition_id, key, result_id, store_path, checksum, reason in s.execute(query):
+            if key in wanted[acquisition_id]:
+                found.setdefault(acquisition_id, {})[key] = CachedResult(
+                    result_id, store_path, checksum, reason
+                )
+    return found
 
 
 def raster_frame(acquisition: Acquisition, index: int | None) -> Frame:
