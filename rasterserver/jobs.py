@@ -214,7 +214,8 @@ def run_tasks(
     """Process ``tasks`` (index, uid) through ``targets`` on ``engine``: the coordinator loop.
 
     For each acquisition and target: :meth:`Pipeline.plan` here (catalogue only: the engine
-    reads the frame), the computing and the derived files on the engine
+    reads the frame; the first target of a page of new tasks with :meth:`Pipeline.plan_many`,
+    a few queries for the page), the computing and the derived files on the engine
     (:func:`rasterserver.worker.work`), the rows here, for every result that came back
     together in one transaction (:meth:`Pipeline.commit_many`); the next target is planned
     after the previous one is stored, so it reuses the stages they share. Rows are committed
