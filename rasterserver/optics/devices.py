@@ -13,7 +13,6 @@ import numpy as np
 from rasterserver.optics.distortion import (
     as_points,
     distort_normalized,
-    distortion_jacobian,
     undistort_normalized,
 )
 
@@ -289,17 +288,26 @@ class Projector(PinholeDevice):
         a = o @ self.R.T + self.t  # device coordinates of the origin
         b = d @ self.R.T  # device direction
         fy, cy = self.K[1, 1], self.K[1, 2]
+        k1, k2, p1, p2, k3 = (float(c) for c in self.dist)
+        # columns apart and only the v row of the distortion's Jacobian: the same arithmetic
+        # as distort_normalized / distortion_jacobian, without the u terms nobody reads
+        a0, a1, a2 = (np.ascontiguousarray(a[:, k]) for k in range(3))
+        b0, b1, b2 = (np.ascontiguousarray(b[:, k]) for k in range(3))
         s = s.copy()
         converged = np.zeros(s.shape, dtype=bool)
         for _ in range(max_iter):
-            pc = a + s[:, None] * b
+            z = a2 + s * b2
             with np.errstate(divide="ignore", invalid="ignore"):
-                x = pc[:, 0] / pc[:, 2]
-                y = pc[:, 1] / pc[:, 2]
-                dx = (b[:, 0] - x * b[:, 2]) / pc[:, 2]
-                dy = (b[:, 1] - y * b[:, 2]) / pc[:, 2]
+                x = (a0 + s * b0) / z
+                y = (a1 + s * b1) / z
+                dx = (b0 - x * b2) / z
+                dy = (b1 - y * b2) / z
             _, yd = distort_normalized(x, y, self.dist)
-            _, _, dyx, dyy = distortion_jacobian(x, y, self.dist)
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            dyx = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+            dyy = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
             g = fy * yd + cy - v_target
             dg = fy * (dyx * dx + dyy * dy)
             with np.errstate(divide="ignore", invalid="ignore"):
