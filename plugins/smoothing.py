@@ -85,9 +85,12 @@ def smooth_along_lines(
             points.reason, f"no line has {window} peaks in neighbouring columns"
         ))
 
+    # the peaks of each kept run, (window, runs): a gather of the few values averaged instead
+    # of a running sum over every peak (same means within float rounding, ~1e-13 mm)
+    members = order[idx[None, :] + np.arange(-half, half + 1)[:, None]]
+
     def mean(values: np.ndarray) -> np.ndarray:
-        sums = np.concatenate([[0.0], np.cumsum(values[order], dtype=np.float64)])
-        return (sums[idx + half + 1] - sums[idx - half]) / window
+        return values[members].sum(axis=0, dtype=np.float64) / window
 
     return Points(
         x=mean(points.x),
