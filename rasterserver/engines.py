@@ -39,11 +39,12 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: From how many acquisitions a job asked for without ``--dask``/``--scheduler`` starts a
-#: ``LocalCluster``; None: never. Measured on the 2-core development machine, shared and
-#: loaded (BENCHMARKS.md, "Reprocessing throughput", benchmarks/reprocess.py): with workers
-#: reading frames and writing files themselves, 1,000 acquisitions took 294 s in-process,
-#: 305 s on one local worker and 414 s on two; two cores leave no room for worker processes
-#: beside the coordinator and Dask's scheduler. Measure again on a machine with spare cores.
+#: ``LocalCluster``; None: never. Measured on the 2-core development machine, shared
+#: (BENCHMARKS.md, "Reprocessing throughput", benchmarks/reprocess.py): 1,000 acquisitions
+#: took 54 s in-process, 147 s on one local worker and 115 s on two (load ~2); a Dask worker
+#: spends more CPU per acquisition than the same work in-process, and two cores leave no
+#: room for worker processes beside the coordinator and Dask's scheduler. Measure again on a
+#: machine with spare cores.
 LOCAL_CLUSTER_MIN: int | None = None
 
 #: Acquisitions the in-process engine computes ahead of committing them (and plans in one
