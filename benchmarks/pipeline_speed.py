@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 import geometry_truth as gt  # noqa: E402
-from _machine import machine, write_section  # noqa: E402
+from _machine import BENCHMARKS_MD, machine, write_section  # noqa: E402
 from rasterserver_plugins.mesh import GridMesh  # noqa: E402
 from rasterserver_plugins.reconstruction import RayPlaneReconstruction  # noqa: E402
 from rasterserver_plugins.smoothing import LinearGridSurface  # noqa: E402
@@ -86,6 +86,18 @@ def _accuracy(scene: Any, results: dict[str, Any]) -> dict[str, float]:
         "grid": gt.rms(grid),
         "grid_p99": float(np.percentile(grid, 99)) if grid.size else float("nan"),
     }
+
+
+def _kept_paragraphs() -> str:
+    """The section's dated ``###`` paragraphs written by hand (A/B runs), kept on ``--write``."""
+    text = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else ""
+    start = text.find(f"## {TITLE}\n")
+    if start < 0:
+        return ""
+    end = text.find("\n## ", start + 1)
+    section = text[start : end if end >= 0 else len(text)]
+    sub = section.find("\n### Chain speed")
+    return "\n" + section[sub:].rstrip() + "\n" if sub >= 0 else ""
 
 
 def main() -> None:
@@ -219,7 +231,7 @@ built once per camera and process, ~0.3 s, not included above).
 """
     print(body)
     if args.write:
-        write_section(TITLE, body)
+        write_section(TITLE, body + _kept_paragraphs())
 
 
 if __name__ == "__main__":
