@@ -230,16 +230,13 @@ class RayPlaneReconstruction(Stage[NumberedLines, Points]):
         outside = int(np.count_nonzero(~in_image))
         numbered = numbered[in_image]
         col, row, number = col[in_image], row[in_image], data.number[numbered]
-        xyz = reconstruct_points(
-            station,
-            raster,
-            col,
-            row,
-            number,
-            tolerance=params.tolerance,
-            exact_rays=params.exact_rays,
+        # reconstruct_points inlined: the line positions are looked up once, not twice
+        v = line_positions(raster, number)
+        origins, directions = camera_rays(station.camera, col, row, exact=params.exact_rays)
+        xyz = station.projector.light_surface_intersection(
+            origins, directions, v, tol=params.tolerance
         )
-        unknown = np.isnan(line_positions(raster, number))
+        unknown = np.isnan(v)
         finite = np.isfinite(xyz).all(axis=1)
         with np.errstate(invalid="ignore"):
             inside = np.abs(xyz[:, 2]) <= params.depth_limit
