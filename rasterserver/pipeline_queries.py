@@ -71,7 +71,8 @@ class PipelineQueries:
         """Every pipeline run of ``uid``, oldest first.
 
         A ``running`` run of this host whose process is gone is marked interrupted first
-        (``failed``, error beginning :data:`~rasterserver.runner.INTERRUPTED`), so it is never listed as running.
+        (``failed``, error beginning :data:`~rasterserver.runner.INTERRUPTED`), so it is
+        never listed as running.
         """
         acquisition = self.archive.acquisition(uid)
         query = (

@@ -27,4 +27,5 @@ def test_there_are_modules_to_check() -> None:
 @pytest.mark.parametrize("path", _modules(), ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_module_is_not_over_the_limit(path: Path) -> None:
     lines = len(path.read_text(encoding="utf-8").splitlines())
-    assert lines <= LIMIT, f"{path.relative_to(ROOT)} has {lines} lines (limit {LIMIT}): split it by concept"
+    name = path.relative_to(ROOT)
+    assert lines <= LIMIT, f"{name} has {lines} lines (limit {LIMIT}): split it by concept"
