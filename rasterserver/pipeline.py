@@ -74,7 +74,7 @@ from rasterserver.result_rows import ProcessResult, StepOutcome, commit_rows
 from rasterserver.runner import INTERRUPTED, ReapReport, current_runner, reap_runs
 from rasterserver.stage import StageContext
 from rasterserver.store.derived import DerivedStore
-from rasterserver.worker import input_record, work
+from rasterserver.worker import input_record, store_computed, work
 
 __all__ = [
     "DEFAULT_TARGET",
@@ -466,29 +466,7 @@ class Pipeline(PipelineQueries):
         return results
 
     def _store_files(self, plan: Plan, computation: Computation) -> None:
-        missing = [s for s in plan.to_compute if s.kind not in computation.stored]
-        if not missing:
-            return
-        input_checksum = plan.input_checksum
-        for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
-            if step.kind in computation.stored:
-                input_checksum = computation.stored[step.kind][0].output_checksum
-                continue
-            result = self.derived.write(
-                plan.uid,
-                computation.records[step.kind],
-                stage=step.kind,
-                plugin=step.plugin,
-                plugin_version=step.version,
-                params=step.params,
-                params_hash=step.params_hash,
-                chain_key=key,
-                input_checksum=input_checksum,
-                sync_dir=False,
-            )
-            computation.stored[step.kind] = (result, input_checksum)
-            input_checksum = result.output_checksum
-        self.derived.sync(plan.uid)
+        store_computed(self.derived, plan, computation, plan.input_checksum)
 
     def _finish(self, result: ProcessResult, computation: Computation) -> None:
         final = computation.records.get(result.steps[-1].kind) if result.steps else None

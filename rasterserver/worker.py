@@ -94,12 +94,41 @@ def work(
     record = input_record(plan, root, derived)
     input_checksum = plan.input_checksum or record.content_hash()
     computation = compute(record, plan.to_compute, plan.context, registry=registry)
-    stored = {}
+    store_computed(derived, plan, computation, input_checksum)
+    if keep != "all":
+        last = plan.steps[-1].kind
+        computation.records = (
+            {last: computation.records[last]} if keep == "final" and plan.steps else {}
+        )
+    return computation
+
+
+def store_computed(
+    derived: DerivedStore, plan: Plan, computation: Computation, input_checksum: str
+) -> None:
+    """Write each computed step of ``plan`` not yet in ``computation.stored``, durably.
+
+    Parameters
+    ----------
+    derived : DerivedStore
+        Where the files go.
+    plan : Plan
+        The plan computed.
+    computation : Computation
+        Its records; ``stored`` gains each file written with the input checksum it was
+        computed from.
+    input_checksum : str
+        The checksum of the plan's input record (the first step's input).
+    """
+    if all(step.kind in computation.stored for step in plan.to_compute):
+        return
     for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
-        result = computation.records[step.kind]
+        if step.kind in computation.stored:
+            input_checksum = computation.stored[step.kind][0].output_checksum
+            continue
         written = derived.write(
             plan.uid,
-            result,
+            computation.records[step.kind],
             stage=step.kind,
             plugin=step.plugin,
             plugin_version=step.version,
@@ -109,15 +138,8 @@ def work(
             input_checksum=input_checksum,
             sync_dir=False,
         )
-        stored[step.kind] = (written, input_checksum)
+        computation.stored[step.kind] = (written, input_checksum)
         input_checksum = written.output_checksum
     # every result of the acquisition is in its one shard folder: one fsync makes the names
     # durable, before the coordinator may commit a row naming them
     derived.sync(plan.uid)
-    computation.stored = stored
-    if keep != "all":
-        last = plan.steps[-1].kind
-        computation.records = (
-            {last: computation.records[last]} if keep == "final" and plan.steps else {}
-        )
-    return computation
