@@ -106,6 +106,22 @@ def _message(exc: BaseException) -> str:
     return str(exc) if isinstance(exc, RasterServerError) else f"{type(exc).__name__}: {exc}"
 
 
+def _new_run(
+    acquisition: Acquisition, steps: Sequence[ChainStep], calibration_id: int | None
+) -> PipelineRun:
+    """A ``running`` run row of ``steps`` over ``acquisition``, naming this process."""
+    return PipelineRun(
+        acquisition_id=acquisition.id,
+        chain=[step.describe() for step in steps],
+        status="running",
+        started_at=_now(),
+        host=socket.gethostname(),
+        runner=current_runner(),
+        package_version=__version__,
+        calibration_id=calibration_id,
+    )
+
+
 class Pipeline(PipelineQueries):
     """Processing of archived acquisitions with stored results, provenance and reuse.
 
@@ -179,43 +195,21 @@ class Pipeline(PipelineQueries):
         """
         steps = self._steps(chain, params, until)
         acquisition = self.archive.acquisition(uid)
-        calibration_id: int | None = None
-        problem: BaseException | None = None
-        keys: list[str] = []
-        try:
-            frame = raster_frame(acquisition, frame_index)
-            inputs = self._inputs.get(acquisition, calibration)
-            calibration_id = inputs.row_id
-            check_frame_fits((frame.height, frame.width), inputs.station)
-            keys = chain_keys(
-                frame.sha256,
-                frame.index,
-                steps,
-                calibration_sha=inputs.sha256,
-                raster_sha=inputs.raster_sha256,
-            )
-        except Exception as exc:  # recorded in the run below, then raised
-            problem = exc
+        frame, inputs, calibration_id, keys, problem = self._keyed(
+            acquisition, frame_index, calibration, steps
+        )
         # one transaction: the run opened and the stored results looked up
         with self.archive.session() as s:
             # a run its killed process left "running" must not look like work in progress
             # beside the new one
             reap_runs(s, acquisition_id=acquisition.id, local_only=True)
-            run = PipelineRun(
-                acquisition_id=acquisition.id,
-                chain=[step.describe() for step in steps],
-                status="running",
-                started_at=_now(),
-                host=socket.gethostname(),
-                runner=current_runner(),
-                package_version=__version__,
-                calibration_id=calibration_id,
-            )
+            run = _new_run(acquisition, steps, calibration_id)
             s.add(run)
             stored = stored_results(s, acquisition.id, keys) if keys else {}
         try:
             if problem is not None:
                 raise problem
+            assert frame is not None and inputs is not None  # no problem: both were found
             return self._plan(acquisition, run.id, steps, keys, stored, frame, inputs, load_input)
         except BaseException as exc:
             self.fail(run.id, exc)
@@ -277,34 +271,10 @@ class Pipeline(PipelineQueries):
                     outcomes.append(NotFoundError(f"unknown acquisition {uid}"))
                     continue
                 outcomes.append(NotFoundError(uid))  # replaced below
-                calibration_id: int | None = None
-                problem: BaseException | None = None
-                keys: list[str] = []
-                frame = inputs = None
-                try:
-                    frame = raster_frame(acquisition, frame_index)
-                    inputs = self._inputs.get(acquisition, calibration)
-                    calibration_id = inputs.row_id
-                    check_frame_fits((frame.height, frame.width), inputs.station)
-                    keys = chain_keys(
-                        frame.sha256,
-                        frame.index,
-                        steps,
-                        calibration_sha=inputs.sha256,
-                        raster_sha=inputs.raster_sha256,
-                    )
-                except Exception as exc:  # recorded in its run, then reported
-                    problem = exc
-                run = PipelineRun(
-                    acquisition_id=acquisition.id,
-                    chain=[step.describe() for step in steps],
-                    status="running",
-                    started_at=_now(),
-                    host=socket.gethostname(),
-                    runner=current_runner(),
-                    package_version=__version__,
-                    calibration_id=calibration_id,
+                frame, inputs, calibration_id, keys, problem = self._keyed(
+                    acquisition, frame_index, calibration, steps
                 )
+                run = _new_run(acquisition, steps, calibration_id)
                 if problem is not None:
                     run.status, run.finished_at = "failed", _now()
                     run.error = _message(problem)[:10_000]
@@ -331,6 +301,36 @@ class Pipeline(PipelineQueries):
                 self.fail(run.id, exc)
                 outcomes[position] = exc
         return outcomes
+
+    def _keyed(
+        self,
+        acquisition: Acquisition,
+        frame_index: int | None,
+        calibration: tuple[str, int | None] | None,
+        steps: list[ChainStep],
+    ) -> tuple[Frame | None, ChainInputs | None, int | None, list[str], BaseException | None]:
+        """The frame, calibration inputs and chain keys of one acquisition, or the problem.
+
+        A problem is returned, not raised: the caller records it in the acquisition's run.
+        """
+        frame: Frame | None = None
+        inputs: ChainInputs | None = None
+        calibration_id: int | None = None
+        try:
+            frame = raster_frame(acquisition, frame_index)
+            inputs = self._inputs.get(acquisition, calibration)
+            calibration_id = inputs.row_id
+            check_frame_fits((frame.height, frame.width), inputs.station)
+            keys = chain_keys(
+                frame.sha256,
+                frame.index,
+                steps,
+                calibration_sha=inputs.sha256,
+                raster_sha=inputs.raster_sha256,
+            )
+        except Exception as exc:
+            return frame, inputs, calibration_id, [], exc
+        return frame, inputs, calibration_id, keys, None
 
     def _steps(
         self,
