@@ -28,6 +28,8 @@ from packaging.utils import canonicalize_name
 BUILD_TOOLS = {"pip": metadata.version("pip"), "setuptools": "84.2.1", "wheel": "0.48.0"}
 
 ROOT = "rasterserver"
+#: The extras the Dockerfile installs (the HTTP server and Dask): pinned like the rest.
+IMAGE_EXTRAS = frozenset({"server", "dask"})
 
 
 def closure(root: str) -> dict[str, str]:
@@ -51,7 +53,7 @@ def closure(root: str) -> dict[str, str]:
     pinned: dict[str, str] = {}
     # (distribution, extras asked of it); a package reached again with new extras is walked
     # again, since an extra can add requirements (uvicorn[standard], dask[distributed]).
-    todo: list[tuple[str, frozenset[str]]] = [(root, frozenset())]
+    todo: list[tuple[str, frozenset[str]]] = [(root, IMAGE_EXTRAS)]
     seen: set[tuple[str, frozenset[str]]] = set()
     while todo:
         name, extras = todo.pop()
