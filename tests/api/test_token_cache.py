@@ -29,6 +29,8 @@ pytestmark = pytest.mark.timeout(60)
 
 # how long a notification may take to arrive before a test fails (it takes milliseconds)
 DELIVERY_S = 2.0
+# how long close() may take (documented: about a second; a 30 s back-off must not count)
+CLOSE_S = 1.5
 
 
 @pytest.fixture
@@ -253,7 +255,9 @@ def test_close_is_prompt_listening_or_reconnecting(pg_archive: Archive, gate: Ga
     pid = listening.backend_pid
     started = time.monotonic()
     listening.close()
-    assert time.monotonic() - started < 0.5
+    # the promise is "within about a second" (close() joins for at most 1 s): the thread
+    # having ended is the real check; the bound leaves room for a loaded CI machine
+    assert time.monotonic() - started < CLOSE_S
     assert not listening._thread.is_alive() and not listening.listening
     assert listening.get("0" * 64) is None
     listening.close()  # twice is harmless
@@ -268,7 +272,7 @@ def test_close_is_prompt_listening_or_reconnecting(pg_archive: Archive, gate: Ga
     assert not failing.wait_listening(0.05)
     started = time.monotonic()
     failing.close()
-    assert time.monotonic() - started < 0.5 and not failing._thread.is_alive()
+    assert time.monotonic() - started < CLOSE_S and not failing._thread.is_alive()
 
 
 def test_sqlite_has_no_cache(tmp_path: Path) -> None:
