@@ -15,18 +15,20 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rasterserver.chain import Computation, Plan
 from rasterserver.pipeline import Pipeline
-from rasterserver.worker import work
+from rasterserver.worker import work, work_batch
 
 if TYPE_CHECKING:
     from distributed import Client
 
 __all__ = [
+    "DASK_BATCH",
     "IN_PROCESS_BATCH",
     "LOCAL_CLUSTER_MIN",
+    "LOCAL_WORKER_CONFIG",
     "Engine",
     "InProcess",
     "OnDask",
@@ -46,6 +48,24 @@ log = logging.getLogger(__name__)
 #: room for worker processes beside the coordinator and Dask's scheduler. Measure again on a
 #: machine with spare cores.
 LOCAL_CLUSTER_MIN: int | None = None
+
+#: Dask settings of the workers of a ``LocalCluster`` (a nanny hands its process's Dask
+#: configuration to the worker it spawns, so they are set here, not in the environment).
+#: Measured on the 2-core machine (BENCHMARKS.md, "Reprocessing throughput"): with Dask's
+#: defaults one worker spent 344 ms of CPU per acquisition, 195 of them in the kernel, against
+#: ~100 in-process. ``MALLOC_TRIM_THRESHOLD_``, which Dask sets for every worker to give memory
+#: back sooner, also switches off glibc's adaptive mmap threshold: every array above 128 KiB
+#: is then mapped and unmapped afresh, and each first touch of its pages faults. The
+#: statistical profiler samples the computing thread every 10 ms for a dashboard this cluster
+#: does not serve. A real cluster's workers (``--scheduler``) take their own configuration:
+#: docs/jobs.md and docker/ give the same two settings.
+LOCAL_WORKER_CONFIG: dict[str, object] = {
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+    "distributed.worker.profile.enabled": False,
+}
+
+#: Acquisitions to a Dask task (:func:`rasterserver.worker.work_batch`).
+DASK_BATCH = 8
 
 #: Acquisitions the in-process engine computes ahead of committing them (and plans in one
 #: page, :meth:`rasterserver.pipeline.Pipeline.plan_many`).
@@ -69,6 +89,9 @@ class Engine:
     def submit(self, plan: Plan) -> cf.Future[Computation]:
         """Start computing what ``plan`` has not stored; a future of its :class:`Computation`."""
         raise NotImplementedError
+
+    def flush(self) -> None:
+        """Start what :meth:`submit` may hold back; the coordinator calls it before waiting."""
 
 
 class InProcess(Engine):
@@ -102,7 +125,10 @@ class OnDask(Engine):
 
     Workers read the raw frame and write the derived files themselves
     (:func:`rasterserver.worker.work`): the archive must be at the same path on every worker
-    (shared storage), ``root`` says where.
+    (shared storage), ``root`` says where. Plans are sent :data:`DASK_BATCH` to a task
+    (:func:`rasterserver.worker.work_batch`): a Dask task costs the coordinator and the
+    scheduler milliseconds of their own, which a batch shares; :meth:`flush` sends a batch
+    not yet full before the coordinator waits.
 
     Parameters
     ----------
@@ -113,27 +139,65 @@ class OnDask(Engine):
     root : Path
         The archive root as the workers see it.
     in_flight : int, optional
-        Acquisitions submitted ahead; by default four times the cluster's worker threads, so
-        that every worker has the next acquisitions waiting while the coordinator commits a
-        batch.
+        Acquisitions submitted ahead; by default three batches per worker thread, so that
+        every worker has the next batch waiting while the coordinator commits rows.
+    batch : int, optional
+        Acquisitions to a task (default :data:`DASK_BATCH`).
     """
 
     def __init__(
-        self, client: Client, *, name: str, root: Path, in_flight: int | None = None
+        self,
+        client: Client,
+        *,
+        name: str,
+        root: Path,
+        in_flight: int | None = None,
+        batch: int | None = None,
     ) -> None:
         self.client = client
         self.name = name
         self.root = str(root)
+        self.batch = max(1, batch or DASK_BATCH)
         if in_flight is None:
             threads = sum(client.nthreads().values()) or 1
-            in_flight = max(8, 4 * threads)
+            in_flight = max(8, 3 * self.batch * threads)
         self.in_flight = max(1, in_flight)
-        # concurrent.futures futures: the loop waits on them as on the in-process ones
-        self._executor = client.get_executor(pure=False)
+        self.batch = min(self.batch, self.in_flight)
+        self._waiting: list[tuple[Plan, cf.Future[Computation]]] = []
 
     def submit(self, plan: Plan) -> cf.Future[Computation]:
-        """Send the plan (chain, keys, station data; no pixels) to a worker."""
-        return self._executor.submit(work, plan, self.root)
+        """Queue the plan (chain, keys, station data; no pixels) for a worker: sent with its
+        batch when the batch is full or at :meth:`flush`."""
+        future: cf.Future[Computation] = cf.Future()
+        self._waiting.append((plan, future))
+        if len(self._waiting) >= self.batch:
+            self.flush()
+        return future
+
+    def flush(self) -> None:
+        """Send the queued plans as one task."""
+        if not self._waiting:
+            return
+        batch, self._waiting = self._waiting, []
+        task = self.client.submit(
+            work_batch, [plan for plan, _f in batch], self.root, pure=False
+        )
+
+        def settle(task: Any) -> None:
+            # on the client's event loop: hand each acquisition its own outcome
+            try:
+                outcomes = task.result()
+            except BaseException as exc:  # the task itself failed (a worker lost too often)
+                outcomes = [exc] * len(batch)
+            for (_plan, future), outcome in zip(batch, outcomes, strict=True):
+                if future.done():  # cancelled by the coordinator meanwhile
+                    continue
+                if isinstance(outcome, BaseException):
+                    future.set_exception(outcome)
+                else:
+                    future.set_result(outcome)
+
+        task.add_done_callback(settle)
 
 
 def quiet_dask_logs() -> None:
@@ -171,18 +235,17 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
     distributed.Client
     """
     quiet_dask_logs()
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler:
         with Client(scheduler) as client:
             yield client
         return
-    # a worker samples its own stack every 10 ms for the dashboard's profile, which this
-    # cluster does not serve: a few percent of every core for nothing
-    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
     # one thread per worker: the stages are numpy code that is fastest single-threaded
     # per frame, and parallel across frames
     with (
+        dask.config.set(LOCAL_WORKER_CONFIG),
         LocalCluster(
             n_workers=n_workers or os.cpu_count() or 1,
             threads_per_worker=1,

@@ -335,6 +335,7 @@ def run_tasks(
             for task, plan in zip(page, first, strict=True):
                 advance(task, plan)
             stopping = ask()
+        engine.flush()  # before waiting: an engine may hold submissions back to batch them
         if begun and started is not None:
             started(begun)
         if stopping == "cancelled":

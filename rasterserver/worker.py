@@ -30,7 +30,7 @@ from rasterserver.registry import Registry, get_registry
 from rasterserver.store.derived import DerivedStore
 from rasterserver.store.raw import RawStore
 
-__all__ = ["input_record", "work"]
+__all__ = ["input_record", "work", "work_batch"]
 
 
 def input_record(plan: Plan, root: Path, derived: DerivedStore) -> Record:
@@ -101,6 +101,36 @@ def work(
             {last: computation.records[last]} if keep == "final" and plan.steps else {}
         )
     return computation
+
+
+def work_batch(plans: list[Plan], root: Path | str) -> list[Computation | Exception]:
+    """:func:`work` on each of ``plans``, in order: one Dask task for several acquisitions.
+
+    A task costs the coordinator and the scheduler a few milliseconds whatever it computes;
+    several acquisitions to a task share that cost. One acquisition's failure is returned in
+    its place (as its exception) and does not stop the others. A worker killed mid-batch has
+    the whole batch redone elsewhere; the files already written are adopted (their names are
+    their chain keys), so redoing is idempotent.
+
+    Parameters
+    ----------
+    plans : list of Plan
+        From :meth:`rasterserver.pipeline.Pipeline.plan`.
+    root : Path or str
+        The archive root as this process sees it.
+
+    Returns
+    -------
+    list of Computation or Exception
+        One per plan.
+    """
+    out: list[Computation | Exception] = []
+    for plan in plans:
+        try:
+            out.append(work(plan, root))
+        except Exception as exc:  # reported for this acquisition alone
+            out.append(exc)
+    return out
 
 
 def store_computed(
