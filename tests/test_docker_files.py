@@ -7,11 +7,13 @@ docs/deployment.md).
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import shutil
 import struct
 import subprocess
+import sys
 import tomllib
 from importlib import metadata
 from pathlib import Path
@@ -286,3 +288,35 @@ def test_check_rootfs_script_parses_and_cleans_up() -> None:
     assert "trap cleanup EXIT" in text and "umount" in text
     helper = DOCKER / "rootfs_check.py"
     compile(helper.read_text(), str(helper), "exec")  # no __pycache__ left in docker/
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for key, value in tree.items():
+        name = f"{prefix}.{key}" if prefix else key
+        out.update(_flatten(value, name) if isinstance(value, dict) else {name: value})
+    return out
+
+
+def test_the_image_gives_its_dask_workers_the_settings_of_the_local_cluster() -> None:
+    from rasterserver.engines import LOCAL_WORKER_CONFIG
+
+    assert ("COPY", "docker/dask.yaml /etc/dask/rasterserver.yaml") in instructions()
+    settings = _flatten(yaml.safe_load((DOCKER / "dask.yaml").read_text()))
+    assert settings == LOCAL_WORKER_CONFIG
+
+
+def test_the_dask_settings_file_takes_effect_in_a_worker_process(tmp_path: Path) -> None:
+    # what a `dask worker` of the image reads: the nanny's environment for the worker and
+    # the profiler switch, in a fresh interpreter pointed at the file as /etc/dask would be
+    shutil.copy(DOCKER / "dask.yaml", tmp_path / "rasterserver.yaml")
+    script = (
+        "import dask, distributed; from distributed.nanny import _get_env_variables as e;"
+        "print(sorted(e('distributed.nanny.pre-spawn-environ')),"
+        " dask.config.get('distributed.worker.profile.enabled'))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], check=True, capture_output=True, text=True,
+        env={**os.environ, "DASK_CONFIG": str(tmp_path)},
+    ).stdout.split()
+    assert "'MALLOC_TRIM_THRESHOLD_'," not in out and out[-1] == "False"
