@@ -41,13 +41,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: From how many acquisitions a job asked for without ``--dask``/``--scheduler`` starts a
-#: ``LocalCluster``; None: never. Measured on the 2-core development machine, shared
-#: (BENCHMARKS.md, "Reprocessing throughput", benchmarks/reprocess.py): 1,000 acquisitions
-#: took 54 s in-process, 147 s on one local worker and 115 s on two (load ~2); a Dask worker
-#: spends more CPU per acquisition than the same work in-process, and two cores leave no
-#: room for worker processes beside the coordinator and Dask's scheduler. Measure again on a
-#: machine with spare cores.
-LOCAL_CLUSTER_MIN: int | None = None
+#: ``LocalCluster`` (one single-threaded worker per core; only with two cores or more); None:
+#: never. Measured on the 2-core development machine (BENCHMARKS.md, "Reprocessing
+#: throughput", benchmarks/reprocess.py, 2026-11-24): 1,000 acquisitions took 140 s
+#: in-process, 137 s on one local worker and 88 s on two (1.60x), and the cluster takes
+#: ~5.5 s to start and import the plugins: it pays for itself from ~110 acquisitions, so
+#: from 200 with room for a busier machine.
+LOCAL_CLUSTER_MIN: int | None = 200
 
 #: Dask settings of the workers of a ``LocalCluster`` (a nanny hands its process's Dask
 #: configuration to the worker it spawns, so they are set here, not in the environment).
@@ -270,7 +270,8 @@ def engine_name(
     An explicit ``scheduler`` wins; ``dask=False`` computes here; ``dask=True`` uses
     ``default_scheduler`` (``RASTERSERVER_DASK_SCHEDULER``) or a ``LocalCluster``. Unsaid
     (``dask=None``): one acquisition is computed here; more go to ``default_scheduler`` if
-    one is set, else to a ``LocalCluster`` only from :data:`LOCAL_CLUSTER_MIN` acquisitions.
+    one is set, else to a ``LocalCluster`` from :data:`LOCAL_CLUSTER_MIN` acquisitions on a
+    machine of two cores or more.
     """
     if scheduler:
         return scheduler
@@ -282,7 +283,11 @@ def engine_name(
         return "in-process"
     if default_scheduler:
         return default_scheduler
-    if LOCAL_CLUSTER_MIN is not None and count >= LOCAL_CLUSTER_MIN:
+    if (
+        LOCAL_CLUSTER_MIN is not None
+        and count >= LOCAL_CLUSTER_MIN
+        and (os.cpu_count() or 1) >= 2  # one worker on one core gains nothing
+    ):
         return "local-cluster"
     return "in-process"
 

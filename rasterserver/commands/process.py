@@ -96,8 +96,8 @@ def process(
             "--dask/--no-dask",
             help="Compute on Dask (RASTERSERVER_DASK_SCHEDULER if set, else a local cluster), "
             "or here. Default: here for one acquisition; for more, on "
-            "RASTERSERVER_DASK_SCHEDULER if set, else here (a local cluster is slower on a "
-            "small machine: see docs/jobs.md).",
+            "RASTERSERVER_DASK_SCHEDULER if set, else here below 200 acquisitions and on a "
+            "local cluster from 200 (see docs/jobs.md).",
             show_default=False,
         ),
     ] = None,

@@ -34,6 +34,17 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+def server_dask(archive: Archive) -> bool | None:
+    """How a job started by the HTTP server computes: on ``RASTERSERVER_DASK_SCHEDULER`` if
+    one is set, else in the server's own process (``dask`` of
+    :func:`rasterserver.processing_jobs.run_job`).
+
+    A server's threads do not start a local cluster of worker processes beside the web
+    server, whatever the job's size: a clinic that wants more sets up a scheduler.
+    """
+    return None if archive.settings.dask_scheduler else False
+
+
 class JobRunner:
     """Runs processing jobs in ``workers`` background threads of this process.
 
@@ -73,7 +84,7 @@ class JobRunner:
 
         def run() -> None:
             try:
-                run_job(self.archive, job_id)
+                run_job(self.archive, job_id, dask=server_dask(self.archive))
             except RasterServerError as exc:  # recorded in the row by run_job
                 log.warning("processing job %s stopped: %s", job_id, exc)
             except Exception:

@@ -23,6 +23,7 @@ from rasterserver.processing_jobs import (
     pause_job,
     run_job,
 )
+from rasterserver.services.jobs import server_dask
 
 router = protected_router("jobs")
 log = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ def resume(job_id: JobId, svc: ServicesDep, note: NoteDep) -> JobOut:
 
     def run() -> None:
         try:
-            run_job(archive, job_id)
+            run_job(archive, job_id, dask=server_dask(archive))
         except RasterServerError as exc:  # recorded in the row by run_job
             log.warning("processing job %s stopped: %s", job_id, exc)
         except Exception:
