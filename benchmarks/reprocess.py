@@ -246,7 +246,8 @@ def main() -> None:
                      f"{two.rate / inproc.rate:.2f}× the acquisitions per second.")
     if two and two.loop_cpu:
         loop = 1000 * two.loop_cpu / two.count
-        work = 1000 * two.worker_cpu / two.count / 2
+        # a worker's CPU per acquisition it computes: the workers' CPU over the acquisitions
+        work = 1000 * two.worker_cpu / two.count
         lines.append(
             f"Cluster estimate: the coordinator's loop (planning, committing rows; its main "
             f"thread) spends {loop:.1f} ms of CPU per acquisition, a worker {work:.0f} ms; one "
