@@ -70,7 +70,7 @@ from rasterserver.plan_inputs import (
 )
 from rasterserver.records import Record
 from rasterserver.registry import Registry, get_registry
-from rasterserver.result_rows import ProcessResult, StepOutcome, commit_rows
+from rasterserver.result_rows import ProcessResult, StepOutcome, commit_rows, commit_rows_many
 from rasterserver.runner import INTERRUPTED, ReapReport, current_runner, reap_runs
 from rasterserver.stage import StageContext
 from rasterserver.store.derived import DerivedStore
@@ -437,7 +437,19 @@ class Pipeline(PipelineQueries):
             ready.append(position)
         try:
             with self.archive.session() as s:
-                for position in ready:
+                one_by_one = ready
+                try:
+                    # all acquisitions' rows in a few statements; a row another process
+                    # stored meanwhile (rare), or any other failure, undoes them all, and
+                    # they go one by one below, each failing alone
+                    with s.begin_nested():
+                        fast = commit_rows_many(s, [done[position] for position in ready])
+                    for position, result in zip(ready, fast, strict=True):
+                        outcomes[position] = result
+                    one_by_one = []
+                except Exception:
+                    log.debug("bulk insert of %d acquisitions' rows undone", len(ready))
+                for position in one_by_one:
                     plan, computation = done[position]
                     try:
                         try:
