@@ -28,6 +28,7 @@ __all__ = [
     "locally_contradicted",
     "observed_kinds",
     "reliability",
+    "robust_centres",
 ]
 
 
@@ -100,8 +101,27 @@ def level_statistics(
         return empty
     comp, level = comp_of[k], lev_of[k]
     span = int(lev_of.max()) + 2
-    key = comp * span + level
-    # Keys are small (components x levels): count by key directly, no sort.
+    groups, centre, counts, spread = robust_centres(comp * span + level, lr)
+    return groups // span, groups % span, centre, counts, spread
+
+
+def robust_centres(
+    key: np.ndarray, lr: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust centre of the log ratios ``lr`` sharing a key, their count and spread.
+
+    Parameters
+    ----------
+    key : numpy.ndarray
+        Non-negative int64 group of every ratio (small: counted by ``bincount``).
+    lr : numpy.ndarray
+        Column log area ratios.
+
+    Returns
+    -------
+    groups, centre, count, spread : numpy.ndarray
+        One entry per key present, ascending.
+    """
     n_keys = int(key.max()) + 1
     counts = np.bincount(key, minlength=n_keys)
     # A robust centre without sorting: the mean of the clipped ratios, then twice the mean
@@ -118,7 +138,7 @@ def level_statistics(
         counts, 1
     )
     groups = np.flatnonzero(counts)
-    return groups // span, groups % span, centre[groups], counts[groups], spread[groups]
+    return groups, centre[groups], counts[groups], spread[groups]
 
 
 @dataclass(frozen=True)

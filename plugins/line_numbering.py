@@ -42,6 +42,7 @@ from .code_evidence import (
     observed_kinds,
     reliability,
 )
+from .code_tiles import contradicted_lines
 from .numbering_checks import (
     by_line,
     column_order_conflicts,
@@ -83,6 +84,8 @@ def number_lines(
     max_depth: float = 600.0,
     pair_check: bool = True,
     min_contact_share: float = 0.2,
+    tile_check: bool = True,
+    tile_band: int = 64,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -135,6 +138,11 @@ def number_lines(
         Least contact weight, as a share of a component's column extent, for it to inherit
         a number: a wide component touching numbered lines at a corner only (across a
         waistband's depth step) is refused.
+    tile_check : bool
+        Leave unnumbered the lines lying mostly where the code read in their own columns
+        contradicts their component's placement (:func:`.code_tiles.contradicted_lines`).
+    tile_band : int
+        Width (columns) of a code tile.
 
     Returns
     -------
@@ -351,6 +359,40 @@ def number_lines(
         if off >= 0:
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
+    if tile_check:
+        off_stack = contradicted_lines(
+            data.col,
+            data.area,
+            data.line_id,
+            data.line_order,
+            data.line_component,
+            offset,
+            code,
+            raster.window,
+            lam=lam,
+            tolerance=tolerance,
+            min_margin=min_margin,
+            max_cost_rate=max_cost_rate,
+            min_columns=min_columns,
+            correlation=correlation,
+            band=tile_band,
+        )
+        off_stack &= line_number >= 0
+        if np.any(off_stack):
+            line_number[off_stack] = -1
+            results.append(
+                ComponentNumbering(
+                    -1,
+                    int(off_stack.sum()),
+                    -1,
+                    float("nan"),
+                    0.0,
+                    np.zeros(0, np.int8),
+                    f"{int(off_stack.sum())} line(s) lying where the code read in their own "
+                    "columns contradicts their component's placement (a block ordered a "
+                    "level off, as below a waistband) left unnumbered",
+                )
+            )
     if local_refused:
         results.append(
             ComponentNumbering(
@@ -462,11 +504,16 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     a fifth of its width (``min_votes``, ``min_contact_share``). Peaks where their line
     jumps by 0.3 of a spacing between neighbouring columns are refused
     (:func:`.numbering_checks.line_jumps`).
+    Version 5: the code is read again in tiles of every numbered component (64 columns by
+    twice the code window in levels, :mod:`.code_tiles`); a line lying mostly in tiles whose
+    own code contradicts the component's placement is left unnumbered (a block of lines
+    ordered a level off below a waistband, which the component's code fit and the pair
+    check miss).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "4"
+    version: ClassVar[str] = "5"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -518,6 +565,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             description="Least contact columns, as a share of a component's width, to inherit.",
         )
 
+        tile_check: bool = Field(
+            True,
+            description="Refuse lines where the code read in their own columns contradicts "
+            "their component's placement.",
+        )
+        tile_band: int = Field(64, ge=8, description="Width (columns) of a code tile.")
+
     def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
         """Number the lines of ``data`` with the raster from ``context.raster`` (and the
         calibration from ``context.calibration`` for the distance test, when it is a
@@ -545,6 +599,8 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             station=station,
             max_depth=params.max_depth,
             min_contact_share=params.min_contact_share,
+            tile_check=params.tile_check,
+            tile_band=params.tile_band,
         )
         lid = data.line_id
         comps = data.line_component

@@ -346,7 +346,7 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "4"
+    assert CodeWindowNumbering.version == "5"
 
 
 def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> None:
@@ -355,7 +355,7 @@ def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> 
     cannot see the step). The component's code, read over all its columns, is unmoved; the
     pieces' intensity ratios with their column neighbours contradict their numbers, except
     where the code two lines on happens to have the same kinds on both sides of a piece:
-    those stay wrong (the remaining wrong numbers on the clinic scenes)."""
+    those stay wrong with the pair check alone; the code read in tiles refuses them all."""
     from rasterserver_plugins.line_numbering import number_lines
 
     col, row, area, number = truth_lines(back("normal"))
@@ -386,8 +386,9 @@ def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> 
     truth = np.concatenate([numbers, numbers])
     pieces = np.arange(n_lines, 2 * n_lines)[numbers >= cut]
     raster = rendering_raster()
-    naive, _, _ = number_lines(bad, raster, pair_check=False)
-    checked, _, comps = number_lines(bad, raster)
+    naive, _, _ = number_lines(bad, raster, pair_check=False, tile_check=False)
+    checked, _, comps = number_lines(bad, raster, tile_check=False)
+    tiled, _, tile_comps = number_lines(bad, raster)
     assert np.count_nonzero((naive[pieces] >= 0) & (naive[pieces] != truth[pieces])) >= 8
     assert not np.any((checked >= 0) & (checked != truth) & (np.arange(truth.size) < n_lines))
     naive_wrong = np.count_nonzero((naive[pieces] >= 0) & (naive[pieces] != truth[pieces]))
@@ -395,3 +396,9 @@ def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> 
     assert wrong <= naive_wrong // 2
     assert np.count_nonzero(checked[:n_lines] >= 0) >= n_lines - 3
     assert any("intensity ratio" in c.reason for c in comps)
+    # read in their own columns (the code tiles, version 5), the pieces contradict the
+    # component's placement as a block: none stays wrong, every whole line keeps its number
+    assert not np.any((tiled[pieces] >= 0) & (tiled[pieces] != truth[pieces]))
+    assert not np.any((tiled[:n_lines] >= 0) & (tiled[:n_lines] != truth[:n_lines]))
+    assert np.count_nonzero(tiled[:n_lines] >= 0) >= n_lines - 1
+    assert any("in their own columns" in c.reason for c in tile_comps)
