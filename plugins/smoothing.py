@@ -81,9 +81,10 @@ def smooth_along_lines(
     centre = (pos >= half) & ((pos - half) % step == 0) & (pos + half < run_len[run])
     idx = np.flatnonzero(centre)
     if idx.size == 0:
-        return points.take(np.zeros(0, dtype=np.intp), reason=_join(
-            points.reason, f"no line has {window} peaks in neighbouring columns"
-        ))
+        return points.take(
+            np.zeros(0, dtype=np.intp),
+            reason=_join(points.reason, f"no line has {window} peaks in neighbouring columns"),
+        )
 
     # the peaks of each kept run, (window, runs): a gather of the few values averaged instead
     # of a running sum over every peak (same means within float rounding, ~1e-13 mm)
@@ -109,9 +110,7 @@ def _join(*parts: str) -> str:
     return "; ".join(p for p in parts if p)
 
 
-def _grid_frame(
-    x: np.ndarray, y: np.ndarray, spacing: float
-) -> tuple[float, float, int, int]:
+def _grid_frame(x: np.ndarray, y: np.ndarray, spacing: float) -> tuple[float, float, int, int]:
     x0 = float(np.floor(x.min() / spacing) * spacing)
     y0 = float(np.floor(y.min() / spacing) * spacing)
     nx = int(np.floor((x.max() - x0) / spacing)) + 1

@@ -73,9 +73,9 @@ def test_interpolated_rays_match_exact_rays() -> None:
     row = rng.uniform(-0.5, h - 0.5, 5000)
     origins, directions = camera_rays(station.camera, col, row)
     # re-projecting the interpolated ray must land on the pixel it was made for
-    uv = station.camera.project(origins + 2000.0 * directions / np.linalg.norm(
-        directions, axis=1, keepdims=True
-    ))
+    uv = station.camera.project(
+        origins + 2000.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    )
     assert np.abs(uv[:, 0] - col).max() < 1e-4
     assert np.abs(uv[:, 1] - row).max() < 1e-4
     lines = _lines("back", noise=0.1)
