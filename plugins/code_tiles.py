@@ -148,9 +148,10 @@ def contradicted_lines(
     diff_idx[: n_code - 1] = (code[:-1].astype(np.int64) - code[1:].astype(np.int64)) + 1
     place = np.arange(n_code)[:, None] + np.arange(span)[None, :]  # (offsets, span)
     idx = diff_idx[place]
-    cost = np.zeros((tiles.size, n_code))
-    for j in range(span):
-        cost += c3[:, j, :][:, idx[:, j]]
+    # cost[t, o] = sum_j c3[t, j, idx[o, j]]: one product with the placements' one-hot
+    one_hot = np.zeros((span, 4, n_code))
+    one_hot[np.arange(span)[None, :], idx, np.arange(n_code)[:, None]] = 1.0
+    cost = c3.reshape(tiles.size, span * 4) @ one_hot.reshape(span * 4, n_code)
     # a placement must keep every measured difference on the code
     last = span - 1 - np.argmax((w > 0)[:, ::-1], axis=1)
     cost[np.arange(n_code)[None, :] > (n_code - 2 - last)[:, None]] = np.inf
@@ -168,15 +169,20 @@ def contradicted_lines(
     pc, pl, pb = comp[pk], lev[pk], col[pk].astype(np.int64) // step
     n_judged = np.zeros(pk.size, dtype=np.int64)
     n_bad = np.zeros(pk.size, dtype=np.int64)
-    bad_tiles = tiles[bad]
+    # 0: not judged, 1: judged, 2: contradicting; by tile key
+    status = np.zeros(int(tiles.max()) + 1, dtype=np.int8)
+    status[tiles] = 1
+    status[tiles[bad]] = 2
     for db in (0, 1):
         for dw in (0, 1):
             b = pb - db
             win = pl // window - dw
             ok = (b >= 0) & (win >= 0) & (pl - win * window <= span)
             tile = (pc * n_bands + b) * n_wins + win
-            n_judged += ok & np.isin(tile, tiles)
-            n_bad += ok & np.isin(tile, bad_tiles)
+            st = np.where(ok, status[np.clip(tile, 0, status.size - 1)], 0)
+            st[ok & (tile >= status.size)] = 0
+            n_judged += st >= 1
+            n_bad += st == 2
     # a peak is contradicted when any judged tile holding it is: the tiles overlap by
     # half, so the block's edges lie in mixed tiles that may read as neither placement
     hit = n_bad > 0
