@@ -1,23 +1,27 @@
-"""The code read in tiles of a numbered component: blocks of lines placed a level off.
+"""The code read in column bands of a numbered component: blocks of lines placed levels off.
 
 Line sequence analysis links lines by their neighbourhoods in the image. Where a depth step
-hides exactly one raster line over a stretch (the upper edge of a waistband, a fold), the
-lines on either side look like consecutive ones, and a whole block (the cloth below the
-waistband) is ordered one or two levels off, consistently, inside its component. The
-component's code fit does not see it: its level differences mix, at the same levels, the
-block's lines with correctly placed lines elsewhere in the image, and the rest outvote them.
-The pair check sees only the pairs whose kinds happen to disagree at the wrong place.
+hides one or more raster lines over a stretch (the upper edge of a waistband, a fold), or
+the light lines of a dark cloth are too dim to be found, the lines on either side look like
+consecutive ones, and a whole block (the cloth below the waistband) is ordered one or more
+levels off, consistently, inside its component. The component's code fit does not see it:
+its level differences mix, at the same levels, the block's lines with correctly placed
+lines elsewhere in the image, and the rest outvote them. The pair check sees only the pairs
+whose kinds happen to disagree at the wrong place.
 
-So the code is read again in **tiles** of each numbered component: column bands
-(``band`` columns wide, overlapping by half) times runs of ``2 * window`` levels
-(overlapping by ``window``). A tile's level differences come from its own columns only;
-every placement of them on the code is scored as the component's are
-(:func:`.code_evidence.code_fit`). A tile *contradicts* its component when another
-placement explains it better by the numbering's margin and either reads cleanly and
-uniquely or the component's placement explains the tile poorly (the test of
-:func:`.code_evidence.locally_contradicted`, in two dimensions). A line lying mostly in
-contradicting tiles is left unnumbered: the evidence says it may be a level off, and a
-wrong number is worse than none.
+So the code is read again in **column bands** of each numbered component (``band`` columns
+wide, overlapping by half): each band's level differences come from its own columns only.
+Along the levels of a band, the cost of every difference at the component's placement is
+compared with its cost at every other placement (``shift`` levels on); the run of levels
+where another placement gains most (a maximum-sum run) is a block the code places
+elsewhere. A band *contradicts* its component on that run when the gain reaches
+``min_gain`` (more than one misread line can cost: a misread line costs two differences)
+and the other placement explains the run cleanly (at most ``max_cost_rate`` of it bad). A
+line lying mostly in contradicted runs is left unnumbered: the evidence says it may be
+levels off, and a wrong number is worse than none.
+
+The thresholds were set on the tuning scenes of ``benchmarks/real_bodies.py`` (seeds
+7000-7599); see BENCHMARKS.md, "Real bodies".
 """
 
 from __future__ import annotations
@@ -37,19 +41,19 @@ def contradicted_lines(
     line_component: np.ndarray,
     offset: dict[int, int],
     code: np.ndarray,
-    window: int,
     *,
     lam: float,
     tolerance: float,
-    min_margin: float,
     max_cost_rate: float,
     min_columns: int,
     correlation: float,
     band: int = 64,
+    min_gain: float = 2.5,
+    max_shift: int = 9,
     min_share: float = 0.5,
 ) -> np.ndarray:
-    """Lines of numbered components lying mostly in tiles whose code contradicts the
-    component's placement.
+    """Lines of numbered components lying mostly in runs of levels that the code read in
+    their own columns places elsewhere.
 
     Parameters
     ----------
@@ -61,15 +65,18 @@ def contradicted_lines(
         Offset on the code (index of level 0) of every component; -1 when unnumbered.
     code : numpy.ndarray
         The raster's kinds (0 light, 1 heavy) in line order.
-    window : int
-        The raster's code window; tiles span ``2 * window`` levels.
-    lam, tolerance, min_margin, max_cost_rate, min_columns, correlation : float
+    lam, tolerance, max_cost_rate, min_columns, correlation : float
         As in :func:`.line_numbering.number_lines`.
     band : int
-        Width (columns) of a tile; tiles overlap by half.
+        Width (columns) of a band; bands overlap by half.
+    min_gain : float
+        Least cost that another placement saves on a run of levels for the run to
+        contradict the component.
+    max_shift : int
+        Other placements tried: up to this many levels either way.
     min_share : float
-        A line is refused when this share of its peaks (of those in a judged tile) lies in
-        contradicting tiles.
+        A line is refused when this share of its peaks (of those in a judged band) lies in
+        contradicted runs.
 
     Returns
     -------
@@ -78,9 +85,11 @@ def contradicted_lines(
     """
     n_lines = line_order.size
     refuse = np.zeros(n_lines, dtype=bool)
-    off_of = np.full(int(line_component.max(initial=-1)) + 2, -1, dtype=np.int64)
+    n_comp = int(line_component.max(initial=-1)) + 1
+    off_of = np.full(n_comp + 1, -1, dtype=np.int64)
     for c, off in offset.items():
-        off_of[c] = off
+        if 0 <= c < n_comp:
+            off_of[c] = off
     if col.size < 2 or n_lines == 0 or not np.any(off_of >= 0):
         return refuse
     lid = line_id.astype(np.int64)
@@ -89,9 +98,12 @@ def contradicted_lines(
     comp = np.where(has, line_component[safe], -1).astype(np.int64)
     lev = np.where(has, line_order[safe], -1).astype(np.int64)
     numbered = (comp >= 0) & (lev >= 0) & (off_of[np.maximum(comp, 0)] >= 0)
-    pair = (
-        (col[1:] == col[:-1]) & (comp[1:] == comp[:-1]) & numbered[:-1] & (lev[1:] == lev[:-1] + 1)
-    )
+    # numbered components by a compact index (a fragmented frame has thousands of others)
+    ids = np.flatnonzero(off_of[:n_comp] >= 0)
+    compact = np.full(n_comp, -1, dtype=np.int64)
+    compact[ids] = np.arange(ids.size)
+    same_col = col[1:] == col[:-1]
+    pair = same_col & (comp[1:] == comp[:-1]) & numbered[:-1] & (lev[1:] == lev[:-1] + 1)
     k = np.flatnonzero(pair)
     if k.size == 0:
         return refuse
@@ -102,92 +114,99 @@ def contradicted_lines(
     if k.size == 0:
         return refuse
     step = max(band // 2, 1)
-    span = 2 * window - 1  # level differences per tile
     n_bands = int(col.max()) // step + 2
-    n_wins = int(lev.max()) // window + 2
-    p_comp, p_lev, p_band = comp[k], lev[k], col[k].astype(np.int64) // step
-    # every difference belongs to two column bands and (at most) two level runs
+    n_lev = int(lev[numbered].max()) + 1  # differences k -> k + 1 for k < n_lev - 1
+    p_ci, p_lev, p_band = compact[comp[k]], lev[k], col[k].astype(np.int64) // step
+    # every difference belongs to two overlapping bands: (band, band - 1)
     keys, ratios = [], []
     for db in (0, 1):
-        for dw in (0, 1):
-            b = p_band - db
-            w = p_lev // window - dw
-            j = p_lev - w * window
-            ok = (b >= 0) & (w >= 0) & (j < span)
-            tile = (p_comp[ok] * n_bands + b[ok]) * n_wins + w[ok]
-            keys.append(tile * span + j[ok])
-            ratios.append(lr[ok])
-    key = np.concatenate(keys)
-    groups, centre, count, spread = robust_centres(key, np.concatenate(ratios))
+        b = p_band - db
+        ok = b >= 0
+        keys.append((p_ci[ok] * n_bands + b[ok]) * n_lev + p_lev[ok])
+        ratios.append(lr[ok])
+    groups, centre, count, spread = robust_centres(np.concatenate(keys), np.concatenate(ratios))
     weight = np.minimum(1.0, count / float(min_columns)) * reliability(
         count.astype(np.float64), spread, lam, correlation
     )
-    tile_of, j_of = groups // span, groups % span
-    tiles, t_inv = np.unique(tile_of, return_inverse=True)
-    d = np.zeros((tiles.size, span))
-    w = np.zeros((tiles.size, span))
-    d[t_inv, j_of] = centre
-    w[t_inv, j_of] = weight
-    terms = w.sum(axis=1)
-    # a tile with less than half a window of reliable differences cannot speak
-    judged = terms >= 0.5 * (window - 1)
-    if not np.any(judged):
-        return refuse
-    tiles, d, w, terms = tiles[judged], d[judged], w[judged], terms[judged]
-    t_comp = tiles // (n_bands * n_wins)
-    t_win = tiles % n_wins
-    here = off_of[t_comp] + t_win * window
-    # the cost of each difference against each of the three expected values, then summed
-    # along every placement (placements running off the code's end: no constraint there)
+    rows = np.unique(groups // n_lev)
+    lvl = groups % n_lev
+    r_inv = np.searchsorted(rows, groups // n_lev)
+    d = np.zeros((rows.size, n_lev))
+    w = np.zeros((rows.size, n_lev))
+    d[r_inv, lvl] = centre
+    w[r_inv, lvl] = weight
+    r_off = off_of[ids[rows // n_bands]]
+    # cost of each difference against each expected value (-lam, 0, +lam)
     expected = np.array([-lam, 0.0, lam])
     u = (d[:, :, None] - expected[None, None, :]) / (tolerance * lam)
-    c3 = np.minimum(u * u, 1.0) * w[:, :, None]  # (tiles, span, 3)
-    c3 = np.concatenate([c3, np.zeros((tiles.size, span, 1))], axis=2)
+    c3 = np.minimum(u * u, 1.0) * w[:, :, None]  # (rows, levels, 3)
     n_code = code.size
-    diff_idx = np.full(n_code + span, 3, dtype=np.int64)
-    diff_idx[: n_code - 1] = (code[:-1].astype(np.int64) - code[1:].astype(np.int64)) + 1
-    place = np.arange(n_code)[:, None] + np.arange(span)[None, :]  # (offsets, span)
-    idx = diff_idx[place]
-    # cost[t, o] = sum_j c3[t, j, idx[o, j]]: one product with the placements' one-hot
-    one_hot = np.zeros((span, 4, n_code))
-    one_hot[np.arange(span)[None, :], idx, np.arange(n_code)[:, None]] = 1.0
-    cost = c3.reshape(tiles.size, span * 4) @ one_hot.reshape(span * 4, n_code)
-    # a placement must keep every measured difference on the code
-    last = span - 1 - np.argmax((w > 0)[:, ::-1], axis=1)
-    cost[np.arange(n_code)[None, :] > (n_code - 2 - last)[:, None]] = np.inf
-    valid = (here >= 0) & (here <= n_code - 2 - last)
-    rows = np.arange(tiles.size)
-    c_here = np.where(valid, cost[rows, np.clip(here, 0, n_code - 1)], 0.0)
-    part = np.partition(cost, 1, axis=1)
-    best, second = part[:, 0], part[:, 1]
-    excess = c_here - best
-    clean = (best <= max_cost_rate * terms) & (second - best >= min_margin)
-    poor = c_here > 2.0 * max_cost_rate * terms
-    bad = valid & (excess >= min(min_margin, 3.0)) & (clean | poor)
-    # peaks of numbered lines in judged tiles, and those in contradicting ones
+    kinds = code.astype(np.int64)
+    diff_at = np.full(n_code + 1, -1, dtype=np.int64)
+    diff_at[: n_code - 1] = kinds[:-1] - kinds[1:] + 1  # index into expected; -1 off the code
+    levels = np.arange(n_lev)
+    pos_here = r_off[:, None] + levels[None, :]  # (rows, levels) code position of each diff
+    measured = w > 0
+
+    def cost_at(pos: np.ndarray) -> np.ndarray:
+        """Cost of every difference placed at code positions ``pos``; inf off the code
+        where measured."""
+        inside = (pos >= 0) & (pos < n_code - 1)
+        e = diff_at[np.clip(pos, 0, n_code)]
+        c = np.take_along_axis(c3, np.clip(e, 0, 2)[:, :, None], axis=2)[:, :, 0]
+        return np.where(inside & (e >= 0), c, np.where(measured, np.inf, 0.0))
+
+    here_cost = cost_at(pos_here)
+    here_cost = np.where(np.isfinite(here_cost), here_cost, 0.0)
+    # the other placements: a block is a few levels off (lines hidden by a step, dim lines
+    # not found), so shifts up to a code window each way
+    shifts = np.array([s for s in range(-max_shift, max_shift + 1) if s != 0])
+    alt = np.stack([cost_at(pos_here + s) for s in shifts], axis=1)  # (rows, shifts, levels)
+    off_code = ~np.isfinite(alt)
+    alt = np.where(off_code, 0.0, alt)
+    # an off-code level ends a run: a gain no run survives
+    gain = np.where(off_code, -1e9, here_cost[:, None, :] - alt)
+    gain = np.where(measured[:, None, :], gain, 0.0)
+    # maximum-sum run of levels of every (row, shift): the largest S[b + 1] - min S[<= b]
+    csum = np.concatenate([np.zeros((*gain.shape[:2], 1)), np.cumsum(gain, axis=2)], axis=2)
+    run_min = np.minimum.accumulate(csum[:, :, :-1], axis=2)
+    ends = csum[:, :, 1:] - run_min
+    best = ends.max(axis=2)
+    # the longest such run: the last end and (below) the first start reaching the maximum,
+    # so that levels where both placements agree stay with the block around them
+    hi = n_lev - 1 - np.argmax(ends[:, :, ::-1] >= best[:, :, None] - 1e-9, axis=2)
+    cand = best >= min_gain
+    refuse_levels = np.zeros((rows.size, n_lev + 1), dtype=bool)
+    if not np.any(cand):
+        return refuse
+    idx = np.arange(n_lev + 1)[None, None, :]
+    lo = np.argmin(np.where(idx <= hi[:, :, None], csum, np.inf), axis=2)  # run = lo..hi
+    a_sum = np.concatenate([np.zeros((*alt.shape[:2], 1)), np.cumsum(alt, axis=2)], axis=2)
+    w_sum = np.concatenate([np.zeros((rows.size, 1)), np.cumsum(w, axis=1)], axis=1)
+    run_alt = (
+        np.take_along_axis(a_sum, (hi + 1)[:, :, None], axis=2)
+        - np.take_along_axis(a_sum, lo[:, :, None], axis=2)
+    )[:, :, 0]
+    run_w = np.take_along_axis(w_sum, hi + 1, axis=1) - np.take_along_axis(w_sum, lo, axis=1)
+    # the other placement must explain the run cleanly
+    cand &= run_alt <= max_cost_rate * run_w
+    for r, sh in zip(*np.nonzero(cand), strict=True):
+        # differences lo..hi join levels lo..hi + 1
+        refuse_levels[r, lo[r, sh] : hi[r, sh] + 2] = True
+    # peaks: contradicted when a band holding them is contradicted at their level
     pk = np.flatnonzero(numbered)
-    pc, pl, pb = comp[pk], lev[pk], col[pk].astype(np.int64) // step
-    n_judged = np.zeros(pk.size, dtype=np.int64)
-    n_bad = np.zeros(pk.size, dtype=np.int64)
-    # 0: not judged, 1: judged, 2: contradicting; by tile key
-    status = np.zeros(int(tiles.max()) + 1, dtype=np.int8)
-    status[tiles] = 1
-    status[tiles[bad]] = 2
+    pci, pl, pb = compact[comp[pk]], lev[pk], col[pk].astype(np.int64) // step
+    row_of = np.full(ids.size * n_bands, -1, dtype=np.int64)
+    row_of[rows] = np.arange(rows.size)
+    in_band = np.zeros(pk.size, dtype=bool)
+    in_run = np.zeros(pk.size, dtype=bool)
     for db in (0, 1):
-        for dw in (0, 1):
-            b = pb - db
-            win = pl // window - dw
-            ok = (b >= 0) & (win >= 0) & (pl - win * window <= span)
-            tile = (pc * n_bands + b) * n_wins + win
-            st = np.where(ok, status[np.clip(tile, 0, status.size - 1)], 0)
-            st[ok & (tile >= status.size)] = 0
-            n_judged += st >= 1
-            n_bad += st == 2
-    # a peak is contradicted when any judged tile holding it is: the tiles overlap by
-    # half, so the block's edges lie in mixed tiles that may read as neither placement
-    hit = n_bad > 0
-    seen = n_judged > 0
-    n_seen = np.bincount(lid[pk[seen]], minlength=n_lines)
-    n_hit = np.bincount(lid[pk[hit]], minlength=n_lines)
-    refuse = (n_hit > 0) & (n_hit >= min_share * np.maximum(n_seen, 1))
-    return refuse
+        b = pb - db
+        ok = (b >= 0) & (b < n_bands)
+        r = np.where(ok, row_of[np.clip(pci * n_bands + b, 0, row_of.size - 1)], -1)
+        seen = r >= 0
+        in_band |= seen
+        in_run |= seen & refuse_levels[np.maximum(r, 0), np.minimum(pl, n_lev)]
+    seen_per_line = np.bincount(lid[pk[in_band]], minlength=n_lines)
+    hit_per_line = np.bincount(lid[pk[in_run]], minlength=n_lines)
+    return (hit_per_line > 0) & (hit_per_line >= min_share * np.maximum(seen_per_line, 1))

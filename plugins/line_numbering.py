@@ -368,14 +368,13 @@ def number_lines(
             data.line_component,
             offset,
             code,
-            raster.window,
             lam=lam,
             tolerance=tolerance,
-            min_margin=min_margin,
             max_cost_rate=max_cost_rate,
             min_columns=min_columns,
             correlation=correlation,
             band=tile_band,
+            max_shift=raster.window,
         )
         off_stack &= line_number >= 0
         if np.any(off_stack):

@@ -52,10 +52,8 @@ def _refused(args: tuple[np.ndarray, ...], offset: int = 10) -> np.ndarray:
         *args,
         {0: offset},
         raster.code,
-        raster.window,
         lam=LAM,
         tolerance=0.5,
-        min_margin=2.0,
         max_cost_rate=0.25,
         min_columns=5,
         correlation=4.0,
@@ -84,10 +82,10 @@ def test_a_component_placed_wrongly_as_a_whole_is_refused_everywhere() -> None:
 def test_degenerate_inputs() -> None:
     raster = rendering_raster()
     empty = np.zeros(0, np.int32)
-    kw = dict(lam=LAM, tolerance=0.5, min_margin=2.0, max_cost_rate=0.25)
+    kw = dict(lam=LAM, tolerance=0.5, max_cost_rate=0.25)
     kw2 = dict(min_columns=5, correlation=4.0)
     none = contradicted_lines(
-        empty, empty.astype(np.float32), empty, empty, empty, {}, raster.code, 9, **kw, **kw2
+        empty, empty.astype(np.float32), empty, empty, empty, {}, raster.code, **kw, **kw2
     )
     assert none.shape == (0,)
     # numbered nothing: nothing refused
