@@ -86,6 +86,7 @@ def number_lines(
     min_contact_share: float = 0.2,
     tile_check: bool = True,
     tile_band: int = 64,
+    tile_gain: float = 2.5,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -142,7 +143,9 @@ def number_lines(
         Leave unnumbered the lines lying mostly where the code read in their own columns
         contradicts their component's placement (:func:`.code_tiles.contradicted_lines`).
     tile_band : int
-        Width (columns) of a code tile.
+        Width (columns) of a band in which the code is read again.
+    tile_gain : float
+        Least cost another placement must save on a run of a band's levels to refuse it.
 
     Returns
     -------
@@ -374,6 +377,7 @@ def number_lines(
             min_columns=min_columns,
             correlation=correlation,
             band=tile_band,
+            min_gain=tile_gain,
             max_shift=raster.window,
         )
         off_stack &= line_number >= 0
@@ -569,7 +573,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             description="Refuse lines where the code read in their own columns contradicts "
             "their component's placement.",
         )
-        tile_band: int = Field(64, ge=8, description="Width (columns) of a code tile.")
+        tile_band: int = Field(64, ge=8, description="Width (columns) of a code band.")
+        tile_gain: float = Field(
+            2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
+        )
 
     def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
         """Number the lines of ``data`` with the raster from ``context.raster`` (and the
@@ -600,6 +607,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_contact_share=params.min_contact_share,
             tile_check=params.tile_check,
             tile_band=params.tile_band,
+            tile_gain=params.tile_gain,
         )
         lid = data.line_id
         comps = data.line_component

@@ -283,6 +283,16 @@ def column_order_conflicts(
     near = (m <= max_multiple) & (np.abs(steps - m) <= tolerance)
     conflict = (near & (m == 1) & (k != 1)) | (near & (m >= 2) & (k > m))
     conflict |= (k <= 0) & (gap < 1.5 * ref)
+    # Against the gaps beside it in its own column (the cell's mean spacing is too coarse
+    # where lines crowd towards a silhouette): numbers k apart need about k gaps of the
+    # single steps above and below; a line's end that took the neighbouring line's peak
+    # shows as numbers two apart at one gap.
+    contiguous = np.r_[False, b[:-1] == a[1:]]  # pair i follows pair i - 1 in the column
+    single = np.where(one, gap, np.inf)
+    above = np.where(contiguous, np.r_[np.inf, single[:-1]], np.inf)
+    below = np.where(np.r_[contiguous[1:], False], np.r_[single[1:], np.inf], np.inf)
+    beside = np.minimum(above, below)
+    conflict |= (k >= 2) & np.isfinite(beside) & (gap < (k - 0.5) * beside)
     out[a[conflict]] = True
     out[b[conflict]] = True
     return out
