@@ -87,6 +87,7 @@ def number_lines(
     tile_check: bool = True,
     tile_band: int = 64,
     tile_gain: float = 2.5,
+    loose_cost_rate: float = 0.4,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -146,6 +147,11 @@ def number_lines(
         Width (columns) of a band in which the code is read again.
     tile_gain : float
         Least cost another placement must save on a run of a band's levels to refuse it.
+    loose_cost_rate : float
+        With the code bands on, a component whose best placement leaves up to this share
+        of its differences unexplained (more than ``max_cost_rate``) is still placed there
+        when the placement is unique by far (a margin of four times ``min_margin`` and
+        15 % of the differences); the bands then refuse the lines placed off.
 
     Returns
     -------
@@ -230,7 +236,49 @@ def number_lines(
             min_margin=min_margin,
             max_cost_rate=max_cost_rate,
         )
-    votes = contact_votes(data.col, data.row, data.line_id, data.line_order, data.line_component)
+        fit = fits[c]
+        if (
+            tile_check
+            and fit.reason.startswith("best code placement explains too little")
+            and fit.cost.size
+            and fit.cost[fit.best] <= loose_cost_rate * fit.terms
+            and fit.margin >= max(4.0 * min_margin, 0.15 * fit.terms)
+        ):
+            # A whole back whose best placement stands out by far but leaves more than a
+            # quarter unexplained: line sequence put a block of it (the cloth below a
+            # waistband) a level off. The placement is taken; the code bands below then
+            # refuse the block that another placement explains.
+            fits[c] = CodeFit(fit.cost, fit.terms, fit.best, fit.margin, "")
+
+    def off_bands(offsets: dict[int, int]) -> np.ndarray:
+        """Lines that the code read in column bands places elsewhere than ``offsets``."""
+        return contradicted_lines(
+            data.col,
+            data.area,
+            data.line_id,
+            data.line_order,
+            data.line_component,
+            offsets,
+            code,
+            lam=lam,
+            tolerance=tolerance,
+            max_cost_rate=max_cost_rate,
+            min_columns=min_columns,
+            correlation=correlation,
+            band=tile_band,
+            min_gain=tile_gain,
+            max_shift=raster.window,
+        )
+
+    contact_component = data.line_component
+    if tile_check:
+        # Lines that the code decides a component's placement for, but that their own
+        # columns place elsewhere, pass no number on: no component inherits through them.
+        by_code = {c: (fit.best if not fit.reason else -1) for c, fit in fits.items()}
+        early = off_bands(by_code)
+        if np.any(early):
+            contact_component = np.where(early, -1, data.line_component).astype(np.int32)
+    votes = contact_votes(data.col, data.row, data.line_id, data.line_order, contact_component)
     offset = dict.fromkeys(fits, -1)
     reason = {c: fits[c].reason for c in fits}
     decided: set[int] = set()
@@ -363,24 +411,7 @@ def number_lines(
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
     if tile_check:
-        off_stack = contradicted_lines(
-            data.col,
-            data.area,
-            data.line_id,
-            data.line_order,
-            data.line_component,
-            offset,
-            code,
-            lam=lam,
-            tolerance=tolerance,
-            max_cost_rate=max_cost_rate,
-            min_columns=min_columns,
-            correlation=correlation,
-            band=tile_band,
-            min_gain=tile_gain,
-            max_shift=raster.window,
-        )
-        off_stack &= line_number >= 0
+        off_stack = off_bands(offset) & (line_number >= 0)
         if np.any(off_stack):
             line_number[off_stack] = -1
             results.append(
