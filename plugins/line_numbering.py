@@ -42,7 +42,7 @@ from .code_evidence import (
     observed_kinds,
     reliability,
 )
-from .code_tiles import contradicted_lines
+from .code_tiles import CodeBands
 from .numbering_checks import (
     by_line,
     column_order_conflicts,
@@ -250,24 +250,28 @@ def number_lines(
             # refuse the block that another placement explains.
             fits[c] = CodeFit(fit.cost, fit.terms, fit.best, fit.margin, "")
 
-    def off_bands(offsets: dict[int, int]) -> np.ndarray:
-        """Lines that the code read in column bands places elsewhere than ``offsets``."""
-        return contradicted_lines(
+    bands = (
+        CodeBands(
             data.col,
             data.area,
             data.line_id,
             data.line_order,
             data.line_component,
-            offsets,
-            code,
             lam=lam,
             tolerance=tolerance,
-            max_cost_rate=max_cost_rate,
             min_columns=min_columns,
             correlation=correlation,
             band=tile_band,
-            min_gain=tile_gain,
-            max_shift=raster.window,
+        )
+        if tile_check
+        else None
+    )
+
+    def off_bands(offsets: dict[int, int]) -> np.ndarray:
+        """Lines that the code read in column bands places elsewhere than ``offsets``."""
+        assert bands is not None
+        return bands.contradicted(
+            offsets, code, max_cost_rate=max_cost_rate, min_gain=tile_gain, max_shift=raster.window
         )
 
     contact_component = data.line_component
