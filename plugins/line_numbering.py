@@ -47,6 +47,7 @@ from .numbering_checks import (
     by_line,
     column_order_conflicts,
     contact_votes,
+    isolated_peaks,
     line_jumps,
     local_spacing,
     pair_contradictions,
@@ -546,7 +547,11 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     twice the code window in levels, :mod:`.code_tiles`); a line lying mostly in tiles whose
     own code contradicts the component's placement is left unnumbered (a block of lines
     ordered a level off below a waistband, which the component's code fit and the pair
-    check miss).
+    check miss), and no component inherits a number through it; a whole component whose
+    best placement is unique by far but leaves up to 40 % unexplained is placed (the
+    bands refuse its block placed off). Column order: numbers k apart must lie about k of
+    the single gaps beside them in their column apart; a numbered peak with no numbered
+    peak directly above or below it (numbered by its line's continuity alone) is refused.
     """
 
     name: ClassVar[str] = "numbers.code-window"
@@ -609,6 +614,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             "their component's placement.",
         )
         tile_band: int = Field(64, ge=8, description="Width (columns) of a code band.")
+        column_check: bool = Field(
+            True,
+            description="Refuse numbered peaks with no numbered peak above or below them.",
+        )
         tile_gain: float = Field(
             2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
         )
@@ -673,6 +682,15 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
                 "taken from a neighbouring line where lines crowd) left unnumbered"
             )
             reason = f"{reason}; {note}" if reason else note
+        if params.column_check:
+            lone = isolated_peaks(data.col, number)
+            if np.any(lone):
+                number = np.where(lone, -1, number).astype(np.int32)
+                note = (
+                    f"{int(lone.sum())} peak(s) with no numbered peak above or below them in "
+                    "their column (numbered by their line's continuity alone) left unnumbered"
+                )
+                reason = f"{reason}; {note}" if reason else note
         return NumberedLines.extend(
             data,
             number=number,

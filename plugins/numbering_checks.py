@@ -33,6 +33,7 @@ __all__ = [
     "by_line",
     "column_order_conflicts",
     "contact_votes",
+    "isolated_peaks",
     "line_jumps",
     "local_spacing",
     "pair_contradictions",
@@ -449,6 +450,35 @@ def line_jumps(
     out[a[bad]] = True
     out[b[bad]] = True
     return out
+
+
+def isolated_peaks(col: np.ndarray, number: np.ndarray) -> np.ndarray:
+    """Numbered peaks with no numbered peak directly above or below them in their column.
+
+    Such a peak is numbered by the continuity of its line alone: nothing in its column
+    confirms the number, and the column order check cannot judge it. On the clinic scenes
+    these were mostly a line's first or last peaks taken from the neighbouring line where
+    lines crowd at a cloth's side edge or a silhouette, and lines next to a refused block.
+
+    Parameters
+    ----------
+    col : numpy.ndarray
+        Column of every peak, peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool, True for the refused peaks.
+    """
+    if col.size == 0:
+        return np.zeros(0, dtype=bool)
+    same_prev = np.r_[False, col[1:] == col[:-1]]
+    same_next = np.r_[col[1:] == col[:-1], False]
+    above = same_prev & (np.r_[-1, number[:-1]] >= 0)
+    below = same_next & (np.r_[number[1:], -1] >= 0)
+    return (number >= 0) & ~above & ~below
 
 
 def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:

@@ -142,3 +142,33 @@ def test_line_checks_of_degenerate_inputs() -> None:
     none = np.full(4, -1, np.int32)
     assert local_spacing(col, row, none) is None
     assert not np.any(line_jumps(col, row, np.array([0, 1, 0, 1]), none))
+
+
+def test_numbered_peaks_with_no_numbered_column_neighbour_are_refused() -> None:
+    from rasterserver_plugins.numbering_checks import isolated_peaks
+
+    # three columns of three peaks: in column 1 the middle peak's neighbours are not
+    # numbered; in column 2 only the top peak is numbered at all
+    col = np.repeat(np.arange(3), 3)
+    number = np.array([5, 6, 7, -1, 6, -1, 5, -1, -1], np.int32)
+    refused = isolated_peaks(col, number)
+    assert refused.tolist() == [False] * 4 + [True, False, True, False, False]
+    # a peak alone in its column has nothing to confirm it either
+    assert isolated_peaks(np.array([0]), np.array([3], np.int32)).tolist() == [True]
+    assert isolated_peaks(np.zeros(0, np.int64), np.zeros(0, np.int32)).size == 0
+
+
+def test_column_order_against_the_gaps_beside_it() -> None:
+    """A line's end that took the neighbouring line's peak where lines crowd: numbers two
+    apart at one gap of its own column (the cell's mean spacing is wider) are refused."""
+    from rasterserver_plugins.line_numbering import _column_order_conflicts
+
+    col = np.zeros(5, np.int64)
+    row = np.array([100.0, 108.0, 117.0, 123.0, 129.0])  # gaps 8, 9, 6, 6
+    number = np.array([10, 11, 12, 14, 15], np.int32)  # 12 is really 13
+    wide = np.full(5, 9.0)  # the cell's spacing: 6 px is 0.67 of it, not one spacing
+    clash = _column_order_conflicts(col, row, number, spacing=wide)
+    assert clash.tolist() == [False, False, True, True, False]
+    # a line missing in between (two gaps wide) is not refused
+    row_ok = np.array([100.0, 108.0, 116.0, 128.0, 134.0])
+    assert not np.any(_column_order_conflicts(col, row_ok, number, spacing=wide))
