@@ -249,8 +249,10 @@ def column_order_conflicts(
     """Peaks whose number breaks the order of their column: two consecutive numbered peaks
     one line spacing apart (within ``tolerance`` spacings) whose numbers do not differ by
     exactly one, or ``m`` spacings apart (``2 <= m <= max_multiple``) whose numbers differ by
-    more than ``m``, or any two close peaks numbered out of order. Both are refused: the
-    image cannot tell which of the two is wrong. ``spacing`` is the per-peak local line
+    more than ``m``, or any two close peaks numbered out of order; and, against the single
+    gaps directly above and below them in their own column, numbers ``k`` apart less than
+    ``k - 1/2`` of the smaller or more than ``k + 1/2`` of the wider gap apart. Both are
+    refused: the image cannot tell which of the two is wrong. ``spacing`` is the per-peak local line
     spacing (:func:`local_spacing`) when the caller has it already."""
     n = col.size
     out = np.zeros(n, dtype=bool)
@@ -294,6 +296,13 @@ def column_order_conflicts(
     below = np.where(np.r_[contiguous[1:], False], np.r_[single[1:], np.inf], np.inf)
     beside = np.minimum(above, below)
     conflict |= (k >= 2) & np.isfinite(beside) & (gap < (k - 0.5) * beside)
+    # and numbers k apart more than k + 1/2 of the wider gap beside them apart: a line
+    # skipped between them that the numbers do not count (a piece numbered a level off
+    # below a gap where lines went unfound)
+    widest = np.maximum(
+        np.where(np.isfinite(above), above, 0.0), np.where(np.isfinite(below), below, 0.0)
+    )
+    conflict |= (k >= 1) & (widest > 0) & (gap > (k + 0.5) * widest)
     out[a[conflict]] = True
     out[b[conflict]] = True
     return out
