@@ -47,12 +47,9 @@ from .numbering_checks import (
     by_line,
     column_order_conflicts,
     contact_votes,
-    isolated_peaks,
-    line_jumps,
-    local_spacing,
-    pair_contradictions,
     plausible_distance,
 )
+from .numbering_refusals import refusal, refuse_contradicted_pairs, refuse_peaks, summarise
 
 __all__ = [
     "CodeWindowNumbering",
@@ -420,13 +417,8 @@ def number_lines(
         if np.any(off_stack):
             line_number[off_stack] = -1
             results.append(
-                ComponentNumbering(
-                    -1,
+                refusal(
                     int(off_stack.sum()),
-                    -1,
-                    float("nan"),
-                    0.0,
-                    np.zeros(0, np.int8),
                     f"{int(off_stack.sum())} line(s) lying where the code read in their own "
                     "columns contradicts their component's placement (a block ordered a "
                     "level off, as below a waistband) left unnumbered",
@@ -434,90 +426,24 @@ def number_lines(
             )
     if local_refused:
         results.append(
-            ComponentNumbering(
-                -1,
+            refusal(
                 local_refused,
-                -1,
-                float("nan"),
-                0.0,
-                np.zeros(0, np.int8),
                 f"{local_refused} line(s) whose own code contradicts their component's order "
                 "(a line-order error inside a component) left unnumbered",
             )
         )
     if pair_check:
-        refused = _refuse_contradicted_pairs(data, raster, lam, line_number, peaks_per_line)
+        refused = refuse_contradicted_pairs(data, raster, lam, line_number, peaks_per_line)
         if refused:
             results.append(
-                ComponentNumbering(
-                    -1,
+                refusal(
                     refused,
-                    -1,
-                    float("nan"),
-                    0.0,
-                    np.zeros(0, np.int8),
                     f"{refused} line(s) whose intensity ratio with a column neighbour "
                     "contradicts the code at their numbers (a piece placed a level off, as "
                     "across a waistband) left unnumbered",
                 )
             )
     return line_number, kind, results
-
-
-def _refuse_contradicted_pairs(
-    data: OrderedLines,
-    raster: Raster,
-    lam: float,
-    line_number: np.ndarray,
-    peaks_per_line: np.ndarray,
-) -> int:
-    """Unnumber (in place) the shorter line of every pair of column neighbours whose
-    intensity ratio contradicts the code at their numbers; the count of lines refused."""
-    upper, lower, _ = pair_contradictions(
-        data.col, data.area, data.line_id, line_number, raster, lam
-    )
-    if upper.size == 0:
-        return 0
-    # The image cannot tell which of the two is off; the shorter is the piece (a whole line
-    # misread as the other kind loses one of its neighbours or itself, never a number).
-    shorter = np.where(peaks_per_line[upper] <= peaks_per_line[lower], upper, lower)
-    shorter = np.unique(shorter)
-    line_number[shorter] = -1
-    return int(shorter.size)
-
-
-def _summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[float, str]:
-    """Confidence (worst numbered component) and the reasons of the refused ones."""
-    numbered = [r for r in results if r.offset >= 0 and not np.isnan(r.cost)]
-    margins = [r.margin for r in numbered if np.isfinite(r.margin) and r.margin > 0]
-    if any(r.offset >= 0 for r in results):
-        worst = min(margins) if margins else float("inf")
-        confidence = float(1.0 - np.exp(-worst / 4.0)) if np.isfinite(worst) else 1.0
-    else:
-        confidence = 0.0
-    refused = [r for r in results if r.offset < 0]
-    if not results:
-        return 0.0, "no ordered lines"
-    if not refused:
-        return confidence, ""
-    small = [r for r in refused if "fewer than" in r.reason and ";" not in r.reason]
-    small_ids = {id(r) for r in small}  # identity: comparing the dataclasses is quadratic
-    other = [r for r in refused if id(r) not in small_ids]
-    # entries of component -1 count lines refused inside numbered components: their reason
-    # says it all
-    parts = [
-        r.reason
-        if r.component < 0
-        else f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): "
-        f"{r.reason}"
-        for r in other
-    ]
-    if small:
-        peaks = int(sum(sizes[r.component] for r in small))
-        parts.append(
-            f"{len(small)} component(s) with too few lines to read the code ({peaks} peaks)"
-        )
-    return confidence, "; ".join(parts)
 
 
 class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
@@ -658,39 +584,17 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         n_comp = int(comps.max()) + 1 if comps.size and comps.max() >= 0 else 0
         peaks_per_line = np.bincount(lid[lid >= 0], minlength=comps.size)
         sizes = np.bincount(comps[comps >= 0], weights=peaks_per_line[comps >= 0], minlength=n_comp)
-        confidence, reason = _summarise(results, sizes)
+        confidence, reason = summarise(results, sizes)
         if data.n_peaks == 0:
             reason = "no peaks"
         elif comps.size == 0:
             reason = "no lines"
         table = np.append(line_number, -1).astype(np.int32)
         number = table[np.where(lid >= 0, lid, -1)]
-        spacing = local_spacing(data.col, data.row, number)
-        clash = column_order_conflicts(data.col, data.row, number, spacing=spacing)
-        jumps = line_jumps(data.col, data.row, lid, number, spacing=spacing)
-        if np.any(jumps):
-            number = np.where(jumps, -1, number).astype(np.int32)
-            note = (
-                f"{int(jumps.sum())} peak(s) where their line jumps by a fraction of a line "
-                "spacing (a peak of the neighbouring line) left unnumbered"
-            )
-            reason = f"{reason}; {note}" if reason else note
-        if np.any(clash):
-            number = np.where(clash, -1, number).astype(np.int32)
-            note = (
-                f"{int(clash.sum())} peak(s) numbered out of order in their column (a peak "
-                "taken from a neighbouring line where lines crowd) left unnumbered"
-            )
-            reason = f"{reason}; {note}" if reason else note
-        if params.column_check:
-            lone = isolated_peaks(data.col, number)
-            if np.any(lone):
-                number = np.where(lone, -1, number).astype(np.int32)
-                note = (
-                    f"{int(lone.sum())} peak(s) with no numbered peak above or below them in "
-                    "their column (numbered by their line's continuity alone) left unnumbered"
-                )
-                reason = f"{reason}; {note}" if reason else note
+        number, notes = refuse_peaks(
+            data.col, data.row, lid, number, column_check=params.column_check
+        )
+        reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(
             data,
             number=number,

@@ -1,0 +1,179 @@
+"""Refusals: what line numbering leaves unnumbered, and the reasons it gives.
+
+A component refused as a whole carries its reason in its :class:`ComponentNumbering`;
+lines refused inside numbered components are counted in entries of component -1
+(:func:`refusal`); peaks refused one by one (:func:`refuse_peaks`) add notes. The stage's
+``reason`` joins them all (:func:`summarise`), and the overlay shows it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rasterserver.raster import Raster
+from rasterserver.records_lines import OrderedLines
+
+from .code_evidence import ComponentNumbering
+from .numbering_checks import (
+    column_order_conflicts,
+    isolated_peaks,
+    line_jumps,
+    local_spacing,
+    pair_contradictions,
+)
+
+__all__ = ["refusal", "refuse_contradicted_pairs", "refuse_peaks", "summarise"]
+
+
+def refusal(count: int, reason: str) -> ComponentNumbering:
+    """The entry counting ``count`` lines refused inside numbered components."""
+    return ComponentNumbering(-1, count, -1, float("nan"), 0.0, np.zeros(0, np.int8), reason)
+
+
+def refuse_contradicted_pairs(
+    data: OrderedLines,
+    raster: Raster,
+    lam: float,
+    line_number: np.ndarray,
+    peaks_per_line: np.ndarray,
+) -> int:
+    """Unnumber (in place) the shorter line of every pair of column neighbours whose
+    intensity ratio contradicts the code at their numbers.
+
+    Parameters
+    ----------
+    data : OrderedLines
+        The ordered lines.
+    raster : Raster
+        The diapositive's code.
+    lam : float
+        Log area ratio of a heavy to a light line.
+    line_number : numpy.ndarray
+        ``(L,)`` absolute numbers, -1 when unnumbered; changed in place.
+    peaks_per_line : numpy.ndarray
+        ``(L,)`` peak count of every line.
+
+    Returns
+    -------
+    int
+        The number of lines refused.
+    """
+    upper, lower, _ = pair_contradictions(
+        data.col, data.area, data.line_id, line_number, raster, lam
+    )
+    if upper.size == 0:
+        return 0
+    # The image cannot tell which of the two is off; the shorter is the piece (a whole line
+    # misread as the other kind loses one of its neighbours or itself, never a number).
+    shorter = np.where(peaks_per_line[upper] <= peaks_per_line[lower], upper, lower)
+    shorter = np.unique(shorter)
+    line_number[shorter] = -1
+    return int(shorter.size)
+
+
+def summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[float, str]:
+    """Confidence (worst numbered component) and the reasons of the refused ones.
+
+    Parameters
+    ----------
+    results : list of ComponentNumbering
+        Every component's numbering, and the entries of lines refused inside numbered
+        components (component -1).
+    sizes : numpy.ndarray
+        Peaks per component.
+
+    Returns
+    -------
+    confidence : float
+        ``1 - exp(-margin / 4)`` of the least clear numbered component; 0 when none.
+    reason : str
+        The refusals joined by "; " (components too short to read are counted together).
+    """
+    numbered = [r for r in results if r.offset >= 0 and not np.isnan(r.cost)]
+    margins = [r.margin for r in numbered if np.isfinite(r.margin) and r.margin > 0]
+    if any(r.offset >= 0 for r in results):
+        worst = min(margins) if margins else float("inf")
+        confidence = float(1.0 - np.exp(-worst / 4.0)) if np.isfinite(worst) else 1.0
+    else:
+        confidence = 0.0
+    refused = [r for r in results if r.offset < 0]
+    if not results:
+        return 0.0, "no ordered lines"
+    if not refused:
+        return confidence, ""
+    small = [r for r in refused if "fewer than" in r.reason and ";" not in r.reason]
+    small_ids = {id(r) for r in small}  # identity: comparing the dataclasses is quadratic
+    other = [r for r in refused if id(r) not in small_ids]
+    # entries of component -1 count lines refused inside numbered components: their reason
+    # says it all
+    parts = [
+        r.reason
+        if r.component < 0
+        else f"component {r.component} ({r.n_levels} lines, {int(sizes[r.component])} peaks): "
+        f"{r.reason}"
+        for r in other
+    ]
+    if small:
+        peaks = int(sum(sizes[r.component] for r in small))
+        parts.append(
+            f"{len(small)} component(s) with too few lines to read the code ({peaks} peaks)"
+        )
+    return confidence, "; ".join(parts)
+
+
+def refuse_peaks(
+    col: np.ndarray,
+    row: np.ndarray,
+    line_id: np.ndarray,
+    number: np.ndarray,
+    *,
+    column_check: bool = True,
+) -> tuple[np.ndarray, list[str]]:
+    """The peak-by-peak checks of the numbered peaks, and a note for each that refused any.
+
+    Line jumps (:func:`.numbering_checks.line_jumps`), column order
+    (:func:`.numbering_checks.column_order_conflicts`) and, with ``column_check``, peaks
+    with no numbered column neighbour (:func:`.numbering_checks.isolated_peaks`), in that
+    order.
+
+    Parameters
+    ----------
+    col, row, line_id : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    column_check : bool
+        Refuse numbered peaks with no numbered peak directly above or below them.
+
+    Returns
+    -------
+    number : numpy.ndarray
+        ``(N,)`` int32, the refused peaks set to -1.
+    notes : list of str
+        One sentence per check that refused peaks.
+    """
+    notes: list[str] = []
+    spacing = local_spacing(col, row, number)
+    clash = column_order_conflicts(col, row, number, spacing=spacing)
+    jumps = line_jumps(col, row, line_id, number, spacing=spacing)
+    if np.any(jumps):
+        number = np.where(jumps, -1, number).astype(np.int32)
+        notes.append(
+            f"{int(jumps.sum())} peak(s) where their line jumps by a fraction of a line "
+            "spacing (a peak of the neighbouring line) left unnumbered"
+        )
+    if np.any(clash):
+        number = np.where(clash, -1, number).astype(np.int32)
+        notes.append(
+            f"{int(clash.sum())} peak(s) numbered out of order in their column (a peak "
+            "taken from a neighbouring line where lines crowd) left unnumbered"
+        )
+    if column_check:
+        lone = isolated_peaks(col, number)
+        if np.any(lone):
+            number = np.where(lone, -1, number).astype(np.int32)
+            notes.append(
+                f"{int(lone.sum())} peak(s) with no numbered peak above or below them in "
+                "their column (numbered by their line's continuity alone) left unnumbered"
+            )
+    return number, notes
