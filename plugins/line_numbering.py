@@ -140,7 +140,7 @@ def number_lines(
         waistband's depth step) is refused.
     tile_check : bool
         Leave unnumbered the lines lying mostly where the code read in their own columns
-        contradicts their component's placement (:func:`.code_tiles.contradicted_lines`).
+        contradicts their component's placement (:class:`.code_tiles.CodeBands`).
     tile_band : int
         Width (columns) of a band in which the code is read again.
     tile_gain : float
@@ -413,13 +413,13 @@ def number_lines(
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
     if tile_check:
-        off_stack = off_bands(offset) & (line_number >= 0)
-        if np.any(off_stack):
-            line_number[off_stack] = -1
+        off_band = off_bands(offset) & (line_number >= 0)
+        if np.any(off_band):
+            line_number[off_band] = -1
             results.append(
                 refusal(
-                    int(off_stack.sum()),
-                    f"{int(off_stack.sum())} line(s) lying where the code read in their own "
+                    int(off_band.sum()),
+                    f"{int(off_band.sum())} line(s) lying where the code read in their own "
                     "columns contradicts their component's placement (a block ordered a "
                     "level off, as below a waistband) left unnumbered",
                 )
