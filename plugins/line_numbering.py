@@ -273,10 +273,11 @@ def number_lines(
         )
 
     contact_component = data.line_component
+    by_code = {c: (fit.best if not fit.reason else -1) for c, fit in fits.items()}
+    early = np.zeros(n_lines, dtype=bool)
     if tile_check:
         # Lines that the code decides a component's placement for, but that their own
         # columns place elsewhere, pass no number on: no component inherits through them.
-        by_code = {c: (fit.best if not fit.reason else -1) for c, fit in fits.items()}
         early = off_bands(by_code)
         if np.any(early):
             contact_component = np.where(early, -1, data.line_component).astype(np.int32)
@@ -413,7 +414,12 @@ def number_lines(
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
     if tile_check:
-        off_band = off_bands(offset) & (line_number >= 0)
+        # Components judge independently: those still at their code placement were judged
+        # above already, only the others (linked, moved) are judged again.
+        kept = [c for c, off in offset.items() if off >= 0 and by_code.get(c, -1) == off]
+        moved = {c: off for c, off in offset.items() if off >= 0 and by_code.get(c, -1) != off}
+        off_band = (early & np.isin(comps, kept)) | off_bands(moved)
+        off_band &= line_number >= 0
         if np.any(off_band):
             line_number[off_band] = -1
             results.append(
