@@ -409,9 +409,10 @@ def _to_bgr8(image: np.ndarray) -> np.ndarray:
 
 
 def overlay_image(
-    image: np.ndarray, lines: Any, *, scale: int = 2, min_label: int = 10
+    image: np.ndarray, lines: Any, *, scale: int = 2, min_label: int = 10, reasons: bool = True
 ) -> np.ndarray:
-    """The frame with its detected lines coloured by number and numbered at their ends.
+    """The frame with its detected lines coloured by number and numbered at their ends, and
+    under it why the unnumbered ones are not numbered.
 
     Parameters
     ----------
@@ -423,13 +424,17 @@ def overlay_image(
         Enlargement, so that the numbers are legible next to lines ~10 px apart.
     min_label : int, optional
         Pieces of lines with fewer peaks are coloured but not labelled (less clutter).
+    reasons : bool, optional
+        Print the numbering's reasons for what it left unnumbered (``lines.reason``, one
+        per line of text) in a panel under the frame; none when the reason is empty.
 
     Returns
     -------
     numpy.ndarray
-        ``(scale * H, scale * W, 3)`` BGR ``uint8`` image. Numbered peaks are drawn in their
-        line's colour, unnumbered ones in grey; each numbered line (each connected piece, by
-        ``line_id``, of at least ``min_label`` peaks) carries its number at both ends.
+        ``(scale * H + panel, scale * W, 3)`` BGR ``uint8`` image. Numbered peaks are drawn
+        in their line's colour, unnumbered ones in grey; each numbered line (each connected
+        piece, by ``line_id``, of at least ``min_label`` peaks) carries its number at both
+        ends.
     """
     if scale < 1:
         raise InputError("the overlay scale must be at least 1")
@@ -468,4 +473,29 @@ def overlay_image(
             py = int(np.clip(y[end] + th // 2, th, h - 1))
             cv2.putText(canvas, text, (px, py), font, size, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(canvas, text, (px, py), font, size, colour, 1, cv2.LINE_AA)
-    return canvas
+    reason = str(getattr(lines, "reason", "") or "") if reasons else ""
+    return _with_reasons(canvas, reason) if reason else canvas
+
+
+def _with_reasons(canvas: np.ndarray, reason: str) -> np.ndarray:
+    """``canvas`` with a white panel under it listing the ``"; "``-separated reasons, each
+    wrapped to the canvas's width (the overlay is where a refusal must be seen)."""
+    font, size, step = cv2.FONT_HERSHEY_SIMPLEX, 0.45, 18
+    width = canvas.shape[1]
+    rows: list[str] = ["Left unnumbered, and why:"]
+    for item in (part.strip() for part in reason.split(";")):
+        if not item:
+            continue
+        words, line = item.split(), "- "
+        for word in words:
+            trial = f"{line}{word} "
+            if cv2.getTextSize(trial, font, size, 1)[0][0] > width - 16 and line.strip("- "):
+                rows.append(line.rstrip())
+                line = f"  {word} "
+            else:
+                line = trial
+        rows.append(line.rstrip())
+    panel = np.full((step * len(rows) + 12, width, 3), 255, dtype=np.uint8)
+    for k, text in enumerate(rows):
+        cv2.putText(panel, text, (8, step * (k + 1)), font, size, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.vstack([canvas, panel])

@@ -70,8 +70,9 @@ def test_overlay_and_smoothed_points(files, tmp_path: Path) -> None:
                  "--overlay", str(overlay), "--stage", "surface=surface.linear-grid"])
     assert code == 0
     image = cv2.imread(str(overlay), cv2.IMREAD_COLOR)
-    assert image.shape == (1208, 1152, 3)
-    hsv = cv2.cvtColor(image, cv2.COLOR_BGR2HSV)
+    # the frame twice enlarged, and under it (when something is unnumbered) the reasons
+    assert image.shape[1] == 1152 and image.shape[0] >= 1208
+    hsv = cv2.cvtColor(image[:1208], cv2.COLOR_BGR2HSV)
     assert np.count_nonzero(hsv[..., 1] > 150) > 20_000  # coloured lines and numbers
     smoothed = _read_ply(out).point.positions.numpy()
     full = tmp_path / "full.ply"
@@ -120,6 +121,10 @@ def test_black_frame_overlay_is_still_written(files, tmp_path: Path, capsys) -> 
     assert main(argv) == 2
     assert "no peaks" in capsys.readouterr().err
     assert overlay.is_file()
+    # the reason is printed under the (black) frame: a white panel with black text
+    image = cv2.imread(str(overlay), cv2.IMREAD_GRAYSCALE)
+    panel = image[1208:]
+    assert panel.shape[0] > 20 and np.mean(panel) > 200 and np.count_nonzero(panel < 100) > 50
 
 
 def test_output_must_be_ply(files, tmp_path: Path, capsys) -> None:
