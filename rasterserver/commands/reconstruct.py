@@ -56,7 +56,10 @@ def reconstruct(
     ] = None,
     overlay: Annotated[
         Path | None,
-        typer.Option(help="Also write the frame with the lines coloured and numbered (PNG)."),
+        typer.Option(
+            help="Also write the frame with the lines coloured and numbered (PNG), and under "
+            "it why the grey ones were left unnumbered."
+        ),
     ] = None,
     smoothed: Annotated[
         bool,
