@@ -24,6 +24,7 @@ __all__ = [
     "ComponentNumbering",
     "code_fit",
     "level_differences",
+    "level_pairs",
     "level_statistics",
     "locally_contradicted",
     "observed_kinds",
@@ -83,6 +84,33 @@ def level_statistics(
     ok_line = lid >= 0
     comp_of = np.where(ok_line, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
     lev_of = np.where(ok_line, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
+    k, lr = level_pairs(col, area, comp_of, lev_of)
+    if k.size == 0:
+        return empty
+    comp, level = comp_of[k], lev_of[k]
+    span = int(lev_of.max()) + 2
+    groups, centre, counts, spread = robust_centres(comp * span + level, lr)
+    return groups // span, groups % span, centre, counts, spread
+
+
+def level_pairs(
+    col: np.ndarray, area: np.ndarray, comp_of: np.ndarray, lev_of: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Column neighbours on consecutive levels of one component, and their log area ratio.
+
+    Parameters
+    ----------
+    col, area : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    comp_of, lev_of : numpy.ndarray
+        Per-peak component and level (-1: none).
+
+    Returns
+    -------
+    k, lr : numpy.ndarray
+        Index of the upper peak of every such pair (the lower is ``k + 1``) and
+        ``log(area[k] / area[k + 1])``; pairs whose ratio is not finite are left out.
+    """
     pair = (
         (col[1:] == col[:-1])
         & (comp_of[1:] == comp_of[:-1])
@@ -91,18 +119,10 @@ def level_statistics(
         & (lev_of[1:] == lev_of[:-1] + 1)
     )
     k = np.flatnonzero(pair)
-    if k.size == 0:
-        return empty
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
     good = np.isfinite(lr)
-    k, lr = k[good], lr[good]
-    if k.size == 0:
-        return empty
-    comp, level = comp_of[k], lev_of[k]
-    span = int(lev_of.max()) + 2
-    groups, centre, counts, spread = robust_centres(comp * span + level, lr)
-    return groups // span, groups % span, centre, counts, spread
+    return k[good], lr[good]
 
 
 def robust_centres(

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .code_evidence import reliability, robust_centres
+from .code_evidence import level_pairs, reliability, robust_centres
 
 __all__ = ["CodeBands", "contradicted_lines"]
 
@@ -73,22 +73,14 @@ class CodeBands:
         self.lid = line_id.astype(np.int64)
         has = self.lid >= 0
         safe = np.maximum(self.lid, 0)
-        comp = np.where(has, line_component[safe], -1).astype(np.int64) if has.size else self.lid
-        lev = np.where(has, line_order[safe], -1).astype(np.int64) if has.size else self.lid
+        comp = np.where(has, line_component[safe], -1).astype(np.int64)
+        lev = np.where(has, line_order[safe], -1).astype(np.int64)
         self.comp, self.lev = comp, lev
         self.col = col.astype(np.int64)
         self.rows = np.zeros(0, dtype=np.int64)
-        self.row_comp = np.zeros(0, dtype=np.int64)
         if col.size < 2 or self.n_lines == 0:
             return
-        placed = (comp >= 0) & (lev >= 0)
-        same_col = col[1:] == col[:-1]
-        pair = same_col & (comp[1:] == comp[:-1]) & placed[:-1] & (lev[1:] == lev[:-1] + 1)
-        k = np.flatnonzero(pair)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
-        good = np.isfinite(lr)
-        k, lr = k[good], lr[good]
+        k, lr = level_pairs(col, area, comp, lev)
         if k.size == 0:
             return
         # components with differences, by a compact index (a fragmented frame has
@@ -116,7 +108,6 @@ class CodeBands:
         d = np.zeros((self.rows.size, n_lev))
         d[r_inv, groups % n_lev] = centre
         self.w[r_inv, groups % n_lev] = weight
-        self.row_comp = self.ids[self.rows // self.n_bands]
         # cost of each difference against each expected value (-lam, 0, +lam)
         expected = np.array([-lam, 0.0, lam])
         u = (d[:, :, None] - expected[None, None, :]) / (tolerance * lam)
