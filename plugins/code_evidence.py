@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "EXPLAINS_TOO_LITTLE",
     "CodeFit",
     "ComponentNumbering",
     "code_fit",
@@ -31,6 +32,10 @@ __all__ = [
     "reliability",
     "robust_centres",
 ]
+
+# the start of the reason of a component whose best placement leaves too much unexplained
+# (the numbering may still place it when that placement is unique by far)
+EXPLAINS_TOO_LITTLE = "best code placement explains too little"
 
 
 def level_differences(
@@ -284,7 +289,7 @@ def code_fit(
             f"(weight {terms:.1f}; uneven albedo or too few columns)"
         )
     elif best_cost > max_cost_rate * terms:
-        reason = f"best code placement explains too little ({best_cost:.1f} of {terms:.0f} bad)"
+        reason = f"{EXPLAINS_TOO_LITTLE} ({best_cost:.1f} of {terms:.0f} bad)"
     elif margin < min_margin - 1e-9:
         reason = f"ambiguous code placement (margin {margin:.2f} < {min_margin:g})"
     else:

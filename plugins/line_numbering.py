@@ -33,6 +33,7 @@ from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import Stage, StageContext, StageParams
 
 from .code_evidence import (
+    EXPLAINS_TOO_LITTLE,
     CodeFit,
     ComponentNumbering,
     code_fit,
@@ -237,7 +238,7 @@ def number_lines(
         fit = fits[c]
         if (
             tile_check
-            and fit.reason.startswith("best code placement explains too little")
+            and fit.reason.startswith(EXPLAINS_TOO_LITTLE)
             and fit.cost.size
             and fit.cost[fit.best] <= loose_cost_rate * fit.terms
             and fit.margin >= max(4.0 * min_margin, 0.15 * fit.terms)
