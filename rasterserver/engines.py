@@ -87,7 +87,11 @@ class Engine:
     in_flight: int = 1
 
     def submit(self, plan: Plan) -> cf.Future[Computation]:
-        """Start computing what ``plan`` has not stored; a future of its :class:`Computation`."""
+        """Start computing what ``plan`` has not stored; a future of its :class:`Computation`.
+
+        The computation holds what was stored (its files), not the records: a job reports
+        counts and reasons, and a record sent back from a worker costs both sides its bytes.
+        """
         raise NotImplementedError
 
     def flush(self) -> None:
@@ -113,7 +117,7 @@ class InProcess(Engine):
         try:
             future.set_result(
                 work(plan, self.pipeline.archive.settings.archive,
-                     registry=self.pipeline.registry)
+                     registry=self.pipeline.registry, keep="none")
             )
         except Exception as exc:
             future.set_exception(exc)
@@ -180,7 +184,7 @@ class OnDask(Engine):
             return
         batch, self._waiting = self._waiting, []
         task = self.client.submit(
-            work_batch, [plan for plan, _f in batch], self.root, pure=False
+            work_batch, [plan for plan, _f in batch], self.root, keep="none", pure=False
         )
 
         def settle(task: Any) -> None:

@@ -386,7 +386,10 @@ def _commit(
     if not batch:
         return []
     try:
-        results = pipeline.commit_many([(plan, computation) for _t, plan, computation in batch])
+        # a job reports counts and reasons: no final record read back from its file
+        results = pipeline.commit_many(
+            [(plan, computation) for _t, plan, computation in batch], final=False
+        )
     except Exception as exc:  # pragma: no cover - commit_many reports per acquisition
         return [JobOutcome.failed(plan.uid, exc) for _t, plan, _c in batch]
     return [

@@ -413,13 +413,22 @@ class Pipeline(PipelineQueries):
         return outcome
 
     def commit_many(
-        self, done: Sequence[tuple[Plan, Computation]]
+        self, done: Sequence[tuple[Plan, Computation]], *, final: bool = True
     ) -> list[ProcessResult | BaseException]:
         """:meth:`commit` for several acquisitions, in one transaction when all goes well.
 
         Each acquisition's rows go in a savepoint of their own: one failing (its run is then
         marked failed) does not undo the others. Records the computation did not write
         (plain :func:`~rasterserver.chain.compute`) are written here first.
+
+        Parameters
+        ----------
+        done : Sequence of (Plan, Computation)
+            The acquisitions computed (or found stored) and what was computed.
+        final : bool, optional
+            Set each result's ``final`` record: from the computation, or read from its file
+            when the computation does not hold it. A job, which reports counts and reasons
+            only, passes False and reads no file.
 
         Returns
         -------
@@ -471,7 +480,7 @@ class Pipeline(PipelineQueries):
         for (plan, computation), outcome in zip(done, outcomes, strict=True):
             assert outcome is not None
             if isinstance(outcome, ProcessResult):
-                self._finish(outcome, computation)
+                self._finish(outcome, computation, final=final)
             else:
                 self.fail(plan.run_id, outcome)
             results.append(outcome)
@@ -480,12 +489,12 @@ class Pipeline(PipelineQueries):
     def _store_files(self, plan: Plan, computation: Computation) -> None:
         store_computed(self.derived, plan, computation, plan.input_checksum)
 
-    def _finish(self, result: ProcessResult, computation: Computation) -> None:
-        final = computation.records.get(result.steps[-1].kind) if result.steps else None
-        if final is None and result.steps:
+    def _finish(self, result: ProcessResult, computation: Computation, *, final: bool) -> None:
+        record = computation.records.get(result.steps[-1].kind) if result.steps else None
+        if record is None and result.steps and final:
             last = result.steps[-1]
-            final = self.derived.read(last.store_path, expected_checksum=last.output_checksum)
-        result.final = final
+            record = self.derived.read(last.store_path, expected_checksum=last.output_checksum)
+        result.final = record
         log.info(
             "processed acquisition %s: %d stage(s) computed, %d reused",
             result.uid,

@@ -103,7 +103,9 @@ def work(
     return computation
 
 
-def work_batch(plans: list[Plan], root: Path | str) -> list[Computation | Exception]:
+def work_batch(
+    plans: list[Plan], root: Path | str, *, keep: str = "final"
+) -> list[Computation | Exception]:
     """:func:`work` on each of ``plans``, in order: one Dask task for several acquisitions.
 
     A task costs the coordinator and the scheduler a few milliseconds whatever it computes;
@@ -118,6 +120,10 @@ def work_batch(plans: list[Plan], root: Path | str) -> list[Computation | Except
         From :meth:`rasterserver.pipeline.Pipeline.plan`.
     root : Path or str
         The archive root as this process sees it.
+    keep : {"final", "all", "none"}, optional
+        As in :func:`work`. A job needs none of the records back (only what was stored):
+        ``"none"`` spares the worker and the coordinator sending each acquisition's mesh
+        (1.6 MB for a 604x576 frame) over the network.
 
     Returns
     -------
@@ -127,7 +133,7 @@ def work_batch(plans: list[Plan], root: Path | str) -> list[Computation | Except
     out: list[Computation | Exception] = []
     for plan in plans:
         try:
-            out.append(work(plan, root))
+            out.append(work(plan, root, keep=keep))
         except Exception as exc:  # reported for this acquisition alone
             out.append(exc)
     return out

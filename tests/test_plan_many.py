@@ -110,3 +110,38 @@ def test_a_batch_commits_its_rows_chained_in_a_few_statements(settings: Settings
             ids = [step.result_id for step in result.steps]  # type: ignore[union-attr]
             assert [rows[i][0] for i in ids] == [None, *ids[:-1]]
             assert {rows[i][1] for i in ids} == {plan.acquisition_id}  # type: ignore[union-attr]
+
+
+def test_a_job_gets_no_records_back_and_reads_no_final_file(settings: Settings) -> None:
+    # work_batch(keep="none") sends only what was stored back (a worker would otherwise send
+    # each acquisition's mesh over the network), and commit_many(final=False) reads no file
+    from rasterserver.chain import Computation
+    from rasterserver.pipeline import Plan
+    from rasterserver.worker import work_batch
+
+    image = gt.rendering("back").image
+    archive, uids = gt.archive_with_frames(settings, {"a": image, "black": np.zeros_like(image)})
+    with archive:
+        pipeline = Pipeline(archive)
+        plans = [
+            p
+            for p in pipeline.plan_many([uids["a"], uids["black"]], until="mesh", load_input=False)
+            if isinstance(p, Plan)
+        ]
+        computations = [
+            c
+            for c in work_batch(plans, settings.archive, keep="none")
+            if isinstance(c, Computation)
+        ]
+        assert len(plans) == len(computations) == 2
+        assert all(c.records == {} and len(c.stored) == 7 for c in computations)
+        results = pipeline.commit_many(list(zip(plans, computations, strict=True)), final=False)
+        done = [r for r in results if not isinstance(r, BaseException)]
+        assert [(r.computed, r.final) for r in done] == [(7, None), (7, None)]
+        # the default still loads the final record (what `process` shows), from its file
+        again = pipeline.plan(uids["a"], until="mesh", load_input=False)
+        (computed,) = work_batch([again], settings.archive)
+        assert isinstance(computed, Computation)
+        (shown,) = pipeline.commit_many([(again, computed)])
+        assert not isinstance(shown, BaseException) and shown.final is not None
+        assert shown.final.kind == "mesh" and shown.reused == 7
