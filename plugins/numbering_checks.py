@@ -48,7 +48,7 @@ def _line_ends(
     lid = line_id.astype(np.int64)
     ok = lid >= 0
     idx = np.flatnonzero(ok)
-    order = idx[np.lexsort((col[idx], lid[idx]))]
+    order = idx[by_line(lid[idx])]  # peaks are sorted by column: line, then column
     lines = lid[order]
     starts = np.searchsorted(lines, np.arange(n_lines), side="left")
     stops = np.searchsorted(lines, np.arange(n_lines), side="right")
