@@ -197,7 +197,8 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
 
     name: ClassVar[str] = "analysis.back-shape"
     stage: ClassVar[str] = "analysis"
-    version: ClassVar[str] = "1"
+    # 2: the scoliosis angle reads only tangents with a centred window (not the line's ends)
+    version: ClassVar[str] = "2"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
