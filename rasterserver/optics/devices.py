@@ -285,42 +285,20 @@ class Projector(PinholeDevice):
         tol: float,
         max_iter: int,
     ) -> np.ndarray:
+        # compiled per ray (see light_surface_newton); imported here, not at start-up,
+        # because importing numba costs ~0.3 s that commands without reconstruction skip
+        from rasterserver.optics.light_surface_newton import newton_on_rays
+
         a = o @ self.R.T + self.t  # device coordinates of the origin
         b = d @ self.R.T  # device direction
-        fy, cy = self.K[1, 1], self.K[1, 2]
-        k1, k2, p1, p2, k3 = (float(c) for c in self.dist)
-        # columns apart and only the v row of the distortion's Jacobian: the same arithmetic
-        # as distort_normalized / distortion_jacobian, without the u terms nobody reads
-        a0, a1, a2 = (np.ascontiguousarray(a[:, k]) for k in range(3))
-        b0, b1, b2 = (np.ascontiguousarray(b[:, k]) for k in range(3))
-        s = s.copy()
-        converged = np.zeros(s.shape, dtype=bool)
-        for _ in range(max_iter):
-            z = a2 + s * b2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x = (a0 + s * b0) / z
-                y = (a1 + s * b1) / z
-                dx = (b0 - x * b2) / z
-                dy = (b1 - y * b2) / z
-            _, yd = distort_normalized(x, y, self.dist)
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-            dyx = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-            dyy = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
-            g = fy * yd + cy - v_target
-            dg = fy * (dyx * dx + dyy * dy)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                step = g / dg
-            converged = np.abs(g) < tol
-            if np.all(converged | ~np.isfinite(s)):
-                break
-            s = np.where(converged, s, s - step)
-            s = np.where(s > 0, s, np.nan)
-        # one last residual check: Newton may have wandered (e.g. grazing rays)
-        pc = a + s[:, None] * b
-        with np.errstate(divide="ignore", invalid="ignore"):
-            _, yd = distort_normalized(pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2], self.dist)
-        bad = ~(np.abs(fy * yd + cy - v_target) < max(tol, 1e-7) * 10)
-        s[bad] = np.nan
-        return s
+        return newton_on_rays(
+            np.ascontiguousarray(a),
+            np.ascontiguousarray(b),
+            np.ascontiguousarray(v_target, dtype=np.float64),
+            np.ascontiguousarray(s, dtype=np.float64),
+            float(self.K[1, 1]),
+            float(self.K[1, 2]),
+            np.asarray(self.dist, dtype=np.float64),
+            float(tol),
+            int(max_iter),
+        )
