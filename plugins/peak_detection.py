@@ -1,6 +1,6 @@
 """Peak detection: the sub-pixel rows where raster lines cross each pixel column.
 
-The seed's method, vectorised over the whole frame (no loop over columns or peaks):
+The seed's method, over the whole frame at once:
 
 1. each column is lightly smoothed (``[1, 2, 1] / 4``) only to *find* extrema, so that a
    noise wiggle on a flank does not split a peak; the moments use the raw grey values;
@@ -17,8 +17,8 @@ The seed's method, vectorised over the whole frame (no loop over columns or peak
 5. row = first moment (intensity-weighted mean row) of the bias-subtracted pixels,
    area = their sum.
 
-Steps 3-5 walk outwards from all maxima at once, one pixel offset per step, over the peaks
-whose run has not ended: a loop over a handful of offsets, never over peaks.
+The extrema (step 2) and the runs and moments (steps 4-5) are scans compiled with numba
+(:mod:`rasterserver_plugins.peak_scan`); the rest is whole-array numpy.
 """
 
 from __future__ import annotations
@@ -76,30 +76,6 @@ def _empty() -> PeakArrays:
         width=np.zeros(0, np.int16),
         dropped=0,
     )
-
-
-def _extrema(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of the maxima and minima of every row of ``s`` (a column per row).
-
-    Zero slopes are skipped, so a plateau belongs to the flank it continues: a flat top
-    (saturation) gives one maximum at its last pixel, a flat background one minimum at its
-    last pixel. A positive sentinel slope after each row's last pixel makes that pixel a
-    minimum when the row ends falling, and keeps a peak cut by the image edge from pairing
-    with the next row.
-    """
-    w, h = s.shape
-    d = np.empty((w, h), dtype=np.float32)
-    np.subtract(s[:, 1:], s[:, :-1], out=d[:, :-1])
-    d[:, -1] = 1.0
-    flat = d.ravel()
-    # boolean masks and a boolean gather: much cheaper than gathering the float slopes
-    rising = flat > 0
-    nz = np.flatnonzero(rising | (flat < 0))
-    up = rising[nz]
-    after = nz[1:]
-    maxima = after[up[:-1] & ~up[1:]]
-    minima = after[~up[:-1] & up[1:]]
-    return maxima.astype(np.int64), minima.astype(np.int64)
 
 
 def detect_peaks(
@@ -182,7 +158,10 @@ def detect_peaks(
     else:
         t = np.ascontiguousarray(img.T, dtype=np.float32)
     s = cv2.sepFilter2D(t, -1, _SMOOTH, _ONE, borderType=cv2.BORDER_REPLICATE) if smooth else t
-    maxima, minima = _extrema(s)
+    # compiled scans (peak_scan); imported on first use, the numba import costs ~0.3 s
+    from .peak_scan import column_extrema, run_moments
+
+    maxima, minima = column_extrema(np.ascontiguousarray(s, dtype=np.float32))
     if maxima.size == 0:
         return _empty()
     tf = t.ravel()
@@ -213,27 +192,8 @@ def detect_peaks(
     peak = np.maximum(np.maximum(tf[m - 1], tf[m]), tf[m + 1])
     level = base + np.float32(bias_fraction) * (peak - base)
     # Moments over the contiguous run of pixels above the bias around the maximum, walking
-    # outwards one offset at a time over the peaks whose run has not ended yet: a
-    # neighbouring bump inside [lo, hi] is never counted, and the loop is over offsets
-    # (a handful), not peaks.
-    centre = np.maximum(tf[m] - level, 0.0)
-    s0 = centre.astype(np.float64)
-    s1 = np.zeros(m.size, dtype=np.float64)
-    extent = np.zeros((2, m.size), dtype=np.int16)
-    for side, sign in ((0, -1), (1, 1)):
-        active = np.flatnonzero(centre > 0)
-        bound = lo if sign < 0 else hi
-        for j in range(1, half + 1):
-            pos = m[active] + sign * j
-            v = tf[pos] - level[active]
-            keep = (v > 0) & (pos * sign <= bound[active] * sign)
-            active = active[keep]
-            if active.size == 0:
-                break
-            v = v[keep]
-            s0[active] += v
-            s1[active] += (sign * j) * v
-            extent[side, active] = j
+    # outwards until the run ends: a neighbouring bump inside [lo, hi] is never counted.
+    s0, s1, extent = run_moments(tf, m, level.astype(np.float32, copy=False), lo, hi, half)
     height = peak - level
     ok = s0 > 0
     # Mean slope of each flank above the bias (see min_slope).
