@@ -38,24 +38,6 @@ __all__ = ["HierarchicalLineSearch", "link_peaks", "search_lines"]
 DEFAULT_LEVELS: tuple[float, ...] = (2.0, 1.4, 1.0, 0.7, 0.5, 0.35, 0.0)
 
 
-def _nearest_in_column(
-    key: np.ndarray, col: np.ndarray, row: np.ndarray, target_col: np.ndarray, span: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Index of and distance to the nearest peak in ``target_col`` for every peak (-1, inf)."""
-    n = key.size
-    j = np.searchsorted(key, target_col * span + row)
-    best = np.full(n, -1, dtype=np.int64)
-    dist = np.full(n, np.inf)
-    for cand in (j - 1, j):
-        valid = (cand >= 0) & (cand < n)
-        c = np.clip(cand, 0, max(n - 1, 0))
-        dd = np.where(valid & (col[c] == target_col), np.abs(row[c] - row), np.inf)
-        better = dd < dist
-        best[better] = c[better]
-        dist[better] = dd[better]
-    return best, dist
-
-
 def link_peaks(
     col: np.ndarray, row: np.ndarray, *, max_step: float = 4.0
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -76,42 +58,29 @@ def link_peaks(
     n = col.size
     if n == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    col64 = col.astype(np.int64)
+    from .line_links import mutual_links  # compiled; the numba import costs ~0.3 s
+
     span = float(np.ceil(row.max() - min(row.min(), 0.0))) + 2.0 * max_step + 2.0
-    key = col64 * span + row
-    nxt, dn = _nearest_in_column(key, col64, row, col64 + 1, span)
-    ok = (nxt >= 0) & (dn <= max_step)
-    # Mutual: p must be the nearest to q = nxt[p] in p's column too. Rows are sorted within
-    # a column, so that holds when neither of p's neighbours in its column is nearer to q.
-    p = np.flatnonzero(ok)
-    q = nxt[p]
-    d = np.abs(row[p] - row[q])
-    for nb in (p - 1, p + 1):
-        inside = (nb >= 0) & (nb < n)
-        nb = np.clip(nb, 0, n - 1)
-        nearer = inside & (col64[nb] == col64[p]) & (np.abs(row[nb] - row[q]) <= d)
-        ok[p[nearer]] = False
-    right = np.where(ok, nxt, -1)
-    left = np.full(n, -1, dtype=np.int64)
-    left[right[ok]] = np.flatnonzero(ok)
-    return right, left
+    return mutual_links(
+        np.ascontiguousarray(col, dtype=np.int64),
+        np.ascontiguousarray(row, dtype=np.float64),
+        span,
+        float(max_step),
+    )
 
 
 def _chain_layout(left: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Chain order of peaks: ``perm`` (position → peak) and each position's chain head.
 
-    Pointer jumping finds every peak's chain head in ``log2(longest chain)`` gathers; a link
-    always advances one column, so the depth along the chain is the column difference, and
-    positions follow from the chain lengths: no sort.
+    One pass in peak order finds every peak's chain head (:func:`.line_links.chain_heads`);
+    a link always advances one column, so the depth along the chain is the column
+    difference, and positions follow from the chain lengths: no sort.
     """
+    from .line_links import chain_heads
+
     n = left.size
     idx = np.arange(n, dtype=np.int64)
-    head = np.where(left >= 0, left, idx)
-    while True:
-        grand = head[head]
-        if np.array_equal(grand, head):
-            break
-        head = grand
+    head = chain_heads(np.ascontiguousarray(left, dtype=np.int64))
     depth = col.astype(np.int64) - col[head]
     length = np.bincount(head, minlength=n)
     start = np.cumsum(length) - length
@@ -386,26 +355,11 @@ def search_lines(
 
 def _compact(label: np.ndarray, perm: np.ndarray, min_length: int) -> np.ndarray:
     """Labels back in peak order, short lines dropped, ids ranked by each line's first peak."""
-    n = label.size
-    out = np.full(n, -1, dtype=np.int64)
+    from .line_links import ranked_labels
+
+    out = np.full(label.size, -1, dtype=np.int64)
     out[perm] = label
-    valid = out >= 0
-    if not np.any(valid):
-        return np.full(n, -1, dtype=np.int32)
-    _uniq, inv, counts = np.unique(out[valid], return_inverse=True, return_counts=True)
-    keep = counts[inv] >= min_length
-    where = np.flatnonzero(valid)
-    out[where[~keep]] = -1
-    valid = out >= 0
-    if not np.any(valid):
-        return np.full(n, -1, dtype=np.int32)
-    # np.unique's first occurrences in peak order give each line's first peak
-    _, first, inv = np.unique(out[valid], return_index=True, return_inverse=True)
-    rank = np.empty(first.size, dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(first.size)
-    result = np.full(n, -1, dtype=np.int32)
-    result[valid] = rank[inv]
-    return result
+    return ranked_labels(out, int(min_length))
 
 
 class HierarchicalLineSearch(Stage[Peaks, Lines]):
