@@ -130,6 +130,9 @@ def level_pairs(
     return k[good], lr[good]
 
 
+_CENTRE_WINDOWS = np.array([0.3, 0.15])
+
+
 def robust_centres(
     key: np.ndarray, lr: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -147,23 +150,16 @@ def robust_centres(
     groups, centre, count, spread : numpy.ndarray
         One entry per key present, ascending.
     """
-    n_keys = int(key.max()) + 1
-    counts = np.bincount(key, minlength=n_keys)
     # A robust centre without sorting: the mean of the clipped ratios, then twice the mean
     # of those near the previous centre (silhouette columns and skin spots are outliers).
-    lr = np.clip(lr, -1.0, 1.0)
-    centre = np.bincount(key, weights=lr, minlength=n_keys) / np.maximum(counts, 1)
-    for window in (0.3, 0.15):
-        near = np.abs(lr - centre[key]) <= window
-        total = np.bincount(key[near], weights=lr[near], minlength=n_keys)
-        n_near = np.bincount(key[near], minlength=n_keys)
-        centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
-    # (bincount with weights gives floats; numpy's stubs say integers, so no in-place divide)
-    spread = np.bincount(key, weights=np.abs(lr - centre[key]), minlength=n_keys) / np.maximum(
-        counts, 1
+    # One compiled loop per pass (ratio_groups); the numba import costs ~0.3 s, hence here.
+    from .ratio_groups import grouped_centres
+
+    return grouped_centres(
+        np.ascontiguousarray(key, dtype=np.int64),
+        np.ascontiguousarray(lr, dtype=np.float64),
+        _CENTRE_WINDOWS,
     )
-    groups = np.flatnonzero(counts)
-    return groups, centre[groups], counts[groups], spread[groups]
 
 
 @dataclass(frozen=True)

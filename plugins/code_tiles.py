@@ -85,7 +85,7 @@ class CodeBands:
             return
         # components with differences, by a compact index (a fragmented frame has
         # thousands of one-line components, which have none)
-        self.ids = np.unique(comp[k])
+        self.ids = np.flatnonzero(np.bincount(comp[k]))  # np.unique's result, without a sort
         self.compact = np.full(int(comp.max()) + 1, -1, dtype=np.int64)
         self.compact[self.ids] = np.arange(self.ids.size)
         self.n_bands = int(col.max()) // self.step + 2
