@@ -118,48 +118,6 @@ def _grid_frame(x: np.ndarray, y: np.ndarray, spacing: float) -> tuple[float, fl
     return x0, y0, nx, ny
 
 
-def _three_point_slope(
-    d_prev: np.ndarray, s_prev: np.ndarray, d_next: np.ndarray, s_next: np.ndarray
-) -> np.ndarray:
-    """Derivative at a node from the secant slopes on both sides (exact for parabolas)."""
-    return (d_prev * s_next + d_next * s_prev) / (d_prev + d_next)
-
-
-def _hermite(
-    t: np.ndarray, h: np.ndarray, f0: np.ndarray, f1: np.ndarray, m0: np.ndarray, m1: np.ndarray
-) -> np.ndarray:
-    """Cubic Hermite interpolation on ``[0, 1]`` of an interval of length ``h``."""
-    t2 = t * t
-    t3 = t2 * t
-    return (
-        (2 * t3 - 3 * t2 + 1) * f0
-        + (t3 - 2 * t2 + t) * h * m0
-        + (-2 * t3 + 3 * t2) * f1
-        + (t3 - t2) * h * m1
-    )
-
-
-def _interval_slopes(
-    x: np.ndarray, f: np.ndarray, has_prev: np.ndarray, has_next: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Slopes at both ends of the interval between nodes 1 and 2 of ``(4, K)`` nodes.
-
-    Each end takes the slope of the parabola through it and its two neighbours (exact for
-    parabolas); where node 0 or 3 is missing, the parabola through the three nodes that are
-    there is used, and with only nodes 1 and 2 the secant (linear).
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        h0, h1, h2 = x[1] - x[0], x[2] - x[1], x[3] - x[2]
-        s0, s1, s2 = (f[1] - f[0]) / h0, (f[2] - f[1]) / h1, (f[3] - f[2]) / h2
-        centred_1 = _three_point_slope(h0, s0, h1, s1)
-        centred_2 = _three_point_slope(h1, s1, h2, s2)
-        forward_1 = s1 - (s2 - s1) * h1 / (h1 + h2)  # parabola through 1, 2, 3 at node 1
-        backward_2 = s1 + (s1 - s0) * h1 / (h0 + h1)  # parabola through 0, 1, 2 at node 2
-    m1 = np.where(has_prev, centred_1, np.where(has_next, forward_1, s1))
-    m2 = np.where(has_next, centred_2, np.where(has_prev, backward_2, s1))
-    return m1, m2
-
-
 def grid_from_lines(
     samples: Points,
     *,
@@ -203,56 +161,23 @@ def grid_from_lines(
     z : numpy.ndarray
         ``(ny, nx)`` float64 depths, NaN outside the measured surface.
     """
+    from .grid_interpolation import across_lines  # compiled; the numba import costs ~0.3 s
+
     x0, y0, nx, ny = _grid_frame(samples.x, samples.y, spacing)
-    z = np.full((ny, nx), np.nan)
     lines, rank = np.unique(samples.number, return_inverse=True)
     n_lines = lines.size
     line_y, line_z = _along_lines(samples, rank, n_lines, x0, nx, spacing, max_gap, cubic)
-    valid = np.isfinite(line_y)
-    if n_lines < 2:
-        return x0, y0, z
-    # next / previous valid line of each (line, column): running min / max of valid ranks
-    ranks = np.arange(n_lines)[:, None]
-    nxt = np.minimum.accumulate(np.where(valid, ranks, n_lines)[::-1], axis=0)[::-1]
-    nxt = np.vstack([nxt[1:], np.full((1, nx), n_lines)])
-    prv = np.maximum.accumulate(np.where(valid, ranks, -1), axis=0)
-    prv = np.vstack([np.full((1, nx), -1), prv[:-1]])
-
-    def linked(r0: np.ndarray, r1: np.ndarray, col: np.ndarray) -> np.ndarray:
-        ok = (r0 >= 0) & (r1 < n_lines)
-        a, b = np.clip(r0, 0, n_lines - 1), np.clip(r1, 0, n_lines - 1)
-        dy = line_y[b, col] - line_y[a, col]
-        dz = line_z[b, col] - line_z[a, col]
-        near = dy * dy + dz * dz <= max_line_distance**2
-        return ok & (lines[b] - lines[a] <= max_line_step) & (dy > 0) & near
-
-    r_a, col = np.nonzero(valid & (nxt < n_lines))
-    r_b = nxt[r_a, col]
-    pair = linked(r_a, r_b, col)
-    r_a, r_b, col = r_a[pair], r_b[pair], col[pair]
-    ya, yb = line_y[r_a, col], line_y[r_b, col]
-    i_lo = np.ceil((ya - y0) / spacing).astype(np.int64)
-    i_hi = np.ceil((yb - y0) / spacing).astype(np.int64)
-    count = np.maximum(i_hi - i_lo, 0)
-    rep = np.repeat(np.arange(count.size), count)
-    i = i_lo[rep] + (np.arange(rep.size) - np.repeat(np.cumsum(count) - count, count))
-    inside = (i >= 0) & (i < ny)
-    rep, i = rep[inside], i[inside]
-    h = yb - ya
-    t = (y0 + i * spacing - ya[rep]) / h[rep]
-    za, zb = line_z[r_a, col], line_z[r_b, col]
-    if not cubic:
-        z[i, col[rep]] = za[rep] + t * (zb[rep] - za[rep])
-        return x0, y0, z
-    r_p = prv[r_a, col]
-    r_n = nxt[r_b, col]
-    has_p = linked(r_p, r_a, col)
-    has_n = linked(r_b, r_n, col)
-    r_p, r_n = np.clip(r_p, 0, n_lines - 1), np.clip(r_n, 0, n_lines - 1)
-    yy = np.stack([line_y[r_p, col], ya, yb, line_y[r_n, col]])
-    zz = np.stack([line_z[r_p, col], za, zb, line_z[r_n, col]])
-    m_a, m_b = _interval_slopes(yy, zz, has_p, has_n)
-    z[i, col[rep]] = _hermite(t, h[rep], za[rep], zb[rep], m_a[rep], m_b[rep])
+    z = across_lines(
+        line_y,
+        line_z,
+        lines.astype(np.int64),
+        float(y0),
+        float(spacing),
+        int(ny),
+        int(max_line_step),
+        float(max_line_distance) ** 2,
+        bool(cubic),
+    )
     return x0, y0, z
 
 
@@ -274,43 +199,20 @@ def _along_lines(
     order = np.argsort(key, kind="stable")
     key, xs = key[order], xs[order]
     ys, zs, rk = samples.y[order], samples.z[order], rank[order]
-    n = key.size
-    xg = np.tile((np.arange(nx) + 1.0) * spacing, n_lines)
-    q_rank = np.repeat(np.arange(n_lines), nx)
-    hi = np.searchsorted(key, q_rank * span + xg, side="left")
-    lo = hi - 1
-    hi_c, lo_c = np.minimum(hi, n - 1), np.maximum(lo, 0)
-    on_hi = (hi < n) & (rk[hi_c] == q_rank)
-    exact = on_hi & (xs[hi_c] == xg)
-    dx = xs[hi_c] - xs[lo_c]
+    from .grid_interpolation import along_lines
 
-    def close(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        d2 = (xs[a] - xs[b]) ** 2 + (ys[a] - ys[b]) ** 2 + (zs[a] - zs[b]) ** 2
-        return d2 <= max_gap**2
-
-    ok = on_hi & (lo >= 0) & (rk[lo_c] == q_rank) & close(lo_c, hi_c)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(dx > 0, (xg - xs[lo_c]) / dx, 0.0)
-    if cubic:
-        lp, hn = np.maximum(lo - 1, 0), np.minimum(hi + 1, n - 1)
-        has_p = (lo >= 1) & (rk[lp] == q_rank) & close(lp, lo_c) & (xs[lo_c] > xs[lp])
-        has_n = (hi + 1 < n) & (rk[hn] == q_rank) & close(hn, hi_c) & (xs[hn] > xs[hi_c])
-        xx = np.stack([xs[lp], xs[lo_c], xs[hi_c], xs[hn]])
-        out = []
-        for f in (ys, zs):
-            ff = np.stack([f[lp], f[lo_c], f[hi_c], f[hn]])
-            m0, m1 = _interval_slopes(xx, ff, has_p, has_n)
-            out.append(_hermite(t, dx, ff[1], ff[2], m0, m1))
-        line_y, line_z = out
-    else:
-        line_y = ys[lo_c] + t * (ys[hi_c] - ys[lo_c])
-        line_z = zs[lo_c] + t * (zs[hi_c] - zs[lo_c])
-    line_y = np.where(exact, ys[hi_c], line_y)
-    line_z = np.where(exact, zs[hi_c], line_z)
-    valid = (ok | exact).reshape(n_lines, nx)
-    return (
-        np.where(valid, line_y.reshape(n_lines, nx), np.nan),
-        np.where(valid, line_z.reshape(n_lines, nx), np.nan),
+    return along_lines(
+        np.ascontiguousarray(key, dtype=np.float64),
+        np.ascontiguousarray(xs, dtype=np.float64),
+        np.ascontiguousarray(ys, dtype=np.float64),
+        np.ascontiguousarray(zs, dtype=np.float64),
+        np.ascontiguousarray(rk, dtype=np.int64),
+        int(n_lines),
+        int(nx),
+        float(spacing),
+        float(span),
+        float(max_gap) ** 2,
+        bool(cubic),
     )
 
 
