@@ -43,22 +43,13 @@ def grid_triangles(valid: np.ndarray, z: np.ndarray | None = None) -> np.ndarray
     ny, nx = valid.shape
     if ny < 2 or nx < 2:
         return np.zeros((0, 3), dtype=np.int64)
-    cell = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
-    i, j = np.nonzero(cell)
-    v00 = i * nx + j
-    v01 = v00 + 1
-    v10 = v00 + nx
-    v11 = v10 + 1
-    if z is None:
-        main = np.zeros(i.size, dtype=bool)
-    else:
-        # split along 00-11 when that diagonal is the shorter one
-        main = np.abs(z[i, j] - z[i + 1, j + 1]) < np.abs(z[i, j + 1] - z[i + 1, j])
     # normal of (a, b, c) = (b - a) x (c - a); with x right and y down, (v00, v10, v01) has a
-    # z component -spacing², i.e. it faces the camera
-    t1 = np.where(main[:, None], np.column_stack([v00, v10, v11]), np.column_stack([v00, v10, v01]))
-    t2 = np.where(main[:, None], np.column_stack([v00, v11, v01]), np.column_stack([v01, v10, v11]))
-    return np.concatenate([t1, t2])
+    # z component -spacing², i.e. it faces the camera. One compiled loop over the cells
+    # (grid_cells); the numba import costs ~0.3 s, hence imported here.
+    from .grid_cells import cell_triangles
+
+    depth = np.zeros((1, 1)) if z is None else np.ascontiguousarray(z, dtype=np.float64)
+    return cell_triangles(np.ascontiguousarray(valid, dtype=np.bool_), depth, z is not None)
 
 
 class GridMesh(Stage[Surface, MeshRecord]):
@@ -84,15 +75,13 @@ class GridMesh(Stage[Surface, MeshRecord]):
         if triangles.size == 0:
             why = "no grid cell has four measured corners"
             return MeshRecord.empty(f"{why}; {data.reason}" if data.reason else why)
+        from .grid_cells import used_vertices
+
         ny, nx = data.shape
-        used = np.zeros(ny * nx, dtype=bool)
-        used[triangles.ravel()] = True
-        new_index = np.cumsum(used) - 1
-        flat = np.flatnonzero(used)
+        flat, tri = used_vertices(triangles, ny * nx)  # vertices of no triangle dropped
         i, j = np.divmod(flat, nx)
         xs, ys = data.coordinates()
         vertices = np.column_stack([xs[j], ys[i], data.z.ravel()[flat]])
-        tri = new_index[triangles].astype(np.int32)
         mesh = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(tri)
         )
