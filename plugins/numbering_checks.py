@@ -29,6 +29,8 @@ import numpy as np
 from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
+from .code_evidence import robust_centres
+
 __all__ = [
     "by_line",
     "column_order_conflicts",
@@ -380,14 +382,9 @@ def pair_contradictions(
     code = raster.code.astype(np.float64)
     expected = (code[pos[a]] - code[pos[b]]) * lam
     keys, inv = _group_pairs(lid[a], lid[b], int(lid.max()) + 1)
-    counts = np.bincount(inv, minlength=keys.size)
-    centre = np.bincount(inv, weights=lr, minlength=keys.size) / counts
-    for window in (0.3, 0.15):  # a robust centre, as in code_evidence.level_statistics
-        near = np.abs(lr - centre[inv]) <= window
-        total = np.bincount(inv[near], weights=lr[near], minlength=keys.size)
-        n_near = np.bincount(inv[near], minlength=keys.size)
-        centre = np.where(n_near > 0, total / np.maximum(n_near, 1), centre)
-    spread = np.bincount(inv, weights=np.abs(lr - centre[inv]), minlength=keys.size) / counts
+    # the robust centre of code_evidence.level_statistics (every pair has a column: the
+    # groups are 0 .. keys.size - 1, all present)
+    _, centre, counts, spread = robust_centres(inv, lr)
     exp_pair = np.zeros(keys.size)
     exp_pair[inv] = expected
     se = np.maximum(1.25 * spread / np.sqrt(np.maximum(counts / correlation, 1.0)), 0.01)
