@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field
 
 from rasterserver.errors import InputError
-from rasterserver.optics import Camera, Station
+from rasterserver.optics import Camera, Projector, Station
 from rasterserver.raster import Raster
 from rasterserver.records_lines import NumberedLines
 from rasterserver.records_surface import Points
@@ -132,6 +132,30 @@ def line_positions(raster: Raster, number: np.ndarray) -> np.ndarray:
     return np.where(numbers[k] == number, positions[k], np.nan)
 
 
+def _line_planes(
+    projector: Projector, raster: Raster, number: np.ndarray
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """:func:`line_positions` of ``number`` and their light planes (``Projector.light_plane``),
+    the planes formed for the raster's lines and gathered: the same rows, N / lines fewer.
+    Numbers the raster does not have get ``v`` NaN and a NaN plane, as ``light_plane`` of NaN.
+    """
+    order = np.argsort(raster.numbers, kind="stable")
+    numbers = raster.numbers[order]
+    positions = np.asarray(raster.positions[order], dtype=np.float64)
+    number = np.asarray(number, dtype=np.int64)
+    if numbers.size == 0:
+        nan = np.full(number.shape, np.nan)
+        return nan, projector.light_plane(nan)
+    k = np.clip(np.searchsorted(numbers, number), 0, numbers.size - 1)
+    known = numbers[k] == number
+    v = np.where(known, positions[k], np.nan)
+    normals, offsets = projector.light_plane(positions)
+    n_w, off = normals[k], offsets[k]
+    n_w[~known] = np.nan
+    off[~known] = np.nan
+    return v, (n_w, off)
+
+
 def reconstruct_points(
     station: Station,
     raster: Raster,
@@ -230,11 +254,12 @@ class RayPlaneReconstruction(Stage[NumberedLines, Points]):
         outside = int(np.count_nonzero(~in_image))
         numbered = numbered[in_image]
         col, row, number = col[in_image], row[in_image], data.number[numbered]
-        # reconstruct_points inlined: the line positions are looked up once, not twice
-        v = line_positions(raster, number)
+        # reconstruct_points inlined: the line positions are looked up once, not twice, and
+        # the light planes are formed once per raster line, not once per peak
+        v, planes = _line_planes(station.projector, raster, number)
         origins, directions = camera_rays(station.camera, col, row, exact=params.exact_rays)
         xyz = station.projector.light_surface_intersection(
-            origins, directions, v, tol=params.tolerance
+            origins, directions, v, tol=params.tolerance, planes=planes
         )
         unknown = np.isnan(v)
         finite = np.isfinite(xyz).all(axis=1)

@@ -236,6 +236,7 @@ class Projector(PinholeDevice):
         *,
         tol: float = 1e-9,
         max_iter: int = 50,
+        planes: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Intersect rays with the light surfaces of diapositive coordinates ``v``.
 
@@ -254,6 +255,9 @@ class Projector(PinholeDevice):
             Convergence tolerance on ``v`` in diapositive units.
         max_iter : int
             Newton iterations at most.
+        planes : tuple of numpy.ndarray, optional
+            ``light_plane(v)`` when the caller has it (the planes of a raster's few hundred
+            lines, gathered per ray, instead of one plane per ray).
 
         Returns
         -------
@@ -264,7 +268,7 @@ class Projector(PinholeDevice):
         o = as_points(origins, 3, "origins")
         d = as_points(directions, 3, "directions")
         v_arr = np.broadcast_to(np.asarray(v, dtype=np.float64), (o.shape[0],))
-        n_w, off = self.light_plane(v_arr)
+        n_w, off = self.light_plane(v_arr) if planes is None else planes
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (off - np.einsum("ij,ij->i", n_w, o)) / np.einsum("ij,ij->i", n_w, d)
         s = np.where(np.isfinite(s) & (s > 0), s, np.nan)
