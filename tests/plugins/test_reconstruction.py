@@ -91,6 +91,21 @@ def test_line_positions_of_unknown_numbers_are_nan() -> None:
     assert np.isnan(v[3:]).all()
 
 
+def test_line_planes_are_the_planes_of_the_line_positions() -> None:
+    from rasterserver_plugins.reconstruction import _line_planes
+
+    station = gt.station()
+    raster = station.raster_definition
+    rng = np.random.default_rng(3)
+    number = rng.choice(np.append(raster.numbers, [-1, 10_000]), 5000)
+    v, (normals, offsets) = _line_planes(station.projector, raster, number)
+    want_n, want_off = station.projector.light_plane(line_positions(raster, number))
+    np.testing.assert_array_equal(v, line_positions(raster, number))
+    np.testing.assert_array_equal(normals, want_n)  # the same bits; NaN for unknown numbers
+    np.testing.assert_array_equal(offsets, want_off)
+    assert np.isnan(v).any() and np.isfinite(v).any()
+
+
 def test_unnumbered_and_unknown_peaks_are_dropped_and_counted() -> None:
     lines = _lines("plane")
     number = lines.number.copy()
