@@ -112,10 +112,17 @@ def along_lines(
     n = key.shape[0]
     line_y = np.full((n_lines, nx), np.nan)
     line_z = np.full((n_lines, nx), np.nan)
+    hi = 0
     for r in range(n_lines):
         for j in range(nx):
             xg = (j + 1.0) * spacing
-            hi = np.searchsorted(key, r * span + xg)
+            # np.searchsorted(key, q) ("left"), walking on from the previous node's position:
+            # the nodes' keys ascend (a binary search per node cost more than the rest)
+            q = r * span + xg
+            if hi > 0 and key[hi - 1] >= q:
+                hi = np.searchsorted(key, q)
+            while hi < n and key[hi] < q:
+                hi += 1
             lo = hi - 1
             hi_c, lo_c = min(hi, n - 1), max(lo, 0)
             on_hi = hi < n and rk[hi_c] == r

@@ -46,9 +46,16 @@ def mutual_links(
         key[i] = col[i] * span + row[i]
     nxt = np.full(n, -1, dtype=np.int64)
     ok = np.zeros(n, dtype=np.bool_)
+    j = 0
     for i in range(n):
         target = col[i] + 1
-        j = np.searchsorted(key, target * span + row[i])
+        # np.searchsorted(key, t) ("left"), found by walking on from the previous query's
+        # position: the queries ascend with the peaks (a binary search each cost 2 ms)
+        t = target * span + row[i]
+        if j > 0 and key[j - 1] >= t:
+            j = np.searchsorted(key, t)
+        while j < n and key[j] < t:
+            j += 1
         best = -1
         dist = math.inf
         for c in (j - 1, j):

@@ -28,10 +28,13 @@ from rasterserver.archive import Archive
 from rasterserver.config import Settings, sqlite_url
 
 #: Packages that ``--help``, ``list`` and ``verify`` must not load: the 3-D and numerical
-#: stack of the stages, distributed computing, plotting, the HTTP server and the simulator.
+#: stack of the stages (with numba's compiler), distributed computing, plotting, the HTTP
+#: server and the simulator.
 FORBIDDEN = (
     "open3d",
     "scipy",
+    "numba",
+    "llvmlite",
     "dask",
     "distributed",
     "matplotlib",
