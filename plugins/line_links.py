@@ -95,6 +95,8 @@ def chain_heads(left: np.ndarray) -> np.ndarray:
     n = left.shape[0]
     head = np.empty(n, dtype=np.int64)
     for i in range(n):
+        if left[i] >= i:  # only unsorted peaks give a link to a later peak
+            raise ValueError("peaks must be sorted by (col, row)")
         head[i] = head[left[i]] if left[i] >= 0 else i
     return head
 

@@ -98,3 +98,8 @@ def test_no_peaks() -> None:
     right, left = mutual_links(np.zeros(0, np.int64), np.zeros(0), 10.0, 4.0)
     assert right.shape == left.shape == (0,)
     assert chain_heads(left).shape == (0,)
+
+
+def test_a_link_to_a_later_peak_is_refused() -> None:
+    with pytest.raises(ValueError, match="sorted"):
+        chain_heads(np.array([-1, 2, -1], dtype=np.int64))
