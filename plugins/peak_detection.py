@@ -159,7 +159,7 @@ def detect_peaks(
         t = np.ascontiguousarray(img.T, dtype=np.float32)
     s = cv2.sepFilter2D(t, -1, _SMOOTH, _ONE, borderType=cv2.BORDER_REPLICATE) if smooth else t
     # compiled scans (peak_scan); imported on first use, the numba import costs ~0.3 s
-    from .peak_scan import column_extrema, run_moments
+    from .peak_scan import bounded_maxima, column_extrema, run_moments
 
     maxima, minima = column_extrema(np.ascontiguousarray(s, dtype=np.float32))
     if maxima.size == 0:
@@ -167,16 +167,8 @@ def detect_peaks(
     tf = t.ravel()
     sf = s.ravel()
     # Bounding minima: the nearest minimum on each side within the same column (column
-    # ends count as minima).
-    col_start = (maxima // h) * h
-    i = np.searchsorted(minima, maxima)
-    lo = np.maximum(minima[np.maximum(i - 1, 0)], col_start)
-    lo = np.where(i > 0, lo, col_start)
-    hi = np.minimum(minima[np.minimum(i, minima.size - 1)], col_start + (h - 1))
-    hi = np.where(i < minima.size, hi, col_start + (h - 1))
-    top = sf[maxima]
-    ok = (top - sf[lo] >= min_height) & (top - sf[hi] >= min_height)
-    m, lo, hi = maxima[ok], lo[ok], hi[ok]
+    # ends count as minima); the maximum must rise min_height above both.
+    m, lo, hi = bounded_maxima(sf, maxima, minima, h, np.float32(min_height))
     if m.size == 0:
         return _empty()
     half = max(1, max_width // 2)

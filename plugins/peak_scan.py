@@ -137,3 +137,46 @@ def run_moments(
         s0[k] = acc0
         s1[k] = acc1
     return s0, s1, extent
+
+
+@njit(cache=True, nogil=True)
+def bounded_maxima(
+    sf: np.ndarray, maxima: np.ndarray, minima: np.ndarray, h: int, min_height: np.float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The maxima high enough above both bounding minima, with those minima.
+
+    Parameters
+    ----------
+    sf : numpy.ndarray
+        Flat float32 smoothed pixels, a column of ``h`` after the other.
+    maxima, minima : numpy.ndarray
+        Ascending int64 flat indices from :func:`column_extrema`.
+    h : int
+        Pixels per column.
+    min_height : numpy.float32
+        Least rise and fall (compared in float32, as numpy compares a float32 array).
+
+    Returns
+    -------
+    m, lo, hi : numpy.ndarray
+        int64 flat indices of the kept maxima and of the nearest minimum on each side in
+        the same column (the column's first or last pixel where there is none).
+    """
+    n, n_min = maxima.shape[0], minima.shape[0]
+    m = np.empty(n, dtype=np.int64)
+    lo_out = np.empty(n, dtype=np.int64)
+    hi_out = np.empty(n, dtype=np.int64)
+    k = 0
+    i = 0  # minima below the current maximum: np.searchsorted(minima, maxima), walked
+    for p in range(n):
+        mx = maxima[p]
+        while i < n_min and minima[i] < mx:
+            i += 1
+        col_start = (mx // h) * h
+        lo = max(minima[i - 1], col_start) if i > 0 else col_start
+        hi = min(minima[i], col_start + (h - 1)) if i < n_min else col_start + (h - 1)
+        top = sf[mx]
+        if top - sf[lo] >= min_height and top - sf[hi] >= min_height:
+            m[k], lo_out[k], hi_out[k] = mx, lo, hi
+            k += 1
+    return m[:k].copy(), lo_out[:k].copy(), hi_out[:k].copy()

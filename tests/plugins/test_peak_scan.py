@@ -112,3 +112,25 @@ def test_moments_of_no_peaks() -> None:
     e = np.zeros(0, np.int64)
     s0, _, extent = run_moments(np.zeros(10, np.float32), e, np.zeros(0, np.float32), e, e, 5)
     assert s0.shape == (0,) and extent.shape == (2, 0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("min_height", [5.0, 5.3, 0.0])
+def test_bounded_maxima_as_the_passes(seed: int, min_height: float) -> None:
+    from rasterserver_plugins.peak_scan import bounded_maxima
+
+    s = _columns(seed)
+    h = s.shape[1]
+    sf = s.ravel()
+    maxima, minima = _extrema_passes(s)
+    col_start = (maxima // h) * h
+    i = np.searchsorted(minima, maxima)
+    lo = np.where(i > 0, np.maximum(minima[np.maximum(i - 1, 0)], col_start), col_start)
+    hi = np.minimum(minima[np.minimum(i, minima.size - 1)], col_start + (h - 1))
+    hi = np.where(i < minima.size, hi, col_start + (h - 1))
+    top = sf[maxima]
+    ok = (top - sf[lo] >= min_height) & (top - sf[hi] >= min_height)  # in float32
+    got = bounded_maxima(sf, maxima, minima, h, np.float32(min_height))
+    for g, w in zip(got, (maxima[ok], lo[ok], hi[ok]), strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert 0 < got[0].size < maxima.size or min_height == 0.0
