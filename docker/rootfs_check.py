@@ -409,10 +409,12 @@ def run(rootfs: Path, config_path: Path) -> int:
             "python", "-c",
             "from distributed import Client\n"
             "with Client('tcp://127.0.0.1:8786', timeout=10) as client:\n"
+            # the engine's tasks are rasterserver.worker.work_batch calls (eight
+            # acquisitions each): their key prefix is the function's name
             "    n = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler"
-            ".task_prefixes['compute'].state_counts['memory'] "
-            "if 'compute' in dask_scheduler.task_prefixes else 0)\n"
-            "print(f'{n} compute task(s) finished on the worker')\n"
+            ".task_prefixes['work_batch'].state_counts['memory'] "
+            "if 'work_batch' in dask_scheduler.task_prefixes else 0)\n"
+            "print(f'{n} work_batch task(s) finished on the worker')\n"
             "raise SystemExit(0 if n > 0 else 1)"],
             detail=lambda out: out.strip())
         c.run("rasterserver verify after processing", [*config["entrypoint"], "verify"],

@@ -438,24 +438,18 @@ def line_jumps(
         spacing = local_spacing(col, row, number)
     if spacing is None:
         return out
+    from .line_steps import jumping_peaks  # compiled; the numba import costs ~0.3 s
+
     order = idx[by_line(lid[idx])]
-    same = (lid[order][1:] == lid[order][:-1]) & (
-        np.diff(col[order].astype(np.int64)) <= max_columns
+    return jumping_peaks(
+        order.astype(np.int64),
+        lid,
+        col.astype(np.int64),
+        np.asarray(row, dtype=np.float64),
+        np.asarray(spacing, dtype=np.float64),
+        float(max_jump),
+        int(max_columns),
     )
-    dcol = np.maximum(np.diff(col[order].astype(np.float64)), 1.0)
-    slope = np.diff(row[order]) / dcol
-    slope = np.where(same, slope, np.nan)
-    # the step's neighbours on the left and the right (NaN across a line's end or a gap)
-    left = np.concatenate([[np.nan], slope[:-1]])
-    right = np.concatenate([slope[1:], [np.nan]])
-    ref = np.where(np.isnan(left), right, np.where(np.isnan(right), left, 0.5 * (left + right)))
-    depart = np.abs(slope - ref) * dcol
-    a, b = order[:-1], order[1:]
-    with np.errstate(invalid="ignore"):
-        bad = same & ~np.isnan(ref) & (depart > max_jump * spacing[a])
-    out[a[bad]] = True
-    out[b[bad]] = True
-    return out
 
 
 def isolated_peaks(col: np.ndarray, number: np.ndarray) -> np.ndarray:
