@@ -12,10 +12,11 @@ Importing this module costs the numba import (~0.3 s): the mesh stage imports it
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def cell_triangles(valid: np.ndarray, z: np.ndarray, shorter_diagonal: bool) -> np.ndarray:
     """Two triangles per cell of ``valid`` whose four corners are valid.
 
@@ -62,7 +63,7 @@ def cell_triangles(valid: np.ndarray, z: np.ndarray, shorter_diagonal: bool) -> 
     return out
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def used_vertices(triangles: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
     """The grid nodes that triangles use, and the triangles renumbered over them.
 

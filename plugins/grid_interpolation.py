@@ -16,15 +16,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _three_point_slope(d_prev: float, s_prev: float, d_next: float, s_next: float) -> float:
     return (d_prev * s_next + d_next * s_prev) / (d_prev + d_next)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _hermite(t: float, h: float, f0: float, f1: float, m0: float, m1: float) -> float:
     t2 = t * t
     t3 = t2 * t
@@ -36,7 +37,7 @@ def _hermite(t: float, h: float, f0: float, f1: float, m0: float, m1: float) -> 
     )
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _interval_slopes(
     x0: float,
     x1: float,
@@ -67,7 +68,7 @@ def _interval_slopes(
     return m1, m2
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _close(
     xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, a: int, b: int, max_gap2: float
 ) -> bool:
@@ -75,7 +76,7 @@ def _close(
     return dx * dx + dy * dy + dz * dz <= max_gap2
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def along_lines(
     key: np.ndarray,
     xs: np.ndarray,
@@ -120,7 +121,7 @@ def along_lines(
             # the nodes' keys ascend (a binary search per node cost more than the rest)
             q = r * span + xg
             if hi > 0 and key[hi - 1] >= q:
-                hi = np.searchsorted(key, q)
+                hi = int(np.searchsorted(key, q))
             while hi < n and key[hi] < q:
                 hi += 1
             lo = hi - 1
@@ -166,7 +167,7 @@ def along_lines(
     return line_y, line_z
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _linked(
     line_y: np.ndarray,
     line_z: np.ndarray,
@@ -185,7 +186,7 @@ def _linked(
     return lines[b] - lines[a] <= max_line_step and dy > 0 and dy * dy + dz * dz <= max_distance2
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def across_lines(
     line_y: np.ndarray,
     line_z: np.ndarray,
@@ -244,8 +245,8 @@ def across_lines(
                 continue
             ya, yb = line_y[ra, col], line_y[rb, col]
             za, zb = line_z[ra, col], line_z[rb, col]
-            i_lo = np.int64(math.ceil((ya - y0) / spacing))
-            i_hi = np.int64(math.ceil((yb - y0) / spacing))
+            i_lo = math.ceil((ya - y0) / spacing)
+            i_hi = math.ceil((yb - y0) / spacing)
             if i_hi <= i_lo:
                 continue
             h = yb - ya

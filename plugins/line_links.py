@@ -15,10 +15,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def mutual_links(
     col: np.ndarray, row: np.ndarray, span: float, max_step: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -53,7 +54,7 @@ def mutual_links(
         # position: the queries ascend with the peaks (a binary search each cost 2 ms)
         t = target * span + row[i]
         if j > 0 and key[j - 1] >= t:
-            j = np.searchsorted(key, t)
+            j = int(np.searchsorted(key, t))
         while j < n and key[j] < t:
             j += 1
         best = -1
@@ -85,7 +86,7 @@ def mutual_links(
     return right, left
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def chain_heads(left: np.ndarray) -> np.ndarray:
     """The first peak of every peak's chain (itself when it has no left link).
 
@@ -101,7 +102,7 @@ def chain_heads(left: np.ndarray) -> np.ndarray:
     return head
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def ranked_labels(label: np.ndarray, min_length: int) -> np.ndarray:
     """Line ids ranked by each line's first peak; lines under ``min_length`` peaks dropped.
 

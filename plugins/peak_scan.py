@@ -13,10 +13,11 @@ Importing this module costs the numba import (~0.3 s): the detector imports it o
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def column_extrema(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices of the maxima and minima of every row of ``s`` (a column per row).
 
@@ -72,7 +73,7 @@ def column_extrema(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return maxima[:n_max].copy(), minima[:n_min].copy()
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def run_moments(
     tf: np.ndarray,
     m: np.ndarray,
@@ -139,7 +140,7 @@ def run_moments(
     return s0, s1, extent
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def bounded_maxima(
     sf: np.ndarray, maxima: np.ndarray, minima: np.ndarray, h: int, min_height: np.float32
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

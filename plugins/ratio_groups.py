@@ -12,10 +12,11 @@ Importing this module costs the numba import (~0.3 s): the numbering imports it 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True)
+@kernel()
 def grouped_centres(
     key: np.ndarray, lr: np.ndarray, windows: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -283,7 +283,7 @@ class Record:
             # the bytes tobytes() gives, read in place: a copy of every megabyte costs as
             # much as a fifth of hashing it
             flat = array.reshape(-1)
-            digest.update(array.tobytes() if array.dtype.hasobject else flat.view(np.uint8))
+            digest.update(array.tobytes() if array.dtype.hasobject else flat.view(np.uint8).data)
         return digest.hexdigest()
 
     def __eq__(self, other: object) -> bool:

@@ -19,10 +19,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from rasterserver.compiled import kernel
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def _distorted_y(
     x: float, y: float, k1: float, k2: float, p1: float, p2: float, k3: float
 ) -> float:
@@ -36,7 +37,7 @@ def _distorted_y(
     return y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@kernel(error_model="numpy")
 def newton_on_rays(
     a: np.ndarray,
     b: np.ndarray,
