@@ -122,14 +122,23 @@ def line_positions(raster: Raster, number: np.ndarray) -> np.ndarray:
     numpy.ndarray
         ``(N,)`` float64 ``v``.
     """
+    positions, k, known = _line_index(raster, number)
+    if positions.size == 0:
+        return np.full(k.shape, np.nan)
+    return np.where(known, positions[k], np.nan)
+
+
+def _line_index(raster: Raster, number: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The raster's positions in line-number order, the index of each ``number`` in them and
+    whether the raster has that number (an index of 0 where it has none, or no lines)."""
     order = np.argsort(raster.numbers, kind="stable")
     numbers = raster.numbers[order]
-    positions = raster.positions[order]
     number = np.asarray(number, dtype=np.int64)
     if numbers.size == 0:
-        return np.full(number.shape, np.nan)
+        none = np.zeros(number.shape, np.intp)
+        return raster.positions[order], none, none.astype(bool)
     k = np.clip(np.searchsorted(numbers, number), 0, numbers.size - 1)
-    return np.where(numbers[k] == number, positions[k], np.nan)
+    return raster.positions[order], k, numbers[k] == number
 
 
 def _line_planes(
@@ -139,15 +148,11 @@ def _line_planes(
     the planes formed for the raster's lines and gathered: the same rows, N / lines fewer.
     Numbers the raster does not have get ``v`` NaN and a NaN plane, as ``light_plane`` of NaN.
     """
-    order = np.argsort(raster.numbers, kind="stable")
-    numbers = raster.numbers[order]
-    positions = np.asarray(raster.positions[order], dtype=np.float64)
-    number = np.asarray(number, dtype=np.int64)
-    if numbers.size == 0:
-        nan = np.full(number.shape, np.nan)
+    positions, k, known = _line_index(raster, number)
+    if positions.size == 0:
+        nan = np.full(k.shape, np.nan)
         return nan, projector.light_plane(nan)
-    k = np.clip(np.searchsorted(numbers, number), 0, numbers.size - 1)
-    known = numbers[k] == number
+    positions = np.asarray(positions, dtype=np.float64)
     v = np.where(known, positions[k], np.nan)
     normals, offsets = projector.light_plane(positions)
     n_w, off = normals[k], offsets[k]
