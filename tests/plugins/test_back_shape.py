@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 
 import numpy as np
 import pytest
@@ -142,15 +141,3 @@ def test_gravity_defines_the_vertical() -> None:
     # wrongly believing the camera level shows up as an imbalance of the trunk
     naive = analyse_back(rolled, GRAVITY).parameter_table()
     assert abs(naive["trunk_imbalance_mm"]["value"] - p["trunk_imbalance_mm"]["value"]) > 20.0
-
-
-@pytest.mark.slow
-def test_time_per_acquisition() -> None:
-    surface, _ = back("severe")
-    analyse_back(surface, GRAVITY)
-    spent = []
-    for _ in range(5):
-        start = time.process_time()
-        analyse_back(surface, GRAVITY)
-        spent.append(time.process_time() - start)
-    assert float(np.median(spent)) < 0.1
