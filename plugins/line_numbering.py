@@ -87,6 +87,7 @@ def number_lines(
     tile_band: int = 64,
     tile_gain: float = 2.5,
     loose_cost_rate: float = 0.4,
+    off_block: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -151,6 +152,9 @@ def number_lines(
         of its differences unexplained (more than ``max_cost_rate``) is still placed there
         when the placement is unique by far (a margin of four times ``min_margin`` and
         15 % of the differences); the bands then refuse the lines placed off.
+    off_block : numpy.ndarray, optional
+        ``(L,)`` bool, filled in place: True for the lines the code bands refused as a
+        block ordered off (for the per-peak check beside such blocks).
 
     Returns
     -------
@@ -414,6 +418,10 @@ def number_lines(
         if off >= 0:
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
+    if off_block is not None:
+        # a line whose own code contradicts its component's order is as doubtful for the
+        # peaks beside it as a block the bands refuse
+        off_block |= line_unnumbered
     if tile_check:
         # Components judge independently: those still at their code placement were judged
         # above already, only the others (linked, moved) are judged again.
@@ -421,6 +429,8 @@ def number_lines(
         moved = {c: off for c, off in offset.items() if off >= 0 and by_code.get(c, -1) != off}
         off_band = (early & np.isin(comps, kept)) | off_bands(moved)
         off_band &= line_number >= 0
+        if off_block is not None:
+            off_block[off_band] = True
         if np.any(off_band):
             line_number[off_band] = -1
             results.append(
@@ -485,11 +495,17 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     bands refuse its block placed off). Column order: numbers k apart must lie about k of
     the single gaps beside them in their column apart; a numbered peak with no numbered
     peak directly above or below it (numbered by its line's continuity alone) is refused.
+    Version 6: numbered peaks directly beside a block the bands refused, a line whose own
+    code contradicts its order or a peak out of column order, with no gap between (under
+    1.25 spacings: the image does not show where the hidden line went), are refused
+    (:func:`.numbering_checks.beside_doubtful`), and so are runs of fewer than six
+    numbered peaks that refused peaks cut off from the rest of their line
+    (:func:`.numbering_checks.stranded_runs`): the line ends crossing a cloth's side edge.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "5"
+    version: ClassVar[str] = "6"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -554,6 +570,22 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         tile_gain: float = Field(
             2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
         )
+        block_edge_check: bool = Field(
+            True,
+            description="Refuse numbered peaks directly beside a block the code bands refused "
+            "or a peak out of column order, where no gap separates them.",
+        )
+        block_gap: float = Field(
+            1.25,
+            gt=1.0,
+            description="Largest gap (line spacings) counted as directly beside.",
+        )
+        min_run: int = Field(
+            6,
+            ge=0,
+            description="Refuse runs of fewer numbered peaks of a line cut off by its refused "
+            "peaks (0: keep them).",
+        )
 
     def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
         """Number the lines of ``data`` with the raster from ``context.raster`` (and the
@@ -566,6 +598,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
                 f"not {type(raster).__name__}"
             )
         station = context.calibration if hasattr(context.calibration, "triangulate") else None
+        off_block = np.zeros(data.line_order.shape[0], dtype=bool)
         line_number, kind, results = number_lines(
             data,
             raster,
@@ -585,6 +618,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,
+            off_block=off_block,
         )
         lid = data.line_id
         comps = data.line_component
@@ -599,7 +633,14 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
         table = np.append(line_number, -1).astype(np.int32)
         number = table[np.where(lid >= 0, lid, -1)]
         number, notes = refuse_peaks(
-            data.col, data.row, lid, number, column_check=params.column_check
+            data.col,
+            data.row,
+            lid,
+            number,
+            column_check=params.column_check,
+            off_block=off_block if params.block_edge_check else None,
+            block_gap=params.block_gap,
+            min_run=params.min_run,
         )
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(

@@ -47,10 +47,10 @@ def _ordered_truth(
     )
 
 
-def _assert_numbered_right(result: NumberedLines, number: np.ndarray, refused: int = 20) -> None:
+def _assert_numbered_right(result: NumberedLines, number: np.ndarray, refused: int = 30) -> None:
     """Every numbered peak right, at most ``refused`` left unnumbered: truth lines join the
     trunk and the arm at the shoulders, where the line jumps by a spacing (version 4 refuses
-    the peaks there)."""
+    the peaks there, version 6 their column neighbours and the short runs between them)."""
     numbered = result.number >= 0
     assert np.array_equal(result.number[numbered], number[numbered])
     assert np.count_nonzero(~numbered) <= refused
@@ -109,10 +109,11 @@ def test_truth_lines_are_numbered() -> None:
         CodeWindowNumbering, _ordered_truth(col, row, area, number), context=_context()
     )
     # one "line" per raster line joins surfaces at the shoulders, where the real line jumps
-    # by a spacing: those few peaks are refused (version 4), nothing else
+    # by a spacing: those few peaks are refused (version 4), with their column neighbours
+    # and the short runs between them (version 6: 8 more), nothing else
     numbered = result.number >= 0
     assert np.array_equal(result.number[numbered], number[numbered])
-    assert np.count_nonzero(~numbered) <= 20
+    assert np.count_nonzero(~numbered) <= 30
     assert result.reason == "" or "line jumps" in result.reason
 
 
@@ -346,7 +347,7 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "5"
+    assert CodeWindowNumbering.version == "6"
 
 
 def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> None:
@@ -436,3 +437,36 @@ def test_a_whole_back_with_a_block_a_level_off_is_numbered_and_the_block_refused
     assert np.count_nonzero(right[lines < hidden]) >= 0.75 * np.count_nonzero(lines < hidden)
     assert np.count_nonzero(numbered[lines > hidden] >= 0) == 0
     assert comps[0].offset >= 0 and comps[0].reason == ""
+
+
+def _real_bodies():  # type: ignore[no-untyped-def]
+    """The clinic-scene benchmark (``benchmarks/real_bodies.py``) as a module: its scenes
+    and its scoring against the simulator's per-pixel line numbers."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "real_bodies.py"
+    spec = importlib.util.spec_from_file_location("real_bodies_for_tests", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
+    """Clinic scene 7285 (window-7 m-sequence, hands on hips, waistband): at the flank,
+    lines of the back continue across the cloth's edge onto the cloth's next line, a level
+    off, with no gap to show it. Version 5 numbered 16 such peaks wrongly; version 6 refuses
+    the peaks beside the refused block and the stranded line ends, and keeps the back."""
+    bench = _real_bodies()
+    frame = bench.render_scene(7285)
+    bench._init(None, {"numbers": {"block_edge_check": False, "min_run": 0}})
+    before = bench.score_frame(frame)
+    bench._init(None, None)
+    after = bench.score_frame(frame)
+    assert before["wrong_peaks"] >= 10 and before["wrong_objects"] == ["clothing"]
+    assert after["wrong_peaks"] == 0
+    assert after["back_covered"] >= 0.97 * after["back_crossings"]
+    assert after["back_covered"] >= before["back_covered"] - 0.01 * before["back_crossings"]

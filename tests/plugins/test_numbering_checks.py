@@ -172,3 +172,56 @@ def test_column_order_against_the_gaps_beside_it() -> None:
     # a line missing in between (two gaps wide) is not refused
     row_ok = np.array([100.0, 108.0, 116.0, 128.0, 134.0])
     assert not np.any(_column_order_conflicts(col, row_ok, number, spacing=wide))
+
+
+def test_peaks_directly_beside_a_doubtful_peak_are_refused() -> None:
+    """A numbered line directly above a refused block (one spacing between them: the
+    image does not show where the hidden line went) is refused; across a gap of 1.5
+    spacings (the hidden line shows) it stays, and so does a peak two spacings away."""
+    from rasterserver_plugins.numbering_checks import beside_doubtful
+
+    # column 0: 10, 11 numbered, 12 doubtful one spacing below; column 1: the same with a
+    # gap of 1.5 spacings; column 2: the doubtful peak in the middle
+    col = np.repeat(np.arange(3), 3)
+    row = np.array([100.0, 108.0, 116.0, 100.0, 108.0, 120.0, 100.0, 108.0, 116.0])
+    number = np.array([10, 11, -1, 10, 11, -1, 10, -1, 12], np.int32)
+    doubtful = np.array([0, 0, 1, 0, 0, 1, 0, 1, 0], bool)
+    spacing = np.full(9, 8.0)
+    refused = beside_doubtful(col, row, number, doubtful, spacing)
+    assert refused.tolist() == [False, True, False, False, False, False, True, False, True]
+    # a wider tolerance takes the 1.5-spacing gap as "beside" too
+    wide = beside_doubtful(col, row, number, doubtful, spacing, max_gap=1.6)
+    assert wide[4] and not wide[3]
+    # nothing doubtful, nothing refused; degenerate sizes
+    assert not np.any(beside_doubtful(col, row, number, np.zeros(9, bool), spacing))
+    one = np.zeros(1)
+    assert beside_doubtful(one, one, np.array([3]), np.ones(1, bool), one + 8).tolist() == [False]
+
+
+def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
+    """A line's end of three numbered peaks beyond refused ones goes; a run of six stays,
+    and so does a short line that nothing was refused from."""
+    from rasterserver_plugins.numbering_checks import stranded_runs
+
+    # line 0: 3 numbered, 2 refused, 10 numbered; line 1: 4 numbered (whole, short);
+    # line 2: 6 numbered, 1 refused, 2 numbered; peaks of no line (-1) interleaved
+    line = np.r_[np.zeros(15), np.ones(4), np.full(9, 2), np.full(2, -1)].astype(np.int32)
+    number = np.r_[[7] * 3, [-1] * 2, [7] * 10, [8] * 4, [9] * 6, -1, [9] * 2, -1, -1]
+    number = number.astype(np.int32)
+    perm = np.random.default_rng(5).permutation(line.size)
+    col = np.r_[np.arange(15), np.arange(4), np.arange(9), [3, 4]][perm]
+    order = np.lexsort((line[perm], col))  # peaks sorted by column as the stage has them
+    line, number = line[perm][order], number[perm][order]
+    refused = stranded_runs(line, number, 6)
+    assert np.count_nonzero(refused) == 5
+    assert np.all(line[refused] != 1)
+    assert set(np.flatnonzero(refused & (line == 2))) == set(
+        np.flatnonzero((line == 2) & (number >= 0))[-2:]
+    )
+    assert not np.any(stranded_runs(line, number, 0))
+    # shorter runs only: line 0's three stay, line 2's two go
+    assert np.count_nonzero(stranded_runs(line, number, 3)) == 2
+    assert not np.any(stranded_runs(line, number, 2))
+    empty = np.zeros(0, np.int32)
+    assert stranded_runs(empty, empty, 6).size == 0
+    assert not np.any(stranded_runs(np.full(3, -1, np.int32), np.full(3, 5, np.int32), 6))
