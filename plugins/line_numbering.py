@@ -25,12 +25,11 @@ from collections import defaultdict
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
 
 from rasterserver.errors import InputError
 from rasterserver.raster import Raster
 from rasterserver.records_lines import NumberedLines, OrderedLines
-from rasterserver.stage import Stage, StageContext, StageParams
+from rasterserver.stage import Stage, StageContext
 
 from .code_evidence import (
     EXPLAINS_TOO_LITTLE,
@@ -50,6 +49,7 @@ from .numbering_checks import (
     contact_votes,
     plausible_distance,
 )
+from .numbering_params import CodeWindowParams
 from .numbering_refusals import refusal, refuse_contradicted_pairs, refuse_peaks, summarise
 
 __all__ = [
@@ -87,7 +87,7 @@ def number_lines(
     tile_band: int = 64,
     tile_gain: float = 2.5,
     loose_cost_rate: float = 0.4,
-    off_block: np.ndarray | None = None,
+    doubtful_lines: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -152,9 +152,11 @@ def number_lines(
         of its differences unexplained (more than ``max_cost_rate``) is still placed there
         when the placement is unique by far (a margin of four times ``min_margin`` and
         15 % of the differences); the bands then refuse the lines placed off.
-    off_block : numpy.ndarray, optional
-        ``(L,)`` bool, filled in place: True for the lines the code bands refused as a
-        block ordered off (for the per-peak check beside such blocks).
+    doubtful_lines : numpy.ndarray, optional
+        ``(L,)`` bool, filled in place: True for the lines of numbered components that the
+        code refused, as a block ordered off (code bands) or against their component's
+        order (level windows); the peaks beside them are judged next
+        (:func:`.numbering_refusals.refuse_peaks`).
 
     Returns
     -------
@@ -418,10 +420,10 @@ def number_lines(
         if off >= 0:
             line_number[mine] = raster.numbers[off + levels[mine]].astype(np.int32)
     line_number[line_unnumbered] = -1
-    if off_block is not None:
+    if doubtful_lines is not None:
         # a line whose own code contradicts its component's order is as doubtful for the
         # peaks beside it as a block the bands refuse
-        off_block |= line_unnumbered
+        doubtful_lines |= line_unnumbered
     if tile_check:
         # Components judge independently: those still at their code placement were judged
         # above already, only the others (linked, moved) are judged again.
@@ -429,8 +431,8 @@ def number_lines(
         moved = {c: off for c, off in offset.items() if off >= 0 and by_code.get(c, -1) != off}
         off_band = (early & np.isin(comps, kept)) | off_bands(moved)
         off_band &= line_number >= 0
-        if off_block is not None:
-            off_block[off_band] = True
+        if doubtful_lines is not None:
+            doubtful_lines[off_band] = True
         if np.any(off_band):
             line_number[off_band] = -1
             results.append(
@@ -485,7 +487,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     waistband). A component inherits a number only through contacts over 8 columns and
     a fifth of its width (``min_votes``, ``min_contact_share``). Peaks where their line
     jumps by 0.3 of a spacing between neighbouring columns are refused
-    (:func:`.numbering_checks.line_jumps`).
+    (:func:`.peak_checks.line_jumps`).
     Version 5: the code is read again in tiles of every numbered component (64 columns by
     twice the code window in levels, :mod:`.code_tiles`); a line lying mostly in tiles whose
     own code contradicts the component's placement is left unnumbered (a block of lines
@@ -498,9 +500,9 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Version 6: numbered peaks directly beside a block the bands refused, a line whose own
     code contradicts its order or a peak out of column order, with no gap between (under
     1.25 spacings: the image does not show where the hidden line went), are refused
-    (:func:`.numbering_checks.beside_doubtful`), and so are runs of fewer than six
+    (:func:`.peak_checks.beside_doubtful`), and so are runs of fewer than six
     numbered peaks that refused peaks cut off from the rest of their line
-    (:func:`.numbering_checks.stranded_runs`): the line ends crossing a cloth's side edge.
+    (:func:`.peak_checks.stranded_runs`): the line ends crossing a cloth's side edge.
     """
 
     name: ClassVar[str] = "numbers.code-window"
@@ -510,84 +512,11 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
 
-    class Params(StageParams):
-        """Parameters of :class:`CodeWindowNumbering`."""
+    Params = CodeWindowParams
 
-        area_ratio: float | None = Field(
-            None,
-            gt=1,
-            description="Peak-area ratio of a heavy to a light line (default: from the raster).",
-        )
-        tolerance: float = Field(
-            0.5, gt=0, le=1, description="Departure (in log area ratios) counted as a miss."
-        )
-        min_lines: int | None = Field(
-            None,
-            ge=1,
-            description="Fewest lines numbered by the code alone (window; +1 at distance 1).",
-        )
-        min_margin: float | None = Field(
-            None,
-            ge=0,
-            description="Least cost margin of the best placement (default: 2, 4 at distance 1).",
-        )
-        max_cost_rate: float = Field(
-            0.25, ge=0, description="Largest share of differences the best may miss."
-        )
-        min_columns: int = Field(5, ge=1, description="Columns for a difference's full weight.")
-        correlation: float = Field(
-            4.0, ge=1, description="Columns over which the albedo texture is correlated."
-        )
-        min_votes: float = Field(
-            8.0, ge=1, description="Least contact columns for a component to inherit a number."
-        )
-        max_conflict: float = Field(
-            0.2, gt=0, lt=1, description="Share of contradicting contacts that refuses."
-        )
-        min_conflict: float = Field(
-            3.0, ge=1, description="Least contradicting contact columns that refuse."
-        )
-        max_depth: float = Field(
-            600.0, gt=0, description="Largest distance (mm) from the calibrated back plane."
-        )
-        min_contact_share: float = Field(
-            0.2,
-            ge=0,
-            le=1,
-            description="Least contact columns, as a share of a component's width, to inherit.",
-        )
-
-        tile_check: bool = Field(
-            True,
-            description="Refuse lines where the code read in their own columns contradicts "
-            "their component's placement.",
-        )
-        tile_band: int = Field(64, ge=8, description="Width (columns) of a code band.")
-        column_check: bool = Field(
-            True,
-            description="Refuse numbered peaks with no numbered peak above or below them.",
-        )
-        tile_gain: float = Field(
-            2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
-        )
-        block_edge_check: bool = Field(
-            True,
-            description="Refuse numbered peaks directly beside a block the code bands refused "
-            "or a peak out of column order, where no gap separates them.",
-        )
-        block_gap: float = Field(
-            1.25,
-            gt=1.0,
-            description="Largest gap (line spacings) counted as directly beside.",
-        )
-        min_run: int = Field(
-            6,
-            ge=0,
-            description="Refuse runs of fewer numbered peaks of a line cut off by its refused "
-            "peaks (0: keep them).",
-        )
-
-    def run(self, data: OrderedLines, params: Params, context: StageContext) -> NumberedLines:
+    def run(
+        self, data: OrderedLines, params: CodeWindowParams, context: StageContext
+    ) -> NumberedLines:
         """Number the lines of ``data`` with the raster from ``context.raster`` (and the
         calibration from ``context.calibration`` for the distance test, when it is a
         station)."""
@@ -598,7 +527,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
                 f"not {type(raster).__name__}"
             )
         station = context.calibration if hasattr(context.calibration, "triangulate") else None
-        off_block = np.zeros(data.line_order.shape[0], dtype=bool)
+        doubtful_lines = np.zeros(data.line_order.shape[0], dtype=bool)
         line_number, kind, results = number_lines(
             data,
             raster,
@@ -618,7 +547,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,
-            off_block=off_block,
+            doubtful_lines=doubtful_lines,
         )
         lid = data.line_id
         comps = data.line_component
@@ -638,7 +567,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             lid,
             number,
             column_check=params.column_check,
-            off_block=off_block if params.block_edge_check else None,
+            doubtful_lines=doubtful_lines if params.block_edge_check else None,
             block_gap=params.block_gap,
             min_run=params.min_run,
         )

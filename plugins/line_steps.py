@@ -1,6 +1,6 @@
 """The line-jump check of the numbering, compiled with numba.
 
-:func:`rasterserver_plugins.numbering_checks.line_jumps` compared every step of every line
+:func:`rasterserver_plugins.peak_checks.line_jumps` compared every step of every line
 with the steps beside it in a dozen whole-array passes (differences, masks, the two
 neighbours' slopes, their mean, the departure): ~1 ms of the numbering's ~15. One loop over
 the steps computes the same expressions in the same order, so the refusals are the same.

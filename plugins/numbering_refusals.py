@@ -14,15 +14,8 @@ from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
 from .code_evidence import ComponentNumbering
-from .numbering_checks import (
-    beside_doubtful,
-    column_order_conflicts,
-    isolated_peaks,
-    line_jumps,
-    local_spacing,
-    pair_contradictions,
-    stranded_runs,
-)
+from .numbering_checks import column_order_conflicts, local_spacing, pair_contradictions
+from .peak_checks import beside_doubtful, isolated_peaks, line_jumps, stranded_runs
 
 __all__ = ["refusal", "refuse_contradicted_pairs", "refuse_peaks", "summarise"]
 
@@ -130,18 +123,18 @@ def refuse_peaks(
     number: np.ndarray,
     *,
     column_check: bool = True,
-    off_block: np.ndarray | None = None,
+    doubtful_lines: np.ndarray | None = None,
     block_gap: float = 1.25,
     min_run: int = 6,
 ) -> tuple[np.ndarray, list[str]]:
     """The peak-by-peak checks of the numbered peaks, and a note for each that refused any.
 
-    Line jumps (:func:`.numbering_checks.line_jumps`), column order
-    (:func:`.numbering_checks.column_order_conflicts`), with ``off_block`` peaks directly
-    beside doubtful ones (:func:`.numbering_checks.beside_doubtful`), with
+    Line jumps (:func:`.peak_checks.line_jumps`), column order
+    (:func:`.numbering_checks.column_order_conflicts`), with ``doubtful_lines`` peaks directly
+    beside doubtful ones (:func:`.peak_checks.beside_doubtful`), with
     ``column_check`` peaks with no numbered column neighbour
-    (:func:`.numbering_checks.isolated_peaks`) and short runs the others cut off
-    (:func:`.numbering_checks.stranded_runs`), in that order.
+    (:func:`.peak_checks.isolated_peaks`) and short runs the others cut off
+    (:func:`.peak_checks.stranded_runs`), in that order.
 
     Parameters
     ----------
@@ -151,15 +144,16 @@ def refuse_peaks(
         Per-peak absolute number, -1 when unnumbered.
     column_check : bool
         Refuse numbered peaks with no numbered peak directly above or below them.
-    off_block : numpy.ndarray, optional
-        ``(L,)`` bool, lines refused as a block ordered off by the code bands. With it,
-        numbered peaks directly beside them or beside a peak out of column order are
-        refused (:func:`.numbering_checks.beside_doubtful`), after the column order check.
+    doubtful_lines : numpy.ndarray, optional
+        ``(L,)`` bool, lines the code refused inside numbered components (a block ordered
+        off, a line against its component's order). With it, numbered peaks directly
+        beside them or beside a peak out of column order are refused
+        (:func:`.peak_checks.beside_doubtful`), after the column order check.
     block_gap : float
         The largest gap, in line spacings, counted as directly beside.
     min_run : int
         Last, runs of fewer numbered peaks of a line next to its refused peaks are refused
-        (:func:`.numbering_checks.stranded_runs`); 0 or 1 for none.
+        (:func:`.peak_checks.stranded_runs`); 0 or 1 for none.
 
     Returns
     -------
@@ -184,15 +178,16 @@ def refuse_peaks(
             f"{int(clash.sum())} peak(s) numbered out of order in their column (a peak "
             "taken from a neighbouring line where lines crowd) left unnumbered"
         )
-    if off_block is not None and spacing is not None:
+    if doubtful_lines is not None and spacing is not None:
         lid = line_id.astype(np.int64)
-        doubt = np.append(np.asarray(off_block, dtype=bool), False)[np.where(lid >= 0, lid, -1)]
+        per_line = np.append(np.asarray(doubtful_lines, dtype=bool), False)
+        doubt = per_line[np.where(lid >= 0, lid, -1)]
         edge = beside_doubtful(col, row, number, doubt | clash, spacing, max_gap=block_gap)
         if np.any(edge):
             number = np.where(edge, -1, number).astype(np.int32)
             notes.append(
-                f"{int(edge.sum())} peak(s) directly beside a block ordered off or a peak out "
-                "of column order, with no gap between (a line's end may have crossed onto "
+                f"{int(edge.sum())} peak(s) directly beside a line the code refused or a peak "
+                "out of column order, with no gap between (a line's end may have crossed onto "
                 "the neighbouring line) left unnumbered"
             )
     if column_check:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rasterserver_plugins.numbering_checks import by_line, line_jumps
+from rasterserver_plugins.numbering_checks import by_line
+from rasterserver_plugins.peak_checks import line_jumps
 
 
 def _passes(

@@ -1,0 +1,88 @@
+"""The parameters of line numbering (:class:`.line_numbering.CodeWindowNumbering`): how the
+code is read, when a component inherits a number, and which checks refuse what."""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from rasterserver.stage import StageParams
+
+__all__ = ["CodeWindowParams"]
+
+
+class CodeWindowParams(StageParams):
+    """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 6)."""
+
+    area_ratio: float | None = Field(
+        None,
+        gt=1,
+        description="Peak-area ratio of a heavy to a light line (default: from the raster).",
+    )
+    tolerance: float = Field(
+        0.5, gt=0, le=1, description="Departure (in log area ratios) counted as a miss."
+    )
+    min_lines: int | None = Field(
+        None,
+        ge=1,
+        description="Fewest lines numbered by the code alone (window; +1 at distance 1).",
+    )
+    min_margin: float | None = Field(
+        None,
+        ge=0,
+        description="Least cost margin of the best placement (default: 2, 4 at distance 1).",
+    )
+    max_cost_rate: float = Field(
+        0.25, ge=0, description="Largest share of differences the best may miss."
+    )
+    min_columns: int = Field(5, ge=1, description="Columns for a difference's full weight.")
+    correlation: float = Field(
+        4.0, ge=1, description="Columns over which the albedo texture is correlated."
+    )
+    min_votes: float = Field(
+        8.0, ge=1, description="Least contact columns for a component to inherit a number."
+    )
+    max_conflict: float = Field(
+        0.2, gt=0, lt=1, description="Share of contradicting contacts that refuses."
+    )
+    min_conflict: float = Field(
+        3.0, ge=1, description="Least contradicting contact columns that refuse."
+    )
+    max_depth: float = Field(
+        600.0, gt=0, description="Largest distance (mm) from the calibrated back plane."
+    )
+    min_contact_share: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="Least contact columns, as a share of a component's width, to inherit.",
+    )
+
+    tile_check: bool = Field(
+        True,
+        description="Refuse lines where the code read in their own columns contradicts "
+        "their component's placement.",
+    )
+    tile_band: int = Field(64, ge=8, description="Width (columns) of a code band.")
+    column_check: bool = Field(
+        True,
+        description="Refuse numbered peaks with no numbered peak above or below them.",
+    )
+    tile_gain: float = Field(
+        2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
+    )
+    block_edge_check: bool = Field(
+        True,
+        description="Refuse numbered peaks directly beside a line the code refused inside "
+        "its component or a peak out of column order, where no gap separates them.",
+    )
+    block_gap: float = Field(
+        1.25,
+        gt=1.0,
+        description="Largest gap (line spacings) counted as directly beside.",
+    )
+    min_run: int = Field(
+        6,
+        ge=0,
+        description="Refuse runs of fewer numbered peaks of a line cut off by its refused "
+        "peaks (0: keep them).",
+    )

@@ -1,0 +1,116 @@
+"""Peak-by-peak checks: line jumps, isolated peaks, peaks beside doubtful ones, stranded
+runs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _sorted(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> tuple[np.ndarray, ...]:
+    order = np.lexsort((row, col))
+    return col[order], row[order], line_id[order]
+
+
+def test_a_peak_taken_from_the_neighbouring_line_is_refused() -> None:
+    from rasterserver_plugins.numbering_checks import local_spacing
+    from rasterserver_plugins.peak_checks import line_jumps
+
+    cols = np.repeat(np.arange(40), 3)
+    rows = np.tile([10.0, 20.0, 30.0], 40) + 0.02 * cols
+    lid = np.tile([0, 1, 2], 40)
+    number = np.tile([5, 6, 7], 40).astype(np.int32)
+    col, row, lid = _sorted(cols, rows, lid)
+    assert not np.any(line_jumps(col, row, lid, number))
+    # line 1 takes line 2's peak in column 20 (its own is missing there)
+    drop = (col == 20) & (lid == 1)
+    col, row, lid, number = col[~drop], row[~drop], lid[~drop], number[~drop]
+    took = (col == 20) & (lid == 2)
+    lid = np.where(took, 1, lid)
+    number = np.where(took, 6, number).astype(np.int32)
+    refused = line_jumps(col, row, lid, number)
+    assert refused[took].all()
+    assert np.count_nonzero(refused) <= 5  # the taken peak and two line neighbours each side
+    spacing = local_spacing(col, row, number)
+    assert spacing is not None and abs(float(np.median(spacing)) - 10.0) < 0.5
+
+
+def test_line_checks_of_degenerate_inputs() -> None:
+    from rasterserver_plugins.numbering_checks import local_spacing
+    from rasterserver_plugins.peak_checks import line_jumps
+
+    empty_i = np.zeros(0, np.int64)
+    assert line_jumps(empty_i, empty_i * 1.0, empty_i, empty_i).size == 0
+    assert local_spacing(empty_i, empty_i * 1.0, empty_i) is None
+    # nothing numbered: no spacing, nothing refused
+    col = np.array([0, 0, 1, 1])
+    row = np.array([1.0, 11.0, 1.0, 11.0])
+    none = np.full(4, -1, np.int32)
+    assert local_spacing(col, row, none) is None
+    assert not np.any(line_jumps(col, row, np.array([0, 1, 0, 1]), none))
+
+
+def test_numbered_peaks_with_no_numbered_column_neighbour_are_refused() -> None:
+    from rasterserver_plugins.peak_checks import isolated_peaks
+
+    # three columns of three peaks: in column 1 the middle peak's neighbours are not
+    # numbered; in column 2 only the top peak is numbered at all
+    col = np.repeat(np.arange(3), 3)
+    number = np.array([5, 6, 7, -1, 6, -1, 5, -1, -1], np.int32)
+    refused = isolated_peaks(col, number)
+    assert refused.tolist() == [False] * 4 + [True, False, True, False, False]
+    # a peak alone in its column has nothing to confirm it either
+    assert isolated_peaks(np.array([0]), np.array([3], np.int32)).tolist() == [True]
+    assert isolated_peaks(np.zeros(0, np.int64), np.zeros(0, np.int32)).size == 0
+
+
+def test_peaks_directly_beside_a_doubtful_peak_are_refused() -> None:
+    """A numbered line directly above a refused block (one spacing between them: the
+    image does not show where the hidden line went) is refused; across a gap of 1.5
+    spacings (the hidden line shows) it stays, and so does a peak two spacings away."""
+    from rasterserver_plugins.peak_checks import beside_doubtful
+
+    # column 0: 10, 11 numbered, 12 doubtful one spacing below; column 1: the same with a
+    # gap of 1.5 spacings; column 2: the doubtful peak in the middle
+    col = np.repeat(np.arange(3), 3)
+    row = np.array([100.0, 108.0, 116.0, 100.0, 108.0, 120.0, 100.0, 108.0, 116.0])
+    number = np.array([10, 11, -1, 10, 11, -1, 10, -1, 12], np.int32)
+    doubtful = np.array([0, 0, 1, 0, 0, 1, 0, 1, 0], bool)
+    spacing = np.full(9, 8.0)
+    refused = beside_doubtful(col, row, number, doubtful, spacing)
+    assert refused.tolist() == [False, True, False, False, False, False, True, False, True]
+    # a wider tolerance takes the 1.5-spacing gap as "beside" too
+    wide = beside_doubtful(col, row, number, doubtful, spacing, max_gap=1.6)
+    assert wide[4] and not wide[3]
+    # nothing doubtful, nothing refused; degenerate sizes
+    assert not np.any(beside_doubtful(col, row, number, np.zeros(9, bool), spacing))
+    one = np.zeros(1)
+    assert beside_doubtful(one, one, np.array([3]), np.ones(1, bool), one + 8).tolist() == [False]
+
+
+def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
+    """A line's end of three numbered peaks beyond refused ones goes; a run of six stays,
+    and so does a short line that nothing was refused from."""
+    from rasterserver_plugins.peak_checks import stranded_runs
+
+    # line 0: 3 numbered, 2 refused, 10 numbered; line 1: 4 numbered (whole, short);
+    # line 2: 6 numbered, 1 refused, 2 numbered; peaks of no line (-1) interleaved
+    line = np.r_[np.zeros(15), np.ones(4), np.full(9, 2), np.full(2, -1)].astype(np.int32)
+    number = np.r_[[7] * 3, [-1] * 2, [7] * 10, [8] * 4, [9] * 6, -1, [9] * 2, -1, -1]
+    number = number.astype(np.int32)
+    perm = np.random.default_rng(5).permutation(line.size)
+    col = np.r_[np.arange(15), np.arange(4), np.arange(9), [3, 4]][perm]
+    order = np.lexsort((line[perm], col))  # peaks sorted by column as the stage has them
+    line, number = line[perm][order], number[perm][order]
+    refused = stranded_runs(line, number, 6)
+    assert np.count_nonzero(refused) == 5
+    assert np.all(line[refused] != 1)
+    assert set(np.flatnonzero(refused & (line == 2))) == set(
+        np.flatnonzero((line == 2) & (number >= 0))[-2:]
+    )
+    assert not np.any(stranded_runs(line, number, 0))
+    # shorter runs only: line 0's three stay, line 2's two go
+    assert np.count_nonzero(stranded_runs(line, number, 3)) == 2
+    assert not np.any(stranded_runs(line, number, 2))
+    empty = np.zeros(0, np.int32)
+    assert stranded_runs(empty, empty, 6).size == 0
+    assert not np.any(stranded_runs(np.full(3, -1, np.int32), np.full(3, 5, np.int32), 6))
