@@ -303,6 +303,11 @@ def _station() -> tuple[Any, Any]:
     return _STATE["station"], _STATE["context"]
 
 
+def _init(params: dict[str, dict[str, Any]] | None) -> None:
+    """Worker start: the chain's stage parameters (``--params``), None for the defaults."""
+    _STATE["params"] = params
+
+
 def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
     """Render, reconstruct, analyse and score one acquisition."""
     from rasterserver.pipeline import run_chain
@@ -323,9 +328,13 @@ def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
     rendering = render(scene, station, settings=render_settings(back), seed=noise_seed)
     t1 = time.perf_counter()
     durations: dict[str, float] = {}
-    surface = run_chain(rendering.image, context=context, until="surface", durations=durations)[
-        "surface"
-    ]
+    surface = run_chain(
+        rendering.image,
+        context=context,
+        until="surface",
+        durations=durations,
+        params=_STATE.get("params"),
+    )["surface"]
     t2 = time.perf_counter()
     shape = run_chain(surface, context=context, until="analysis", durations=durations)["analysis"]
     curves = params.curves
@@ -833,6 +842,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=10, help="acquisitions per repeated back")
     ap.add_argument("--timing-repeat", type=int, default=20, help="runs per back, timing pass")
     ap.add_argument("--quick", action="store_true", help="4 backs per set, 2 x 3 repeats")
+    ap.add_argument(
+        "--params",
+        default=None,
+        help='stage parameters of the chain up to the surface, JSON: {"numbers": {...}} '
+        "(to compare a plugin's settings in one run)",
+    )
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/analysis.json"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this run")
@@ -862,7 +877,11 @@ def main(argv: list[str] | None = None) -> int:
             with (
                 # workers live the whole run: they load the analysis once, so it cannot change
                 # half-way through (rows of other code are left out below anyway)
-                mp.get_context("spawn").Pool(args.workers) as pool,
+                mp.get_context("spawn").Pool(
+                    args.workers,
+                    initializer=_init,
+                    initargs=(json.loads(args.params) if args.params else None,),
+                ) as pool,
                 lines_path.open("a") as fh,
             ):
                 for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):
@@ -892,6 +911,7 @@ def main(argv: list[str] | None = None) -> int:
             "python benchmarks/analysis.py"
             + (" --quick" if args.quick else "" if args.seeds else f" --count {args.count}")
             + f" --out {out}"
+            + (f" --params '{args.params}'" if args.params else "")
         )
         if args.seeds is not None:
             command += " --seeds " + ",".join(str(s) for s in args.seeds)
