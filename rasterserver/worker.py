@@ -27,7 +27,7 @@ from rasterserver.chain import Computation, Plan, compute
 from rasterserver.errors import IntegrityError, NotFoundError
 from rasterserver.records import Image, Record
 from rasterserver.registry import Registry, get_registry
-from rasterserver.store.derived import DerivedStore
+from rasterserver.store.derived import DerivedStore, StoredBase
 from rasterserver.store.raw import RawStore
 
 __all__ = ["input_record", "work", "work_batch"]
@@ -94,7 +94,7 @@ def work(
     record = input_record(plan, root, derived)
     input_checksum = plan.input_checksum or record.content_hash()
     computation = compute(record, plan.to_compute, plan.context, registry=registry)
-    store_computed(derived, plan, computation, input_checksum)
+    store_computed(derived, plan, computation, input_checksum, input_record=record)
     if keep != "all":
         last = plan.steps[-1].kind
         computation.records = (
@@ -140,9 +140,17 @@ def work_batch(
 
 
 def store_computed(
-    derived: DerivedStore, plan: Plan, computation: Computation, input_checksum: str
+    derived: DerivedStore,
+    plan: Plan,
+    computation: Computation,
+    input_checksum: str,
+    *,
+    input_record: Record | None = None,
 ) -> None:
     """Write each computed step of ``plan`` not yet in ``computation.stored``, durably.
+
+    Each result names the stored record it was computed from as its base, so that the fields
+    it passes on unchanged are stored once (:class:`~rasterserver.store.derived.StoredBase`).
 
     Parameters
     ----------
@@ -155,16 +163,30 @@ def store_computed(
         computed from.
     input_checksum : str
         The checksum of the plan's input record (the first step's input).
+    input_record : Record, optional
+        That record (``plan.input_record`` when not given): a stored result's fields are
+        inherited by the first step's result; a raw frame's are not.
     """
     if all(step.kind in computation.stored for step in plan.to_compute):
         return
+    record = input_record if input_record is not None else plan.input_record
+    previous = plan.cached[plan.first - 1] if plan.first > 0 else None
+    base = (
+        StoredBase(previous.store_path, record, input_checksum)
+        if previous is not None and record is not None and not isinstance(record, Image)
+        else None
+    )
     for step, key in zip(plan.to_compute, plan.keys[plan.first :], strict=True):
+        output = computation.records.get(step.kind)
         if step.kind in computation.stored:
-            input_checksum = computation.stored[step.kind][0].output_checksum
+            stored = computation.stored[step.kind][0]
+            input_checksum = stored.output_checksum
+            base = StoredBase(stored.path, output, input_checksum) if output is not None else None
             continue
+        assert output is not None
         written = derived.write(
             plan.uid,
-            computation.records[step.kind],
+            output,
             stage=step.kind,
             plugin=step.plugin,
             plugin_version=step.version,
@@ -173,9 +195,11 @@ def store_computed(
             chain_key=key,
             input_checksum=input_checksum,
             sync_dir=False,
+            base=base,
         )
         computation.stored[step.kind] = (written, input_checksum)
         input_checksum = written.output_checksum
+        base = StoredBase(written.path, output, input_checksum)
     # every result of the acquisition is in its one shard folder: one fsync makes the names
     # durable, before the coordinator may commit a row naming them
     derived.sync(plan.uid)

@@ -6,6 +6,7 @@ Archive tests run on SQLite and PostgreSQL (the ``settings`` fixture).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from pathlib import Path
 
@@ -181,6 +182,16 @@ def test_process_stores_every_stage_with_provenance(archived) -> None:
     points_row, points = pipeline.result(uid, "points")
     assert isinstance(points, Points) and points.content_hash() == points_row.output_checksum
     assert points == result.records["points"]
+    # the line stages store only what they add to the peaks: the rest they inherit from
+    # their parent's file (format version 3)
+    for row, parent in zip(rows[1:4], rows[:3], strict=True):
+        meta = pipeline.derived.metadata(row.store_path)
+        assert meta["base"] == parent.store_path
+        assert meta["base_checksum"] == parent.output_checksum
+        assert {"col", "row", "area"} <= set(json.loads(meta["inherited"]))
+        assert pipeline.result(uid, row.stage)[1] == result.records[row.stage]
+    sizes = [(archive.settings.archive / r.store_path).stat().st_size for r in rows]
+    assert max(sizes[1:4]) < sizes[0] / 2
 
 
 def test_second_run_reuses_everything(archived) -> None:
@@ -331,10 +342,6 @@ def test_verify_explains_every_derived_file(archived) -> None:
     assert report.ok and report.frames_checked == 5 and report.acquisitions_checked == 1
     rows = pipeline.results(uid)
     root = Path(archive.settings.archive)
-    (root / rows[0].store_path).unlink()
-    damaged = root / rows[1].store_path
-    damaged.write_bytes(damaged.read_bytes()[:200])
-    (damaged.parent / f"{damaged.name}.tmp-1-abcd").write_bytes(b"partial")
     # a computation whose row never made it
     plan = pipeline.plan(uid, until="points", params={"points": {"depth_limit": 500.0}})
     computation = pipeline.compute(plan)
@@ -344,5 +351,15 @@ def test_verify_explains_every_derived_file(archived) -> None:
         plugin_version=step.version, params=step.params, params_hash=step.params_hash,
         chain_key=plan.keys[-1], input_checksum=plan.input_checksum,
     )
-    kinds = sorted(p.kind for p in pipeline.verify().problems)
-    assert kinds == ["corrupt", "missing", "orphaned", "temporary"]
+    assert [r.stage for r in rows[:4]] == ["peaks", "lines", "order", "numbers"]
+    (root / rows[0].store_path).unlink()
+    damaged = root / rows[1].store_path
+    damaged.write_bytes(damaged.read_bytes()[:200])
+    (damaged.parent / f"{damaged.name}.tmp-1-abcd").write_bytes(b"partial")
+    problems = pipeline.verify().problems
+    kinds = sorted(p.kind for p in problems)
+    # order and numbers inherit the peaks' fields through the damaged lines file: they
+    # cannot be read either, and say why
+    assert kinds == ["corrupt", "corrupt", "corrupt", "missing", "orphaned", "temporary"]
+    based = [p for p in problems if p.kind == "corrupt" and "its base is damaged" in p.detail]
+    assert len(based) == 2

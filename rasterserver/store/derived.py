@@ -30,6 +30,22 @@ whatever it has imported).
 Files are built in memory (HDF5's core driver) and written with one ``write``: the per-file
 cost of a result is then a few h5py calls, one write and one fsync.
 
+Inherited fields (format version 3)
+-----------------------------------
+A stage often passes most of its input on unchanged: the line search adds ``line_id`` to the
+peaks' five arrays, the order stage two more arrays, the numbering three. Such a result,
+written with its input's stored file as ``base`` (:meth:`DerivedStore.write`), stores only
+the fields that differ from the base's; the fields it shares with it byte for byte (same name,
+dtype, shape and bytes, at least :data:`MIN_INHERITED_BYTES` long) are named in the
+provenance's ``inherited`` (a JSON list) beside ``base`` (the base file's path relative to the
+archive root) and ``base_checksum`` (the base record's content hash), and the file says
+``format_version`` 3. Reading it reads the base (recursively, each checked against its
+checksum) and checks the whole record against its own checksum, so a damaged or missing base
+is an integrity error of every result built on it. The base is always the result's parent in
+the catalogue (the result it was computed from), which pruning keeps as long as the result is
+kept. For the built-in chain this stores 4.0 MB per 604x576 acquisition instead of 5.6 MB
+(the three line stages 0.27 MB instead of 1.9 MB): fewer bytes to build, write and fsync.
+
 Durability: written under a temporary name in the final folder, fsynced and published with a
 link that refuses to replace (:mod:`.durable`), like the raw store; files are opened without
 HDF5 file locking for the same reasons (see :mod:`.raw`).
@@ -50,18 +66,26 @@ import numpy as np
 
 from rasterserver import __version__
 from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFoundError
+from rasterserver.hashing import canonical_array
 from rasterserver.records import Record, record_type
 from rasterserver.store.durable import ensure_dir, fsync_dir, publish, write_synced
 from rasterserver.store.layout import shard_path, temp_path, validate_uid
 
-__all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredResult"]
+__all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredBase",
+           "StoredResult"]
 
 FORMAT_NAME = "rasterserver-derived"
 FORMAT_VERSION = 2
+#: The format version of a file with inherited fields (see the module's docstring).
+FORMAT_VERSION_INHERITING = 3
+#: Fields shorter than this are stored again rather than inherited: not worth the indirection.
+MIN_INHERITED_BYTES = 4096
 PROVENANCE = "provenance"
 AREA = "derived"
 SUFFIX = ".h5"
 KEY_DIGITS = 32
+#: A chain is a handful of stages: more bases in a row than this is a damaged file.
+_MAX_BASES = 32
 
 _STAGE = re.compile(r"[a-z][a-z0-9_-]{0,31}")
 _KEY = re.compile(r"[0-9a-f]{64}")
@@ -82,6 +106,9 @@ _META_KEYS = (
     "record_kind",
     "created_utc",
     "writer",
+    "base",
+    "base_checksum",
+    "inherited",
 )
 
 
@@ -132,7 +159,46 @@ class DerivedEntry:
     key: str | None = None
 
 
-def _file_image(name: str, meta: Mapping[str, str], record: Record) -> bytes:
+@dataclass(frozen=True)
+class StoredBase:
+    """The stored input of a result being written, whose unchanged fields it may inherit.
+
+    Attributes
+    ----------
+    path : str
+        The input's file, relative to the archive root (its catalogue ``store_path``).
+    record : Record
+        The input record as stored.
+    checksum : str
+        Its content hash (its catalogue ``output_checksum``).
+    """
+
+    path: str
+    record: Record
+    checksum: str
+
+
+def _inherited(arrays: Mapping[str, Any], base: Record) -> list[str]:
+    """The fields of ``arrays`` that ``base`` holds with the same dtype, shape and bytes."""
+    own = base.to_arrays()
+    names = []
+    for name, value in arrays.items():
+        theirs = own.get(name)
+        if theirs is None:
+            continue
+        a, b = canonical_array(np.asarray(value)), canonical_array(np.asarray(theirs))
+        if (a.nbytes < MIN_INHERITED_BYTES or a.dtype != b.dtype or a.shape != b.shape
+                or a.dtype.hasobject):
+            continue
+        # bytes, not values: 0.0 and -0.0 (or two NaNs) compare by value but hash apart
+        if a is b or np.array_equal(a.reshape(-1).view(np.uint8), b.reshape(-1).view(np.uint8)):
+            names.append(name)
+    return names
+
+
+def _file_image(
+    name: str, meta: Mapping[str, str], record: Record, inherited: frozenset[str] = frozenset()
+) -> bytes:
     """The bytes of a derived HDF5 file (format version 2), built in memory.
 
     HDF5's in-memory ("core") driver without a backing store: the library's many small writes
@@ -146,11 +212,13 @@ def _file_image(name: str, meta: Mapping[str, str], record: Record) -> bytes:
         name, "w", driver="core", backing_store=False, locking=False, libver="earliest"
     ) as h5:
         h5.attrs["format"] = FORMAT_NAME
-        h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
+        version = FORMAT_VERSION_INHERITING if inherited else FORMAT_VERSION
+        h5.attrs["format_version"] = np.int64(version)
         h5.attrs[PROVENANCE] = json.dumps(dict(meta), sort_keys=True, separators=(",", ":"))
         group = h5.create_group("record").id
         for key, value in record.to_arrays().items():
-            _put(group, key, np.asarray(value))
+            if key not in inherited:
+                _put(group, key, np.asarray(value))
         h5.flush()
         return bytes(h5.id.get_file_image())
 
@@ -258,6 +326,7 @@ class DerivedStore:
         input_checksum: str,
         sync_dir: bool = True,
         checksum: str | None = None,
+        base: StoredBase | None = None,
     ) -> StoredResult:
         """Store one stage result durably; never replaces a file.
 
@@ -282,6 +351,10 @@ class DerivedStore:
             :meth:`sync` once, before any catalogue row names them.
         checksum : str, optional
             ``record.content_hash()`` when the caller has it already.
+        base : StoredBase, optional
+            The stored record this one was computed from: the fields they share byte for
+            byte are not stored again but read from its file (format version 3). Only a
+            result's catalogue parent may be its base (pruning keeps parents).
 
         Returns
         -------
@@ -314,8 +387,13 @@ class DerivedStore:
             "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "writer": f"rasterserver {__version__}",
         }
+        inherited = _inherited(record.to_arrays(), base.record) if base is not None else []
+        if base is not None and inherited:
+            meta["base"] = base.path
+            meta["base_checksum"] = base.checksum
+            meta["inherited"] = json.dumps(sorted(inherited))
         try:
-            write_synced(temp, _file_image(temp.name, meta, record))
+            write_synced(temp, _file_image(temp.name, meta, record, frozenset(inherited)))
             try:
                 publish(temp, final, sync_dir=sync_dir)
             except ConflictError:
@@ -360,7 +438,9 @@ class DerivedStore:
         with self._open(relative) as h5:
             return _provenance(h5)
 
-    def read(self, relative: str, *, expected_checksum: str | None = None) -> Record:
+    def read(
+        self, relative: str, *, expected_checksum: str | None = None, depth: int = 0
+    ) -> Record:
         """Load a stored result as its record class.
 
         Parameters
@@ -370,6 +450,9 @@ class DerivedStore:
         expected_checksum : str, optional
             Content hash the record must have (the catalogue's ``output_checksum``); a
             mismatch means the file was altered and raises.
+        depth : int, optional
+            How many results built on this one are being read (inherited fields): a bound
+            against a cycle of bases in a forged file.
 
         Returns
         -------
@@ -377,7 +460,10 @@ class DerivedStore:
 
         Raises
         ------
-        NotFoundError, IntegrityError
+        NotFoundError
+            The file is missing.
+        IntegrityError
+            It, or the base it inherits fields from, is damaged or missing.
         """
         with self._open(relative) as h5:
             meta = _provenance(h5)
@@ -390,6 +476,8 @@ class DerivedStore:
                 arrays = {name: np.asarray(ds[()]) for name, ds in group.items()}
             except (OSError, ValueError) as exc:
                 raise IntegrityError(f"{relative}: unreadable record ({exc})") from None
+        if meta.get("inherited"):
+            arrays.update(self._inherited_arrays(relative, meta, depth))
         try:
             cls = self.resolve(kind)
         except NotFoundError:
@@ -405,6 +493,32 @@ class DerivedStore:
             if expected and digest != expected:
                 raise IntegrityError(f"{relative}: contents do not match their checksum")
         return record
+
+    def _inherited_arrays(
+        self, relative: str, meta: Mapping[str, str], depth: int
+    ) -> dict[str, np.ndarray]:
+        """The fields a format-3 file inherits, read from its base."""
+        base = meta.get("base", "")
+        try:
+            names = json.loads(meta["inherited"])
+        except ValueError:
+            names = None
+        if not base or not isinstance(names, list) or depth >= _MAX_BASES:
+            raise IntegrityError(f"{relative}: its inherited fields have no usable base")
+        try:
+            record = self.read(base, expected_checksum=meta.get("base_checksum") or None,
+                               depth=depth + 1)
+        except NotFoundError:
+            raise IntegrityError(
+                f"{relative}: the result it inherits fields from, {base}, is missing"
+            ) from None
+        except IntegrityError as exc:
+            raise IntegrityError(f"{relative}: its base is damaged ({exc})") from None
+        arrays = record.to_arrays()
+        missing = [name for name in names if name not in arrays]
+        if missing:
+            raise IntegrityError(f"{relative}: its base {base} lacks {', '.join(missing)}")
+        return {name: np.asarray(arrays[name]) for name in names}
 
     def _open(self, relative: str) -> h5py.File:
         path = self._absolute(relative)

@@ -14,8 +14,9 @@ import pytest
 
 from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFoundError
 from rasterserver.records import Image
+from rasterserver.records_lines import Lines, Peaks
 from rasterserver.records_surface import MeshRecord, Points, Surface
-from rasterserver.store.derived import DerivedStore
+from rasterserver.store.derived import DerivedStore, StoredBase
 
 UID = "0123456789abcdef0123456789abcdef"
 KEY = hashlib.sha256(b"chain").hexdigest()
@@ -192,3 +193,120 @@ def test_names_are_validated(tmp_path: Path) -> None:
         store.path_for(UID, "points", "abc")
     with pytest.raises(InputError, match="not a derived"):
         store.read("raw/01/23/x.h5")
+
+
+# --- inherited fields (format version 3) -------------------------------------------------------
+
+
+def _peaks(n: int = 4000) -> Peaks:
+    rng = np.random.default_rng(1)
+    return Peaks(
+        col=(np.arange(n) // 4).astype(np.int32),  # sorted by (col, row)
+        row=(np.arange(n) % 4) * 100.0 + rng.uniform(0, 50, n),
+        area=rng.uniform(1, 200, n).astype(np.float32),
+        height=rng.uniform(1, 50, n).astype(np.float32),
+        width=rng.integers(3, 9, n).astype(np.int16),
+        image_shape=np.array([576, 604]),
+        dropped=3,
+    )
+
+
+def _write_on(store: DerivedStore, record, stage: str, key: str, base=None):
+    return store.write(
+        UID, record, stage=stage, plugin=f"{stage}.x", plugin_version="1", params={},
+        params_hash="ab" * 32, chain_key=key, input_checksum="cd" * 32, base=base,
+    )
+
+
+def _chain(store: DerivedStore, lines: Lines | None = None):
+    """A peaks result and a lines result built on it, as the worker stores them."""
+    peaks = _peaks()
+    first = _write_on(store, peaks, "peaks", "1" * 64)
+    lines = lines or Lines.extend(peaks, line_id=np.arange(peaks.n_peaks, dtype=np.int32) // 40)
+    second = _write_on(store, lines, "lines", "2" * 64,
+                       base=StoredBase(first.path, peaks, first.output_checksum))
+    return peaks, first, lines, second
+
+
+def test_a_result_stores_only_what_its_base_lacks(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    peaks, first, lines, second = _chain(store)
+    with h5py.File(tmp_path / second.path, "r") as h5:
+        assert int(h5.attrs["format_version"]) == 3
+        # row, col, area, height, width come from the peaks file; the small fields are
+        # stored again (image_shape, dropped), the new one too
+        assert sorted(h5["record"]) == ["dropped", "image_shape", "line_id"]
+    meta = store.metadata(second.path)
+    assert meta["base"] == first.path and meta["base_checksum"] == first.output_checksum
+    assert json.loads(meta["inherited"]) == ["area", "col", "height", "row", "width"]
+    back = store.read(second.path, expected_checksum=lines.content_hash())
+    assert type(back) is Lines and back == lines
+    assert (tmp_path / second.path).stat().st_size < (tmp_path / first.path).stat().st_size / 2
+    # the same computation again adopts it
+    assert _write_on(store, lines, "lines", "2" * 64,
+                     base=StoredBase(first.path, peaks, first.output_checksum)).adopted
+
+
+def test_only_fields_with_the_same_bytes_are_inherited(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    peaks = _peaks()
+    flipped = peaks.row.copy()
+    flipped[5] = np.nextafter(flipped[5], np.inf)  # one bit apart
+    lines = Lines(col=peaks.col.copy(), row=flipped, area=peaks.area.astype(np.float32),
+                  height=peaks.height, width=peaks.width, image_shape=peaks.image_shape,
+                  line_id=np.zeros(peaks.n_peaks, dtype=np.int32), dropped=3)
+    _, _, _, second = _chain(store, lines)
+    assert json.loads(store.metadata(second.path)["inherited"]) == [
+        "area", "col", "height", "width"]
+    assert store.read(second.path, expected_checksum=lines.content_hash()) == lines
+
+
+def test_zero_and_negative_zero_are_not_the_same_bytes(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    peaks = dataclasses.replace(_peaks(), row=np.zeros(4000))
+    first = _write_on(store, peaks, "peaks", "1" * 64)
+    lines = Lines.extend(peaks, row=np.full(4000, -0.0), line_id=np.zeros(4000, np.int32))
+    second = _write_on(store, lines, "lines", "2" * 64,
+                       base=StoredBase(first.path, peaks, first.output_checksum))
+    assert "row" not in json.loads(store.metadata(second.path)["inherited"])
+    assert np.signbit(store.read(second.path).row).all()
+
+
+def test_nothing_in_common_writes_an_ordinary_file(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    peaks = _peaks()
+    first = _write_on(store, peaks, "peaks", "1" * 64)
+    stored = _write_on(store, _points(), "points", "3" * 64,
+                       base=StoredBase(first.path, peaks, first.output_checksum))
+    meta = store.metadata(stored.path)
+    assert "base" not in meta and "inherited" not in meta
+    with h5py.File(tmp_path / stored.path, "r") as h5:
+        assert int(h5.attrs["format_version"]) == 2
+
+
+def test_a_missing_or_damaged_base_is_an_integrity_error(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    _, first, _, second = _chain(store)
+    base = tmp_path / first.path
+    os.chmod(base, 0o644)
+    with h5py.File(base, "r+", locking=False) as h5:
+        h5["record/row"][0] = 1e6
+    with pytest.raises(IntegrityError, match="its base is damaged"):
+        store.read(second.path)
+    base.unlink()
+    with pytest.raises(IntegrityError, match=r"inherits fields from, derived/.*, is missing"):
+        store.read(second.path)
+
+
+def test_a_forged_base_cycle_is_refused(tmp_path: Path) -> None:
+    store = DerivedStore(tmp_path)
+    _, _, _, second = _chain(store)
+    path = tmp_path / second.path
+    os.chmod(path, 0o644)
+    with h5py.File(path, "r+", locking=False) as h5:
+        meta = json.loads(h5.attrs["provenance"])
+        meta["base"] = second.path  # its own base
+        meta.pop("base_checksum")
+        h5.attrs["provenance"] = json.dumps(meta)
+    with pytest.raises(IntegrityError, match="no usable base"):
+        store.read(second.path)
