@@ -60,6 +60,7 @@ __all__ = [
     "cobb_angle",
     "sagittal_profile",
     "signed_extremes",
+    "undecided_sign",
 ]
 
 #: Unit of every parameter, in the order they are reported.
@@ -100,6 +101,13 @@ PROFILE_WINDOW = 33.0
 FRONTAL_WINDOW = 45.0
 #: Extremes of the frontal tangent closer than this (deg) are noise, not a curve.
 COBB_TOLERANCE = 1.0
+#: How far apart (mm, deg) the largest deviation (rotation) to each side must be for the
+#: signed maximum to be reported: 1.96 x sqrt(2) x the repeatability SD of the one-sided
+#: maxima (0.54 mm, 0.51 deg; ``rasterserver.trends.REPEATABILITY_SD``). Closer, the sign of
+#: the largest is the measurement's noise (a double curve of +18.4 / -18.2 mm was measured
+#: +17.4 / -17.9 mm: "max" -17.9 against a truth of +18.4), and comparing visits would read a
+#: flip of sign as a change of twice the curve.
+SIGN_MARGIN = {"lateral_deviation_max_mm": 1.5, "surface_rotation_max_deg": 1.4}
 #: Gaussian scale (mm) of the fit giving the surface normal at a dimple (wider than the
 #: dimple, so the normal is the surrounding surface's, not the dimple's wall's).
 DIMPLE_NORMAL_SCALE = 8.0
@@ -144,6 +152,33 @@ def signed_extremes(values: np.ndarray) -> tuple[float, float, float, float]:
         max(float(v.max()), 0.0),
         min(float(v.min()), 0.0),
     )
+
+
+def undecided_sign(extremes: tuple[float, float, float, float], margin: float,
+                   unit: str) -> str:
+    """Why the signed maximum of :func:`signed_extremes` is refused, or "" when it is not.
+
+    Parameters
+    ----------
+    extremes : tuple of float
+        ``(rms, max, pos_max, neg_max)`` from :func:`signed_extremes`.
+    margin : float
+        The difference between the two sides' magnitudes below which the sign of the larger
+        is not decided by the measurement.
+    unit : str
+        For the message.
+
+    Returns
+    -------
+    str
+        The reason, or "" when the larger side exceeds the other by ``margin`` or more.
+    """
+    _rms, _peak, pos, neg = extremes
+    if not (math.isfinite(pos) and math.isfinite(neg)) or abs(pos + neg) >= margin:
+        return ""
+    return (f"the largest values to either side ({pos:+.1f} and {neg:+.1f} {unit}) are within "
+            f"{margin:g} {unit} of each other: which is larger, and so the sign, is not decided "
+            "by the measurement; see the positive and negative maxima")
 
 
 def _turning_points(values: np.ndarray, tolerance: float) -> list[int]:
@@ -413,10 +448,14 @@ def back_parameters(
     if midline is None:
         missing([*rotation, *deviation, "scoliosis_angle_deg"], "needs the symmetry line")
     else:
-        for name, value in zip(rotation, signed_extremes(midline.rotation), strict=True):
-            out[name] = value
-        for name, value in zip(deviation, signed_extremes(midline.lateral_deviation), strict=True):
-            out[name] = value
+        for names, values in ((rotation, midline.rotation),
+                              (deviation, midline.lateral_deviation)):
+            extremes = signed_extremes(values)
+            out.update(zip(names, extremes, strict=True))
+            why = undecided_sign(extremes, SIGN_MARGIN[names[1]], PARAMETER_UNITS[names[1]])
+            if why:
+                del out[names[1]]
+                reasons[names[1]] = why
         out["scoliosis_angle_deg"] = cobb_angle(
             midline.points[:, 1], midline.points[:, 0], grid.spacing
         )

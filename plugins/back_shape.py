@@ -198,7 +198,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     name: ClassVar[str] = "analysis.back-shape"
     stage: ClassVar[str] = "analysis"
     # 2: the scoliosis angle reads only tangents with a centred window (not the line's ends)
-    version: ClassVar[str] = "2"
+    # 3: the signed maxima of lateral deviation and surface rotation are refused when the two
+    #    sides' extremes are too close for the sign to be decided (back_parameters.SIGN_MARGIN)
+    version: ClassVar[str] = "3"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
