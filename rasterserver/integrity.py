@@ -278,21 +278,26 @@ def verify_derived(catalog: Catalog, derived: DerivedStore, *,
         ``frames_checked`` counts the results checked.
     """
     from rasterserver.catalog.models import Acquisition, StageResult
+    from rasterserver.store.derived import RecentRecords
 
     with catalog.session() as s:
         rows = list(s.execute(
             select(Acquisition.uid, StageResult.store_path, StageResult.output_checksum)
             .join(Acquisition, Acquisition.id == StageResult.acquisition_id)
-            .order_by(StageResult.id)))
+            .order_by(StageResult.acquisition_id, StageResult.id)))
     owners = {path: uid for uid, path, _sum in rows}
     checksums = {path: checksum for _uid, path, checksum in rows}
     report = VerifyReport(acquisitions_checked=len(set(owners.values())))
+
+    # rows by acquisition, each in the order they were stored: a result's parent just before
+    # it, so the fields it inherits are taken from the parent read and checked a moment ago
+    recent = RecentRecords()
 
     def check(path: str) -> list[Problem]:
         report.frames_checked += 1
         where = derived.root / path
         try:
-            derived.read(path, expected_checksum=checksums[path])
+            derived.read(path, expected_checksum=checksums[path], recent=recent)
         except NotFoundError:
             return [Problem("missing", owners[path], where, DERIVED_WORDING.missing)]
         except IntegrityError as exc:

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -71,8 +72,8 @@ from rasterserver.records import Record, record_type
 from rasterserver.store.durable import ensure_dir, fsync_dir, publish, write_synced
 from rasterserver.store.layout import shard_path, temp_path, validate_uid
 
-__all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "StoredBase",
-           "StoredResult"]
+__all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "RecentRecords",
+           "StoredBase", "StoredResult"]
 
 FORMAT_NAME = "rasterserver-derived"
 FORMAT_VERSION = 2
@@ -257,6 +258,31 @@ def _text(value: Any) -> str:
     return value.decode("utf-8") if isinstance(value, bytes) else str(value)
 
 
+class RecentRecords:
+    """The last few records one reader read and checked, by path and content hash.
+
+    Parameters
+    ----------
+    size : int, optional
+        How many are kept (the newest).
+    """
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self._records: OrderedDict[tuple[str, str], Record] = OrderedDict()
+
+    def get(self, relative: str, checksum: str) -> Record | None:
+        """The record stored at ``relative`` with content hash ``checksum``, if kept."""
+        return self._records.get((relative, checksum))
+
+    def put(self, relative: str, checksum: str, record: Record) -> None:
+        """Keep ``record``, read from ``relative`` and checked to have ``checksum``."""
+        self._records[(relative, checksum)] = record
+        self._records.move_to_end((relative, checksum))
+        while len(self._records) > self.size:
+            self._records.popitem(last=False)
+
+
 class DerivedStore:
     """Write-once store of stage results under ``<root>/derived``.
 
@@ -439,7 +465,12 @@ class DerivedStore:
             return _provenance(h5)
 
     def read(
-        self, relative: str, *, expected_checksum: str | None = None, depth: int = 0
+        self,
+        relative: str,
+        *,
+        expected_checksum: str | None = None,
+        depth: int = 0,
+        recent: RecentRecords | None = None,
     ) -> Record:
         """Load a stored result as its record class.
 
@@ -453,6 +484,10 @@ class DerivedStore:
         depth : int, optional
             How many results built on this one are being read (inherited fields): a bound
             against a cycle of bases in a forged file.
+        recent : RecentRecords, optional
+            Records this caller read and checked a moment ago: a base found there is not
+            read again (``verify`` reads every result, bases before the results built on
+            them).
 
         Returns
         -------
@@ -477,7 +512,7 @@ class DerivedStore:
             except (OSError, ValueError) as exc:
                 raise IntegrityError(f"{relative}: unreadable record ({exc})") from None
         if meta.get("inherited"):
-            arrays.update(self._inherited_arrays(relative, meta, depth))
+            arrays.update(self._inherited_arrays(relative, meta, depth, recent))
         try:
             cls = self.resolve(kind)
         except NotFoundError:
@@ -492,10 +527,12 @@ class DerivedStore:
         for expected in (stored, expected_checksum):
             if expected and digest != expected:
                 raise IntegrityError(f"{relative}: contents do not match their checksum")
+        if recent is not None:
+            recent.put(relative, digest, record)
         return record
 
     def _inherited_arrays(
-        self, relative: str, meta: Mapping[str, str], depth: int
+        self, relative: str, meta: Mapping[str, str], depth: int, recent: RecentRecords | None
     ) -> dict[str, np.ndarray]:
         """The fields a format-3 file inherits, read from its base."""
         base = meta.get("base", "")
@@ -505,9 +542,11 @@ class DerivedStore:
             names = None
         if not base or not isinstance(names, list) or depth >= _MAX_BASES:
             raise IntegrityError(f"{relative}: its inherited fields have no usable base")
+        checksum = meta.get("base_checksum", "")
+        known = recent.get(base, checksum) if recent is not None and checksum else None
         try:
-            record = self.read(base, expected_checksum=meta.get("base_checksum") or None,
-                               depth=depth + 1)
+            record = known or self.read(base, expected_checksum=checksum or None,
+                                        depth=depth + 1, recent=recent)
         except NotFoundError:
             raise IntegrityError(
                 f"{relative}: the result it inherits fields from, {base}, is missing"

@@ -16,7 +16,7 @@ from rasterserver.errors import ConflictError, InputError, IntegrityError, NotFo
 from rasterserver.records import Image
 from rasterserver.records_lines import Lines, Peaks
 from rasterserver.records_surface import MeshRecord, Points, Surface
-from rasterserver.store.derived import DerivedStore, StoredBase
+from rasterserver.store.derived import DerivedStore, RecentRecords, StoredBase
 
 UID = "0123456789abcdef0123456789abcdef"
 KEY = hashlib.sha256(b"chain").hexdigest()
@@ -310,3 +310,31 @@ def test_a_forged_base_cycle_is_refused(tmp_path: Path) -> None:
         h5.attrs["provenance"] = json.dumps(meta)
     with pytest.raises(IntegrityError, match="no usable base"):
         store.read(second.path)
+
+
+def test_a_recent_base_is_not_read_again(tmp_path: Path, monkeypatch) -> None:
+    store = DerivedStore(tmp_path)
+    _, first, lines, second = _chain(store)
+    recent = RecentRecords(size=2)
+    store.read(first.path, recent=recent)
+    opened: list[str] = []
+    original = DerivedStore._open
+
+    def counting(self: DerivedStore, relative: str):
+        opened.append(relative)
+        return original(self, relative)
+
+    monkeypatch.setattr(DerivedStore, "_open", counting)
+    assert store.read(second.path, recent=recent) == lines
+    assert opened == [second.path]  # the base came from the reader's recent records
+    # a base recorded under another checksum (its file was replaced since) is read again
+    other = RecentRecords()
+    other.put(first.path, "0" * 64, lines)
+    opened.clear()
+    assert store.read(second.path, recent=other) == lines
+    assert opened == [second.path, first.path]
+    # only the newest records are kept
+    small = RecentRecords(size=1)
+    small.put("a", "1", lines)
+    small.put("b", "2", lines)
+    assert small.get("a", "1") is None and small.get("b", "2") is lines
