@@ -149,3 +149,27 @@ def test_prune_removes_files_and_keeps_the_newest_jobs_chain(settings: Settings)
         with pytest.raises(ConflictError, match="in progress"):
             run_prune(archive, plan_prune(archive, keep_jobs=0))
         assert run_prune(archive, plan_prune(archive, keep_jobs=0), force=True).rows_removed
+
+
+def test_prune_keeps_the_files_a_kept_result_inherits_from(settings: Settings) -> None:
+    # two chains sharing peaks .. order: the default one's numbering inherits the peaks'
+    # fields from the shared results (derived format 3); pruning the other chain must leave
+    # them, and everything kept readable
+    image = gt.rendering("back").image
+    archive, uids = gt.archive_with_frames(settings, {"back": image})
+    uid = uids["back"]
+    with archive:
+        pipeline = Pipeline(archive)
+        pipeline.process(uid, until="mesh", params={"numbers": {"min_run": 0}})
+        pipeline.process(uid, until="mesh")
+        stages = [r.stage for r in pipeline.results(uid)]
+        assert [stages.count(k) for k in ("peaks", "lines", "order", "numbers")] == [1, 1, 1, 2]
+        plan = plan_prune(archive)
+        assert len(plan.remove) == 4  # the other chain's numbers, points, surface, mesh
+        run_prune(archive, plan)
+        assert pipeline.verify().problems == []
+        row, _ = pipeline.result(uid, "numbers")
+        base = pipeline.derived.metadata(row.store_path)["base"]
+        assert base in {r.store_path for r in pipeline.results(uid) if r.stage == "order"}
+        assert (settings.archive / base).is_file()
+        assert pipeline.process(uid, until="mesh").computed == 0

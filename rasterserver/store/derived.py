@@ -200,7 +200,8 @@ def _inherited(arrays: Mapping[str, Any], base: Record) -> list[str]:
 def _file_image(
     name: str, meta: Mapping[str, str], record: Record, inherited: frozenset[str] = frozenset()
 ) -> bytes:
-    """The bytes of a derived HDF5 file (format version 2), built in memory.
+    """The bytes of a derived HDF5 file (format version 2, or 3 when fields are inherited:
+    those are left out), built in memory.
 
     HDF5's in-memory ("core") driver without a backing store: the library's many small writes
     (superblock, object headers, heaps, each dataset) go to memory, and the finished image is
@@ -545,8 +546,8 @@ class DerivedStore:
         checksum = meta.get("base_checksum", "")
         known = recent.get(base, checksum) if recent is not None and checksum else None
         try:
-            record = known or self.read(base, expected_checksum=checksum or None,
-                                        depth=depth + 1, recent=recent)
+            record = known if known is not None else self.read(
+                base, expected_checksum=checksum or None, depth=depth + 1, recent=recent)
         except NotFoundError:
             raise IntegrityError(
                 f"{relative}: the result it inherits fields from, {base}, is missing"
