@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from distributed import Client
 
 __all__ = [
+    "CLIENT_CONFIG",
     "DASK_BATCH",
     "IN_PROCESS_BATCH",
     "LOCAL_CLUSTER_MIN",
@@ -62,6 +63,15 @@ LOCAL_CLUSTER_MIN: int | None = 200
 LOCAL_WORKER_CONFIG: dict[str, object] = {
     "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
     "distributed.worker.profile.enabled": False,
+}
+
+#: Dask settings for the coordinator's client (and a local cluster's scheduler). Every batched
+#: stream keeps its last ``low-level-log-length`` messages for debugging (1,000 by default):
+#: with a job's tasks, each carrying eight plans, that held ~6 MB per 1,000 acquisitions in
+#: the coordinator, growing until the cap at ~100 MB per stream (benchmarks/
+#: coordinator_memory.py).
+CLIENT_CONFIG: dict[str, object] = {
+    "distributed.admin.low-level-log-length": 16,
 }
 
 #: Acquisitions to a Dask task (:func:`rasterserver.worker.work_batch`).
@@ -243,13 +253,13 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
     from distributed import Client, LocalCluster
 
     if scheduler:
-        with Client(scheduler) as client:
+        with dask.config.set(CLIENT_CONFIG), Client(scheduler) as client:
             yield client
         return
     # one thread per worker: the stages are numpy code that is fastest single-threaded
     # per frame, and parallel across frames
     with (
-        dask.config.set(LOCAL_WORKER_CONFIG),
+        dask.config.set({**LOCAL_WORKER_CONFIG, **CLIENT_CONFIG}),
         LocalCluster(
             n_workers=n_workers or os.cpu_count() or 1,
             threads_per_worker=1,
