@@ -23,6 +23,7 @@ import gc  # noqa: E402
 import sys  # noqa: E402
 import tracemalloc  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -34,7 +35,7 @@ from rasterserver.jobs import dask_client  # noqa: E402
 from rasterserver.processing_jobs import Selection, create_job, run_job  # noqa: E402
 
 
-def _scheduler_tasks(dask_scheduler) -> int:  # type: ignore[no-untyped-def]
+def _scheduler_tasks(dask_scheduler: Any) -> int:
     return len(dask_scheduler.tasks)
 
 

@@ -299,11 +299,11 @@ def _flatten(tree: dict, prefix: str = "") -> dict[str, object]:
 
 
 def test_the_image_gives_its_dask_workers_the_settings_of_the_local_cluster() -> None:
-    from rasterserver.engines import LOCAL_WORKER_CONFIG
+    from rasterserver.engines import CLIENT_CONFIG, LOCAL_WORKER_CONFIG
 
     assert ("COPY", "docker/dask.yaml /etc/dask/rasterserver.yaml") in instructions()
     settings = _flatten(yaml.safe_load((DOCKER / "dask.yaml").read_text()))
-    assert settings == LOCAL_WORKER_CONFIG
+    assert settings == {**LOCAL_WORKER_CONFIG, **CLIENT_CONFIG}
 
 
 def test_the_dask_settings_file_takes_effect_in_a_worker_process(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import geometry_truth as gt
 import numpy as np
@@ -32,6 +33,21 @@ def test_local_workers_keep_glibcs_adaptive_malloc_and_no_profiler() -> None:
     with dask_client(n_workers=1) as client:
         (settings,) = client.run(_worker_settings).values()
     assert settings == (False, None)
+
+
+def _stream_log_lengths(dask_scheduler: Any) -> list[int | None]:
+    return [comm.recent_message_log.maxlen for comm in dask_scheduler.stream_comms.values()]
+
+
+@pytest.mark.slow
+def test_the_coordinator_keeps_few_sent_messages() -> None:
+    # each batched stream keeps its recent messages for debugging; with a job's tasks (eight
+    # plans each) Dask's default of 1,000 held ~6 MB per 1,000 acquisitions in the
+    # coordinator (BENCHMARKS.md, "Reprocessing throughput", 2026-11-27)
+    with dask_client(n_workers=1) as client:
+        lengths = client.run_on_scheduler(_stream_log_lengths)
+        assert lengths and all(n is not None and n <= 16 for n in lengths)
+        assert client.scheduler_comm.recent_message_log.maxlen <= 16
 
 
 def test_a_batch_reports_each_acquisition_on_its_own(settings: Settings) -> None:
