@@ -470,7 +470,6 @@ class DerivedStore:
         relative: str,
         *,
         expected_checksum: str | None = None,
-        depth: int = 0,
         recent: RecentRecords | None = None,
     ) -> Record:
         """Load a stored result as its record class.
@@ -482,9 +481,6 @@ class DerivedStore:
         expected_checksum : str, optional
             Content hash the record must have (the catalogue's ``output_checksum``); a
             mismatch means the file was altered and raises.
-        depth : int, optional
-            How many results built on this one are being read (inherited fields): a bound
-            against a cycle of bases in a forged file.
         recent : RecentRecords, optional
             Records this caller read and checked a moment ago: a base found there is not
             read again (``verify`` reads every result, bases before the results built on
@@ -501,6 +497,18 @@ class DerivedStore:
         IntegrityError
             It, or the base it inherits fields from, is damaged or missing.
         """
+        return self._read(relative, expected_checksum, recent, depth=0)
+
+    def _read(
+        self,
+        relative: str,
+        expected_checksum: str | None,
+        recent: RecentRecords | None,
+        *,
+        depth: int,
+    ) -> Record:
+        # depth: how many results built on this one are being read (inherited fields), a
+        # bound against a cycle of bases in a forged file
         with self._open(relative) as h5:
             meta = _provenance(h5)
             kind = meta.get("record_kind", "")
@@ -546,8 +554,8 @@ class DerivedStore:
         checksum = meta.get("base_checksum", "")
         known = recent.get(base, checksum) if recent is not None and checksum else None
         try:
-            record = known if known is not None else self.read(
-                base, expected_checksum=checksum or None, depth=depth + 1, recent=recent)
+            record = known if known is not None else self._read(
+                base, checksum or None, recent, depth=depth + 1)
         except NotFoundError:
             raise IntegrityError(
                 f"{relative}: the result it inherits fields from, {base}, is missing"
