@@ -186,6 +186,9 @@ class Registry:
         self._lock = threading.RLock()
         self._entry_points: dict[str, list[EntryPoint]] | None = None
         self._loaded: dict[str, list[_Loaded]] = {}
+        # Every plugin described, sorted: resolving a chain asks for it a few hundred times,
+        # and loading is settled once every name has been loaded (until discover()).
+        self._all_infos: list[PluginInfo] | None = None
 
     def discover(self) -> Registry:
         """Read the entry points again and forget every loaded plugin.
@@ -201,6 +204,7 @@ class Registry:
                 found.setdefault(ep.name, []).append(ep)
             self._entry_points = found
             self._loaded = {}
+            self._all_infos = None
         return self
 
     def _eps(self) -> dict[str, list[EntryPoint]]:
@@ -305,10 +309,16 @@ class Registry:
             In processing order of the built-in chain, then by kind and name; broken plugins
             of unknown kind last.
         """
-        infos = [loaded.info for name in self.names() for loaded in self._load_name(name)]
+        with self._lock:
+            if self._all_infos is None:
+                self._all_infos = sorted(
+                    (loaded.info for name in self.names() for loaded in self._load_name(name)),
+                    key=_listing_key,
+                )
+            infos = list(self._all_infos)
         if stage is not None:
             infos = [info for info in infos if info.stage == stage]
-        return sorted(infos, key=_listing_key)
+        return infos
 
     def info(self, name: str) -> PluginInfo:
         """Describe the plugin called ``name``, loading only it.
