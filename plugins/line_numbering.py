@@ -503,11 +503,17 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     (:func:`.peak_checks.beside_doubtful`), and so are runs of fewer than six
     numbered peaks that refused peaks cut off from the rest of their line
     (:func:`.peak_checks.stranded_runs`): the line ends crossing a cloth's side edge.
+    Version 7: every line left unnumbered is doubtful for the peaks beside it (not only
+    those the code refused), and a peak directly beside a doubtful one is refused only
+    where, in the square of two line spacings around it, doubtful peaks number at least
+    half the numbered ones (:func:`.peak_checks.doubtful_share`): a line's end carried
+    onto a refused block lies among its peaks, a line beside a lone refused line has its
+    own numbered neighbours (fewer wrong peaks and more coverage than version 6).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "6"
+    version: ClassVar[str] = "7"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -549,6 +555,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             tile_gain=params.tile_gain,
             doubtful_lines=doubtful_lines,
         )
+        if params.doubtful == "unnumbered":
+            # any line left unnumbered, whatever refused it: the share of them around a
+            # peak (block_share) tells a block from a lone refused line
+            doubtful_lines |= line_number < 0
         lid = data.line_id
         comps = data.line_component
         n_comp = int(comps.max()) + 1 if comps.size and comps.max() >= 0 else 0
@@ -569,6 +579,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             column_check=params.column_check,
             doubtful_lines=doubtful_lines if params.block_edge_check else None,
             block_gap=params.block_gap,
+            block_share=params.block_share,
             min_run=params.min_run,
         )
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)

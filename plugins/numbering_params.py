@@ -3,6 +3,8 @@ code is read, when a component inherits a number, and which checks refuse what."
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from rasterserver.stage import StageParams
@@ -11,7 +13,7 @@ __all__ = ["CodeWindowParams"]
 
 
 class CodeWindowParams(StageParams):
-    """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 6)."""
+    """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 7)."""
 
     area_ratio: float | None = Field(
         None,
@@ -72,13 +74,24 @@ class CodeWindowParams(StageParams):
     )
     block_edge_check: bool = Field(
         True,
-        description="Refuse numbered peaks directly beside a line the code refused inside "
-        "its component or a peak out of column order, where no gap separates them.",
+        description="Refuse numbered peaks directly beside a doubtful line or a peak out of "
+        "column order, where no gap separates them.",
     )
     block_gap: float = Field(
         1.25,
         gt=1.0,
         description="Largest gap (line spacings) counted as directly beside.",
+    )
+    block_share: float = Field(
+        0.5,
+        ge=0.0,
+        description="Refuse a peak beside a doubtful one only where doubtful peaks number "
+        "this share of the numbered ones around it (0: wherever it is).",
+    )
+    doubtful: Literal["code", "unnumbered"] = Field(
+        "unnumbered",
+        description="Doubtful lines for the block-edge check: those the code refused inside "
+        "numbered components (version 6) or every line left unnumbered.",
     )
     min_run: int = Field(
         6,

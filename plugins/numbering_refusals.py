@@ -125,6 +125,7 @@ def refuse_peaks(
     column_check: bool = True,
     doubtful_lines: np.ndarray | None = None,
     block_gap: float = 1.25,
+    block_share: float = 0.0,
     min_run: int = 6,
 ) -> tuple[np.ndarray, list[str]]:
     """The peak-by-peak checks of the numbered peaks, and a note for each that refused any.
@@ -145,12 +146,17 @@ def refuse_peaks(
     column_check : bool
         Refuse numbered peaks with no numbered peak directly above or below them.
     doubtful_lines : numpy.ndarray, optional
-        ``(L,)`` bool, lines the code refused inside numbered components (a block ordered
-        off, a line against its component's order). With it, numbered peaks directly
+        ``(L,)`` bool, doubtful lines: those the code refused inside numbered components
+        (a block ordered off, a line against its component's order), or every line left
+        unnumbered (version 7). With it, numbered peaks directly
         beside them or beside a peak out of column order are refused
         (:func:`.peak_checks.beside_doubtful`), after the column order check.
     block_gap : float
         The largest gap, in line spacings, counted as directly beside.
+    block_share : float
+        With a share above 0, a peak beside a doubtful one is refused only among as many
+        doubtful peaks as this share of the numbered ones around it
+        (:func:`.peak_checks.doubtful_share`).
     min_run : int
         Last, runs of fewer numbered peaks of a line next to its refused peaks are refused
         (:func:`.peak_checks.stranded_runs`); 0 or 1 for none.
@@ -182,13 +188,15 @@ def refuse_peaks(
         lid = line_id.astype(np.int64)
         per_line = np.append(np.asarray(doubtful_lines, dtype=bool), False)
         doubt = per_line[np.where(lid >= 0, lid, -1)]
-        edge = beside_doubtful(col, row, number, doubt | clash, spacing, max_gap=block_gap)
+        edge = beside_doubtful(
+            col, row, number, doubt | clash, spacing, max_gap=block_gap, min_share=block_share
+        )
         if np.any(edge):
             number = np.where(edge, -1, number).astype(np.int32)
             notes.append(
-                f"{int(edge.sum())} peak(s) directly beside a line the code refused or a peak "
-                "out of column order, with no gap between (a line's end may have crossed onto "
-                "the neighbouring line) left unnumbered"
+                f"{int(edge.sum())} peak(s) directly beside a doubtful line or a peak out of "
+                "column order, with no gap between, among doubtful peaks (a line's end may "
+                "have crossed onto the neighbouring line) left unnumbered"
             )
     if column_check:
         lone = isolated_peaks(col, number)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .numbering_checks import by_line, local_spacing
 
-__all__ = ["beside_doubtful", "isolated_peaks", "line_jumps", "stranded_runs"]
+__all__ = ["beside_doubtful", "doubtful_share", "isolated_peaks", "line_jumps", "stranded_runs"]
 
 
 def line_jumps(
@@ -83,6 +83,8 @@ def beside_doubtful(
     spacing: np.ndarray,
     *,
     max_gap: float = 1.25,
+    min_share: float = 0.0,
+    window: float = 2.0,
 ) -> np.ndarray:
     """Numbered peaks directly above or below a doubtful peak, with no gap between them.
 
@@ -109,6 +111,15 @@ def beside_doubtful(
     max_gap : float
         Largest row gap, in local line spacings, at which a neighbour in the column counts
         as directly beside.
+    min_share : float
+        With a share above 0, a peak beside a doubtful one is refused only where the
+        doubtful peaks around it (:func:`doubtful_share`) number at least ``min_share``
+        of the numbered ones: a line's end carried onto a refused block lies among the
+        block's peaks, while the lines beside a lone refused line (or a lone peak out of
+        order) have numbered neighbours that confirm them.
+    window : float
+        Half-width, in local line spacings, of the square around a peak in which
+        :func:`doubtful_share` counts.
 
     Returns
     -------
@@ -122,7 +133,65 @@ def beside_doubtful(
     near = (col[a] == col[b]) & (row[b] - row[a] < max_gap * np.minimum(spacing[a], spacing[b]))
     out[a[near & doubtful[b]]] = True  # the doubtful peak below
     out[b[near & doubtful[a]]] = True  # the doubtful peak above
-    return out & (number >= 0)
+    out &= number >= 0
+    if min_share > 0 and np.any(out):
+        cand = np.flatnonzero(out)
+        numbered = number >= 0
+        n_doubtful, n_numbered = doubtful_share(col, row, cand, doubtful, numbered, spacing, window)
+        out[cand[n_doubtful < min_share * n_numbered]] = False
+    return out
+
+
+def doubtful_share(
+    col: np.ndarray,
+    row: np.ndarray,
+    at: np.ndarray,
+    doubtful: np.ndarray,
+    numbered: np.ndarray,
+    spacing: np.ndarray,
+    window: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Doubtful and numbered peaks in the square of ``window`` local spacings around
+    peaks ``at`` (both counts include the peak itself when it is either).
+
+    On the clinic tuning scenes, of the numbered peaks directly beside a doubtful one, the
+    wrong ones (a line's end carried onto a cloth's next line) had at least half as many
+    doubtful as numbered peaks around them in 144 of 156 cases, the right ones in 1,291 of
+    23,563 (the lines along the block's edge).
+
+    Parameters
+    ----------
+    col, row : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    at : numpy.ndarray
+        Indices of the peaks to count around.
+    doubtful, numbered : numpy.ndarray
+        ``(N,)`` bool flags counted.
+    spacing : numpy.ndarray
+        Per-peak local line spacing (:func:`local_spacing`).
+    window : float
+        Half-width of the square, in local line spacings.
+
+    Returns
+    -------
+    n_doubtful, n_numbered : numpy.ndarray
+        ``(len(at),)`` int64 counts.
+    """
+    half = window * np.asarray(spacing, dtype=np.float64)[at]
+    reach = int(np.ceil(half.max(initial=0.0)))
+    # one key orders the peaks as they are sorted: a column's rows stay inside its stride
+    stride = float(np.ceil(np.max(row, initial=0.0))) + 2.0 * reach + 2.0
+    key = col.astype(np.float64) * stride + row
+    cum_d = np.r_[0, np.cumsum(doubtful, dtype=np.int64)]
+    cum_n = np.r_[0, np.cumsum(numbered, dtype=np.int64)]
+    offsets = np.arange(-reach, reach + 1)
+    centre = col[at].astype(np.float64)[:, None] + offsets[None, :]
+    lo = np.searchsorted(key, centre * stride + (row[at] - half)[:, None], side="left")
+    hi = np.searchsorted(key, centre * stride + (row[at] + half)[:, None], side="right")
+    inside = np.abs(offsets)[None, :] <= half[:, None]
+    n_doubtful = np.where(inside, cum_d[hi] - cum_d[lo], 0).sum(axis=1)
+    n_numbered = np.where(inside, cum_n[hi] - cum_n[lo], 0).sum(axis=1)
+    return n_doubtful, n_numbered
 
 
 def isolated_peaks(col: np.ndarray, number: np.ndarray) -> np.ndarray:

@@ -87,6 +87,34 @@ def test_peaks_directly_beside_a_doubtful_peak_are_refused() -> None:
     assert beside_doubtful(one, one, np.array([3]), np.ones(1, bool), one + 8).tolist() == [False]
 
 
+def test_with_a_share_peaks_beside_a_lone_doubtful_line_stay() -> None:
+    """With a share, the lines beside one doubtful line amid numbered ones stay (their
+    neighbours confirm them); beside a block of doubtful lines they are refused."""
+    from rasterserver_plugins.peak_checks import beside_doubtful, doubtful_share
+
+    spacing = 8.0
+    col, row = np.meshgrid(np.arange(60), 100.0 + spacing * np.arange(10), indexing="ij")
+    col, row = col.ravel(), row.ravel()  # sorted by (col, row)
+    line = np.tile(np.arange(10), 60)
+    # columns 0-29: line 5 alone is doubtful; columns 30-59: lines 5-9 (a block); the
+    # square counted spans two spacings (16 columns) either side
+    doubtful = (line == 5) | ((col >= 30) & (line > 5))
+    number = np.where(doubtful, -1, 10 + line).astype(np.int32)
+    spacings = np.full(col.size, spacing)
+    every = beside_doubtful(col, row, number, doubtful, spacings)
+    shared = beside_doubtful(col, row, number, doubtful, spacings, min_share=0.5)
+    lone = np.isin(line, (4, 6)) & (col < 14)
+    block = (line == 4) & (col >= 46)
+    assert np.all(every[lone]) and not np.any(shared[lone])
+    assert np.all(every[block]) and np.all(shared[block])
+    assert not np.any(shared & ~every)
+    at = np.flatnonzero(lone)[:1]
+    n_doubtful, n_numbered = doubtful_share(col, row, at, doubtful, number >= 0, spacings, 2.0)
+    assert (n_doubtful[0], n_numbered[0]) == (17, 68)  # 17 columns of 1 doubtful, 4 numbered
+    none = beside_doubtful(col[:0], row[:0], number[:0], doubtful[:0], spacings[:0], min_share=0.5)
+    assert none.size == 0
+
+
 def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
     """A line's end of three numbered peaks beyond refused ones goes; a run of six stays,
     and so does a short line that nothing was refused from."""
