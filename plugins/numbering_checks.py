@@ -41,51 +41,6 @@ __all__ = [
 ]
 
 
-def _line_ends(
-    col: np.ndarray, row: np.ndarray, line_id: np.ndarray, n_lines: int, fit: int
-) -> tuple[np.ndarray, ...]:
-    """Per line: first/last column and row, the slopes at both ends, and the peak count."""
-    lid = line_id.astype(np.int64)
-    ok = lid >= 0
-    idx = np.flatnonzero(ok)
-    order = idx[by_line(lid[idx])]  # peaks are sorted by column: line, then column
-    lines = lid[order]
-    starts = np.searchsorted(lines, np.arange(n_lines), side="left")
-    stops = np.searchsorted(lines, np.arange(n_lines), side="right")
-    count = stops - starts
-    c0 = np.full(n_lines, -1, np.int64)
-    c1 = np.full(n_lines, -1, np.int64)
-    r0 = np.full(n_lines, np.nan)
-    r1 = np.full(n_lines, np.nan)
-    s0 = np.zeros(n_lines)
-    s1 = np.zeros(n_lines)
-    cs, rs = col[order].astype(np.float64), row[order]
-    has = np.flatnonzero(count > 0)
-    a, b = starts[has], stops[has]
-    c0[has], c1[has] = cs[a].astype(np.int64), cs[b - 1].astype(np.int64)
-    r0[has], r1[has] = rs[a], rs[b - 1]
-    # End slopes by least squares over the first and last ``fit`` peaks of every line at
-    # once: a loop over the (few) positions in the window, not over the lines.
-    m = np.minimum(fit, b - a)
-    ok = m >= 3
-    if np.any(ok):
-        lines, a, b, m = has[ok], a[ok], b[ok], m[ok]
-        for first, out in ((a, s0), (b - m, s1)):
-            k = np.arange(fit)[None, :]
-            inside = k < m[:, None]
-            idx = np.where(inside, first[:, None] + k, first[:, None])
-            x, y = cs[idx], rs[idx]
-            w = inside.astype(np.float64)
-            xm = (x * w).sum(axis=1) / m
-            ym = (y * w).sum(axis=1) / m
-            dx = (x - xm[:, None]) * w
-            den = (dx * dx).sum(axis=1)
-            num = (dx * (y - ym[:, None])).sum(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out[lines] = np.where(den > 0, num / den, 0.0)
-    return c0, c1, r0, r1, s0, s1, count
-
-
 def contact_votes(
     col: np.ndarray,
     row: np.ndarray,
@@ -129,69 +84,39 @@ def contact_votes(
     n_lines = line_order.size
     if n < 2 or n_lines < 2:
         return votes
-    lid = line_id.astype(np.int64)
-    comp = np.where(lid >= 0, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
-    lev = np.where(lid >= 0, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
-    same_col = col[1:] == col[:-1]
-    gap = row[1:] - row[:-1]
+    # compiled loops over the peaks and the line ends (contact_tallies); the numba import
+    # costs ~0.3 s, hence here
+    from .contact_tallies import (
+        column_neighbours,
+        continuations,
+        level_gaps,
+        line_ends,
+        peak_levels,
+    )
+
+    comp, lev = peak_levels(line_id, line_order, line_component)
     # Typical spacing: the median gap between consecutive levels of one component.
-    inside = same_col & (comp[1:] == comp[:-1]) & (comp[:-1] >= 0) & (lev[1:] == lev[:-1] + 1)
-    spacing = float(np.median(gap[inside])) if np.any(inside) else float("nan")
+    inside = level_gaps(col, row, comp, lev)
+    spacing = float(np.median(inside)) if inside.size else float("nan")
     if not np.isfinite(spacing) or spacing <= 0:
         return votes
-    # ---- column neighbours across two components
-    g_prev = np.full(n - 1, np.nan)
-    g_prev[1:] = np.where(same_col[:-1] & inside[:-1], gap[:-1], np.nan)
-    g_next = np.full(n - 1, np.nan)
-    g_next[:-1] = np.where(same_col[1:] & inside[1:], gap[1:], np.nan)
-    with np.errstate(invalid="ignore"):
-        ref = np.where(
-            np.isnan(g_prev),
-            np.where(np.isnan(g_next), spacing, g_next),
-            np.where(np.isnan(g_next), g_prev, 0.5 * (g_prev + g_next)),
-        )
-    cross = same_col & (comp[:-1] >= 0) & (comp[1:] >= 0) & (comp[:-1] != comp[1:])
-    cross &= np.abs(gap / ref - 1.0) <= gap_tolerance
-    cross &= np.abs(ref / spacing - 1.0) <= 0.5
-    k = np.flatnonzero(cross)
-    if k.size:
-        # one vote per column; tallied per (a, b, delta) and entered in the order of each
-        # group's first column (the dictionaries' order is that of a column-by-column loop)
-        comp_a, comp_b = comp[k], comp[k + 1]
-        deltas = lev[k] + 1 - lev[k + 1]  # offset(b) - offset(a)
-        n_comp = int(comp.max()) + 1
-        d0 = int(deltas.min())
-        span = int(deltas.max()) - d0 + 1
-        key = (comp_a * n_comp + comp_b) * span + (deltas - d0)
-        groups, first, count = np.unique(key, return_index=True, return_counts=True)
-        for i in np.argsort(first, kind="stable"):
-            g = int(groups[i])
-            d = g % span + d0
-            a, b = divmod(g // span, n_comp)
-            votes[(a, b)][d] += float(count[i])
-            votes[(b, a)][-d] += float(count[i])
+    # ---- column neighbours across two components: one vote per column, tallied per
+    # (a, b, delta) in the order of each tally's first column
+    comp_a, comp_b, deltas, count = column_neighbours(col, row, comp, lev, spacing, gap_tolerance)
+    for a, b, d, m in zip(
+        comp_a.tolist(), comp_b.tolist(), deltas.tolist(), count.tolist(), strict=True
+    ):
+        votes[(a, b)][d] += float(m)
+        votes[(b, a)][-d] += float(m)
     # ---- continuations of lines across short gaps
-    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, line_id, n_lines, fit=8)
+    c0, c1, r0, r1, s0, s1, count = line_ends(col, row, line_id, n_lines, 8)
     ok = (count >= min_line) & (line_component >= 0) & (line_order >= 0)
     ends = np.flatnonzero(ok)
     if ends.size < 2:
         return votes
     tol = row_tolerance * spacing
-    e_c0, e_r0, e_s0 = c0[ends], r0[ends], s0[ends]
-    e_comp = line_component[ends]
-    pairs: list[tuple[int, int]] = []
-    # every line end against every line start, in blocks of line ends (no Python loop per
-    # line: a fragmented frame has thousands)
-    for lo in range(0, ends.size, 256):
-        a_ = ends[lo : lo + 256]
-        dc = e_c0[None, :] - c1[a_][:, None]
-        cand = (dc >= 1) & (dc <= max_gap) & (e_comp[None, :] != line_component[a_][:, None])
-        dcc = dc.astype(np.float64)
-        fwd = r1[a_][:, None] + s1[a_][:, None] * dcc  # a extended to b's start
-        bwd = e_r0[None, :] - e_s0[None, :] * dcc  # b extended back to a's end
-        hit = cand & (np.abs(fwd - e_r0[None, :]) <= tol) & (np.abs(bwd - r1[a_][:, None]) <= tol)
-        one = np.flatnonzero(hit.sum(axis=1) == 1)  # none, or not unique: no evidence
-        pairs.extend(zip(a_[one].tolist(), ends[np.argmax(hit[one], axis=1)].tolist(), strict=True))
+    first, then = continuations(ends, line_component, c0, c1, r0, r1, s0, s1, max_gap, tol)
+    pairs = zip(first.tolist(), then.tolist(), strict=True)
     for a, b in pairs:
         ca, cb = int(line_component[a]), int(line_component[b])
         delta = int(line_order[a] - line_order[b])
