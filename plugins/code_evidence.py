@@ -85,10 +85,9 @@ def level_statistics(
     empty = (empty_i, empty_i, np.zeros(0), empty_i, np.zeros(0))
     if col.size < 2 or line_order.size == 0:
         return empty
-    lid = line_id.astype(np.int64)
-    ok_line = lid >= 0
-    comp_of = np.where(ok_line, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
-    lev_of = np.where(ok_line, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
+    from .column_pairs import peak_levels  # compiled; the numba import costs ~0.3 s
+
+    comp_of, lev_of = peak_levels(line_id, line_order, line_component)
     k, lr = level_pairs(col, area, comp_of, lev_of)
     if k.size == 0:
         return empty
@@ -116,16 +115,13 @@ def level_pairs(
         Index of the upper peak of every such pair (the lower is ``k + 1``) and
         ``log(area[k] / area[k + 1])``; pairs whose ratio is not finite are left out.
     """
-    pair = (
-        (col[1:] == col[:-1])
-        & (comp_of[1:] == comp_of[:-1])
-        & (comp_of[:-1] >= 0)
-        & (lev_of[:-1] >= 0)
-        & (lev_of[1:] == lev_of[:-1] + 1)
-    )
-    k = np.flatnonzero(pair)
+    # the pairs and their area ratios in one compiled loop (column_pairs; the numba import
+    # costs ~0.3 s, hence here); the logarithm stays numpy's
+    from .column_pairs import level_pair_ratios
+
+    k, ratio = level_pair_ratios(col, area, comp_of, lev_of)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
+        lr = np.log(ratio)
     good = np.isfinite(lr)
     return k[good], lr[good]
 

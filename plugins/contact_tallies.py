@@ -25,38 +25,6 @@ from .pairwise_sums import pairwise_sum
 
 
 @kernel()
-def peak_levels(
-    line_id: np.ndarray, line_order: np.ndarray, line_component: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Component and level of every peak (-1 for peaks outside the lines).
-
-    Parameters
-    ----------
-    line_id : numpy.ndarray
-        Line of every peak (-1: none).
-    line_order, line_component : numpy.ndarray
-        Per-line level and component.
-
-    Returns
-    -------
-    comp, lev : numpy.ndarray
-        int64 per peak.
-    """
-    n = line_id.shape[0]
-    comp = np.empty(n, dtype=np.int64)
-    lev = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        line = line_id[i]
-        if line >= 0:
-            comp[i] = line_component[line]
-            lev[i] = line_order[line]
-        else:
-            comp[i] = -1
-            lev[i] = -1
-    return comp, lev
-
-
-@kernel()
 def level_gaps(col: np.ndarray, row: np.ndarray, comp: np.ndarray, lev: np.ndarray) -> np.ndarray:
     """Row gaps between consecutive levels of one component in a column, in peak order.
 
@@ -65,7 +33,7 @@ def level_gaps(col: np.ndarray, row: np.ndarray, comp: np.ndarray, lev: np.ndarr
     col, row : numpy.ndarray
         Peaks sorted by ``(col, row)``.
     comp, lev : numpy.ndarray
-        Component and level of every peak (:func:`peak_levels`).
+        Component and level of every peak (:func:`.column_pairs.peak_levels`).
 
     Returns
     -------
@@ -112,7 +80,7 @@ def column_neighbours(
     col, row : numpy.ndarray
         Peaks sorted by ``(col, row)``.
     comp, lev : numpy.ndarray
-        Component and level of every peak (:func:`peak_levels`).
+        Component and level of every peak (:func:`.column_pairs.peak_levels`).
     spacing : float
         The typical line spacing (median of :func:`level_gaps`).
     gap_tolerance : float

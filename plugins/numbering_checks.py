@@ -86,13 +86,8 @@ def contact_votes(
         return votes
     # compiled loops over the peaks and the line ends (contact_tallies); the numba import
     # costs ~0.3 s, hence here
-    from .contact_tallies import (
-        column_neighbours,
-        continuations,
-        level_gaps,
-        line_ends,
-        peak_levels,
-    )
+    from .column_pairs import peak_levels
+    from .contact_tallies import column_neighbours, continuations, level_gaps, line_ends
 
     comp, lev = peak_levels(line_id, line_order, line_component)
     # Typical spacing: the median gap between consecutive levels of one component.
@@ -284,27 +279,31 @@ def pair_contradictions(
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
         return empty, empty, empty
+    # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
+    # ~0.3 s, hence here
+    from .column_pairs import grouped_pairs, raster_pair_ratios
+
     lid = line_id.astype(np.int64)
-    # each line's index into the raster's lines (-1: unnumbered), then each peak's
+    # each line's index into the raster's lines (-1: unnumbered)
     lut = np.full(int(raster.numbers.max()) + 2, -1, dtype=np.int64)
     lut[raster.numbers] = np.arange(raster.n_lines)
     num = line_number.astype(np.int64)
     pos_line = np.where((num >= 0) & (num < lut.size - 1), lut[np.clip(num, 0, lut.size - 1)], -1)
-    pos = np.append(pos_line, -1)[lid]
     # consecutive raster lines are two lines (a line has one number)
-    a = np.flatnonzero((col[1:] == col[:-1]) & (pos[:-1] >= 0) & (pos[1:] == pos[:-1] + 1))
+    a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
+    if a.size == 0:
+        return empty, empty, empty
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(ratio)
+    good = np.isfinite(lr)
+    a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
         return empty, empty, empty
     b = a + 1
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lr = np.log(area[a].astype(np.float64) / area[b].astype(np.float64))
-    good = np.isfinite(lr)
-    a, b, lr = a[good], b[good], np.clip(lr[good], -1.0, 1.0)
-    if a.size == 0:
-        return empty, empty, empty
     code = raster.code.astype(np.float64)
-    expected = (code[pos[a]] - code[pos[b]]) * lam
-    keys, inv = _group_pairs(lid[a], lid[b], int(lid.max()) + 1)
+    upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
+    expected = (code[upper] - code[upper + 1]) * lam
+    keys, inv = grouped_pairs(lid[a], lid[b], int(lid.max()) + 1)
     # the robust centre of code_evidence.level_statistics (every pair has a column: the
     # groups are 0 .. keys.size - 1, all present)
     _, centre, counts, spread = robust_centres(inv, lr)
@@ -337,35 +336,6 @@ def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.nd
     cnt = np.bincount(cell_of[a], minlength=n_cells)
     mean = np.where(cnt > 0, total / np.maximum(cnt, 1), float(np.median(gap)))
     return mean[cell_of]
-
-
-def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(keys, return_inverse=True)``, faster: one unstable argsort."""
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    start = np.empty(sorted_keys.size, dtype=bool)
-    start[:1] = True
-    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=start[1:])
-    group = np.cumsum(start) - 1
-    inv = np.empty(keys.size, dtype=np.int64)
-    inv[order] = group
-    return sorted_keys[start], inv
-
-
-def _group_pairs(first: np.ndarray, second: np.ndarray, span: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_group` of the keys ``first * span + second`` (non-negative ids below
-    ``span``), by two radix passes when the ids fit in 16 bits."""
-    if span > 65536:
-        return _group(first * span + second)
-    order = np.argsort(second.astype(np.uint16), kind="stable")
-    order = order[np.argsort(first[order].astype(np.uint16), kind="stable")]
-    keys = first[order] * span + second[order]
-    start = np.empty(keys.size, dtype=bool)
-    start[:1] = True
-    np.not_equal(keys[1:], keys[:-1], out=start[1:])
-    inv = np.empty(keys.size, dtype=np.int64)
-    inv[order] = np.cumsum(start) - 1
-    return keys[start], inv
 
 
 def by_line(lid: np.ndarray) -> np.ndarray:
