@@ -178,54 +178,28 @@ def column_order_conflicts(
     out = np.zeros(n, dtype=bool)
     if n < 2:
         return out
-    numbered = np.flatnonzero(number >= 0)
-    if numbered.size < 2:
-        return out
-    a, b = numbered[:-1], numbered[1:]
-    same = col[a] == col[b]
-    a, b = a[same], b[same]
-    if a.size == 0:
-        return out
-    gap = row[b] - row[a]
-    k = number[b].astype(np.int64) - number[a].astype(np.int64)
-    one = k == 1
-    if not np.any(one):
+    # the pairs and the checks compiled (column_order); the numba import costs ~0.3 s
+    from .column_order import numbered_pairs, order_conflicts
+
+    a, b, gap, k = numbered_pairs(col, row, number)
+    if a.size == 0 or not np.any(k == 1):
         return out
     # the local spacing: mean gap of consecutive lines in cells of 32 x 32 px
     if spacing is None:
         spacing = local_spacing(col, row, number)
     if spacing is None:
         return out
-    ref = spacing[a]
     # One spacing apart, the numbers must differ by one. Two or three spacings apart (lines
     # between unnumbered), they must not differ by more: a line picked up across a depth
     # step of a whole spacing shows as a pair two spacings apart numbered three apart. (They
-    # may differ by less: the surface stretches the spacing towards a silhouette.)
-    steps = gap / ref
-    m = np.rint(steps)
-    near = (m <= max_multiple) & (np.abs(steps - m) <= tolerance)
-    conflict = (near & (m == 1) & (k != 1)) | (near & (m >= 2) & (k > m))
-    conflict |= (k <= 0) & (gap < 1.5 * ref)
-    # Against the gaps beside it in its own column (the cell's mean spacing is too coarse
-    # where lines crowd towards a silhouette): numbers k apart need about k gaps of the
-    # single steps above and below; a line's end that took the neighbouring line's peak
-    # shows as numbers two apart at one gap.
-    contiguous = np.r_[False, b[:-1] == a[1:]]  # pair i follows pair i - 1 in the column
-    single = np.where(one, gap, np.inf)
-    above = np.where(contiguous, np.r_[np.inf, single[:-1]], np.inf)
-    below = np.where(np.r_[contiguous[1:], False], np.r_[single[1:], np.inf], np.inf)
-    beside = np.minimum(above, below)
-    conflict |= (k >= 2) & np.isfinite(beside) & (gap < (k - 0.5) * beside)
-    # and numbers k apart more than k + 1/2 of the wider gap beside them apart: a line
-    # skipped between them that the numbers do not count (a piece numbered a level off
-    # below a gap where lines went unfound)
-    widest = np.maximum(
-        np.where(np.isfinite(above), above, 0.0), np.where(np.isfinite(below), below, 0.0)
-    )
-    conflict |= (k >= 1) & (widest > 0) & (gap > (k + 0.5) * widest)
-    out[a[conflict]] = True
-    out[b[conflict]] = True
-    return out
+    # may differ by less: the surface stretches the spacing towards a silhouette.) Against
+    # the gaps beside it in its own column (the cell's mean spacing is too coarse where
+    # lines crowd towards a silhouette): numbers k apart need about k gaps of the single
+    # steps above and below; a line's end that took the neighbouring line's peak shows as
+    # numbers two apart at one gap. And numbers k apart more than k + 1/2 of the wider gap
+    # beside them apart: a line skipped between them that the numbers do not count (a
+    # piece numbered a level off below a gap where lines went unfound).
+    return order_conflicts(n, a, b, gap, k, spacing, tolerance, max_multiple)
 
 
 def pair_contradictions(
@@ -319,23 +293,15 @@ def pair_contradictions(
 def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:
     """Per peak, the mean row gap of consecutive numbered lines in its 32 x 32 px cell (the
     median over the frame where the cell has none); None without any such pair."""
-    numbered = np.flatnonzero(number >= 0)
-    if numbered.size < 2:
-        return None
-    a, b = numbered[:-1], numbered[1:]
-    one = (col[a] == col[b]) & (number[b].astype(np.int64) - number[a] == 1)
+    from .column_order import cell_spacing, numbered_pairs  # compiled; numba costs ~0.3 s
+
+    a, _, gap, k = numbered_pairs(col, row, number)
+    one = k == 1
     if not np.any(one):
         return None
-    a, b = a[one], b[one]
-    gap = row[b] - row[a]
-    # dense cell indices (a frame has a few hundred cells): counts by bincount, no sort
-    n_rows = int(np.max(row, initial=0.0)) // 32 + 1
-    cell_of = (col.astype(np.int64) // 32) * n_rows + np.maximum(row, 0.0).astype(np.int64) // 32
-    n_cells = int(cell_of.max()) + 1
-    total = np.bincount(cell_of[a], weights=gap, minlength=n_cells)
-    cnt = np.bincount(cell_of[a], minlength=n_cells)
-    mean = np.where(cnt > 0, total / np.maximum(cnt, 1), float(np.median(gap)))
-    return mean[cell_of]
+    a, gap = a[one], gap[one]
+    # dense cell indices (a frame has a few hundred cells), the gaps added pair by pair
+    return cell_spacing(col, row, a, gap, float(np.median(gap)))
 
 
 def by_line(lid: np.ndarray) -> np.ndarray:
