@@ -324,31 +324,18 @@ def locally_contradicted(
     n_levels = d.size + 1
     if n_levels < span + 2:
         return np.zeros(0, dtype=np.int64)
-    bad = np.zeros(n_levels, dtype=bool)
-    windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), span)
-    expected = (windows[:, :-1] - windows[:, 1:]) * lam
-    for start in range(0, n_levels - span + 1, 2):
-        dd = d[start : start + span - 1]
-        ww = w[start : start + span - 1]
-        measured = ~np.isnan(dd) & (ww > 0)
-        terms = float(ww[measured].sum())
-        if terms < 0.5 * (span - 1):
-            continue
-        u = (np.where(measured, dd, 0.0)[None, :] - expected) / (tolerance * lam)
-        cost = (np.minimum(u * u, 1.0) * np.where(measured, ww, 0.0)[None, :]).sum(axis=1)
-        here = offset + start
-        if not 0 <= here < cost.size:
-            continue
-        order = np.argsort(cost, kind="stable")
-        best = int(order[0])
-        if best == here:
-            continue
-        excess = float(cost[here] - cost[best])
-        local_margin = float(cost[order[1]] - cost[best])
-        # another placement reads cleanly and uniquely here, or the component's placement
-        # explains this run of lines far worse than the component as a whole allows
-        clean_elsewhere = cost[best] <= max_cost_rate * terms and local_margin >= min_margin
-        poorly_explained = cost[here] > 2.0 * max_cost_rate * terms
-        if excess >= min_margin and (clean_elsewhere or poorly_explained):
-            bad[start : start + span] = True
+    # one compiled loop per run and placement (level_runs); the numba import costs ~0.3 s
+    from .level_runs import contradicted_levels
+
+    bad = contradicted_levels(
+        np.ascontiguousarray(d, dtype=np.float64),
+        np.ascontiguousarray(w, dtype=np.float64),
+        code.astype(np.float64),
+        int(offset),
+        int(span),
+        float(lam),
+        float(tolerance),
+        float(min_margin),
+        float(max_cost_rate),
+    )
     return np.flatnonzero(bad)
