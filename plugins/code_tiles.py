@@ -164,11 +164,17 @@ class CodeBands:
         kinds = code.astype(np.int64)
         diff_at = np.full(n_code + 1, 3, dtype=np.int64)
         diff_at[: n_code - 1] = kinds[:-1] - kinds[1:] + 1  # index into expected; 3 off
-        c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
-        measured = w > 0
         # the component's placement and the others: a block is a few levels off (lines
         # hidden by a step, dim lines not found), so shifts up to a code window each way
         shifts = np.array([0] + [s for s in range(-max_shift, max_shift + 1) if s != 0])
+        # On most frames no run gains enough: the best gains in one compiled loop decide
+        # that (band_runs, the same bits as ``best`` below; the numba import costs ~0.3 s).
+        from .band_runs import best_gains
+
+        if not np.any(best_gains(c3, w, r_off, diff_at, shifts) >= min_gain):
+            return refuse
+        c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
+        measured = w > 0
         pos = r_off[:, None, None] + shifts[None, :, None] + np.arange(n_lev)[None, None, :]
         inside = (pos >= 0) & (pos < n_code - 1)
         e = diff_at[np.clip(pos, 0, n_code)]
