@@ -200,38 +200,18 @@ def observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: flo
     without a measured difference on either side, or whose two kinds explain the data
     equally well, are unknown (-1).
     """
-    n = d.size + 1
-    kinds = np.full(n, -1, dtype=np.int8)
-    if n < 2:
-        return kinds
-    measured = ~np.isnan(d)
-    dd = np.where(measured, d, 0.0)
-    ww = np.where(measured, weight, 0.0)
-    # cost[k, a, b]: level k of kind a followed by level k + 1 of kind b
-    expect = np.array([[0.0, -1.0], [1.0, 0.0]]) * lam
-    u = (dd[:, None, None] - expect[None, :, :]) / (tolerance * lam)
-    cost = np.minimum(u * u, 1.0) * ww[:, None, None]
-    # forward and backward passes give each level's best total cost per kind (on Python
-    # floats: two states, where a NumPy call per level costs more than the arithmetic)
-    c = cost.reshape(n - 1, 4).tolist()  # [a0b0, a0b1, a1b0, a1b1] per level
-    f0, f1 = 0.0, 0.0
-    fwd = [(0.0, 0.0)]
-    for c00, c01, c10, c11 in c:
-        f0, f1 = min(f0 + c00, f1 + c10), min(f0 + c01, f1 + c11)
-        fwd.append((f0, f1))
-    b0, b1 = 0.0, 0.0
-    bwd = [(0.0, 0.0)]
-    for c00, c01, c10, c11 in reversed(c):
-        b0, b1 = min(c00 + b0, c01 + b1), min(c10 + b0, c11 + b1)
-        bwd.append((b0, b1))
-    total = np.array(fwd) + np.array(bwd[::-1])
-    gap = total[:, 0] - total[:, 1]  # > 0: heavy explains better
-    seen = np.zeros(n, dtype=bool)
-    seen[:-1] |= measured
-    seen[1:] |= measured
-    sure = seen & (np.abs(gap) >= 0.5)
-    kinds[sure] = (gap[sure] > 0).astype(np.int8)
-    return kinds
+    if d.size == 0:
+        return np.full(d.size + 1, -1, dtype=np.int8)
+    # forward and backward passes give each level's best total cost per kind: one compiled
+    # loop (code_placements; the numba import costs ~0.3 s, hence here)
+    from .code_placements import level_kinds
+
+    return level_kinds(
+        np.ascontiguousarray(d, dtype=np.float64),
+        np.ascontiguousarray(weight, dtype=np.float64),
+        float(lam),
+        float(tolerance),
+    )
 
 
 @dataclass(frozen=True)
@@ -260,24 +240,31 @@ def code_fit(
     n_off = code.size - n_levels + 1
     if n_off < 1:
         return CodeFit(np.zeros(0), 0.0, -1, 0.0, f"{n_levels} lines, more than the raster's")
-    measured = (~np.isnan(d)) & (weight > 0)
-    terms = float(weight[measured].sum())
+    # every placement's cost in one compiled loop (code_placements; the numba import costs
+    # ~0.3 s, hence here), summed in numpy's order; best two as a stable argsort's first two
+    from .code_placements import best_two, placement_costs
+
     if n_levels >= 2:
-        windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), n_levels)
-        expected = (windows[:, :-1] - windows[:, 1:]) * lam  # (offsets, n_levels - 1)
-        u = (np.where(measured, d, 0.0)[None, :] - expected) / (tolerance * lam)
-        cost = (np.minimum(u * u, 1.0) * np.where(measured, weight, 0.0)[None, :]).sum(axis=1)
+        cost, terms, n_measured = placement_costs(
+            np.ascontiguousarray(d, dtype=np.float64),
+            np.ascontiguousarray(weight, dtype=np.float64),
+            code.astype(np.float64),
+            float(lam),
+            float(tolerance),
+        )
     else:
+        measured = (~np.isnan(d)) & (weight > 0)
+        terms = float(weight[measured].sum())
+        n_measured = int(measured.sum())
         cost = np.zeros(n_off)
-    order = np.argsort(cost, kind="stable")
-    best = int(order[0])
+    best, second = best_two(cost)
     best_cost = float(cost[best])
-    margin = float(cost[order[1]] - best_cost) if n_off > 1 else float("inf")
+    margin = float(cost[second] - best_cost) if n_off > 1 else float("inf")
     if n_levels < min_lines:
         reason = f"{n_levels} lines, fewer than {min_lines}"
-    elif int(measured.sum()) < min_lines - 1 or terms < 0.5 * (min_lines - 1):
+    elif n_measured < min_lines - 1 or terms < 0.5 * (min_lines - 1):
         reason = (
-            f"only {int(measured.sum())} reliable neighbour intensity ratios "
+            f"only {n_measured} reliable neighbour intensity ratios "
             f"(weight {terms:.1f}; uneven albedo or too few columns)"
         )
     elif best_cost > max_cost_rate * terms:

@@ -17,6 +17,7 @@ import numpy as np
 
 from rasterserver.compiled import kernel
 
+from .code_placements import best_two
 from .pairwise_sums import pairwise_sum
 
 
@@ -80,7 +81,7 @@ def contradicted_levels(
                 v = u * u
                 terms[j] = (1.0 if v > 1.0 else v) * ww[j]
             cost[o] = pairwise_sum(terms, 0, n_terms)
-        best, second = _best_two(cost)
+        best, second = best_two(cost)
         if best == here:
             continue
         excess = cost[here] - cost[best]
@@ -92,27 +93,3 @@ def contradicted_levels(
         if excess >= min_margin and (clean_elsewhere or poorly_explained):
             bad[start : start + span] = True
     return bad
-
-
-@kernel()
-def _best_two(cost: np.ndarray) -> tuple[int, int]:
-    """The first two indices of ``np.argsort(cost, kind="stable")`` (NaN sorted last)."""
-    best, second = -1, -1
-    for i in range(cost.shape[0]):
-        c = cost[i]
-        if math.isnan(c):
-            continue
-        if best < 0 or c < cost[best]:
-            best, second = i, best
-        elif second < 0 or c < cost[second]:
-            second = i
-    # NaN costs follow the others, in index order
-    for i in range(cost.shape[0]):
-        if best >= 0 and second >= 0:
-            break
-        if math.isnan(cost[i]):
-            if best < 0:
-                best = i
-            elif second < 0:
-                second = i
-    return best, second
