@@ -44,21 +44,12 @@ def level_gaps(col: np.ndarray, row: np.ndarray, comp: np.ndarray, lev: np.ndarr
     out = np.empty(max(n - 1, 0))
     k = 0
     for i in range(n - 1):
-        if _inside(col, comp, lev, i):
+        # consecutive levels of one component in a column
+        same = col[i + 1] == col[i] and comp[i + 1] == comp[i] and comp[i] >= 0
+        if same and lev[i + 1] == lev[i] + 1:
             out[k] = row[i + 1] - row[i]
             k += 1
     return out[:k]
-
-
-@kernel()
-def _inside(col: np.ndarray, comp: np.ndarray, lev: np.ndarray, i: int) -> bool:
-    """Peaks ``i`` and ``i + 1`` are consecutive levels of one component in one column."""
-    return (
-        col[i + 1] == col[i]
-        and comp[i + 1] == comp[i]
-        and comp[i] >= 0
-        and lev[i + 1] == lev[i] + 1
-    )
 
 
 _TALLY = types.UniTuple(types.int64, 3)
@@ -103,11 +94,16 @@ def column_neighbours(
         if col[i + 1] != col[i] or comp[i] < 0 or comp[i + 1] < 0 or comp[i] == comp[i + 1]:
             continue
         gap = row[i + 1] - row[i]
+        # the gaps of consecutive levels of one component directly above and below
         g_prev = np.nan
-        if i >= 1 and _inside(col, comp, lev, i - 1):
+        j = i - 1
+        same = j >= 0 and col[j + 1] == col[j] and comp[j + 1] == comp[j] and comp[j] >= 0
+        if same and lev[j + 1] == lev[j] + 1:
             g_prev = row[i] - row[i - 1]
         g_next = np.nan
-        if i + 2 < n and _inside(col, comp, lev, i + 1):
+        j = i + 1
+        same = j + 1 < n and col[j + 1] == col[j] and comp[j + 1] == comp[j] and comp[j] >= 0
+        if same and lev[j + 1] == lev[j] + 1:
             g_next = row[i + 2] - row[i + 1]
         if math.isnan(g_prev):
             ref = spacing if math.isnan(g_next) else g_next
