@@ -85,10 +85,9 @@ def level_statistics(
     empty = (empty_i, empty_i, np.zeros(0), empty_i, np.zeros(0))
     if col.size < 2 or line_order.size == 0:
         return empty
-    lid = line_id.astype(np.int64)
-    ok_line = lid >= 0
-    comp_of = np.where(ok_line, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
-    lev_of = np.where(ok_line, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
+    from .column_pairs import peak_levels  # compiled; the numba import costs ~0.3 s
+
+    comp_of, lev_of = peak_levels(line_id, line_order, line_component)
     k, lr = level_pairs(col, area, comp_of, lev_of)
     if k.size == 0:
         return empty
@@ -116,16 +115,13 @@ def level_pairs(
         Index of the upper peak of every such pair (the lower is ``k + 1``) and
         ``log(area[k] / area[k + 1])``; pairs whose ratio is not finite are left out.
     """
-    pair = (
-        (col[1:] == col[:-1])
-        & (comp_of[1:] == comp_of[:-1])
-        & (comp_of[:-1] >= 0)
-        & (lev_of[:-1] >= 0)
-        & (lev_of[1:] == lev_of[:-1] + 1)
-    )
-    k = np.flatnonzero(pair)
+    # the pairs and their area ratios in one compiled loop (column_pairs; the numba import
+    # costs ~0.3 s, hence here); the logarithm stays numpy's
+    from .column_pairs import level_pair_ratios
+
+    k, ratio = level_pair_ratios(col, area, comp_of, lev_of)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lr = np.log(area[k].astype(np.float64) / area[k + 1].astype(np.float64))
+        lr = np.log(ratio)
     good = np.isfinite(lr)
     return k[good], lr[good]
 
@@ -204,38 +200,18 @@ def observed_kinds(d: np.ndarray, weight: np.ndarray, lam: float, tolerance: flo
     without a measured difference on either side, or whose two kinds explain the data
     equally well, are unknown (-1).
     """
-    n = d.size + 1
-    kinds = np.full(n, -1, dtype=np.int8)
-    if n < 2:
-        return kinds
-    measured = ~np.isnan(d)
-    dd = np.where(measured, d, 0.0)
-    ww = np.where(measured, weight, 0.0)
-    # cost[k, a, b]: level k of kind a followed by level k + 1 of kind b
-    expect = np.array([[0.0, -1.0], [1.0, 0.0]]) * lam
-    u = (dd[:, None, None] - expect[None, :, :]) / (tolerance * lam)
-    cost = np.minimum(u * u, 1.0) * ww[:, None, None]
-    # forward and backward passes give each level's best total cost per kind (on Python
-    # floats: two states, where a NumPy call per level costs more than the arithmetic)
-    c = cost.reshape(n - 1, 4).tolist()  # [a0b0, a0b1, a1b0, a1b1] per level
-    f0, f1 = 0.0, 0.0
-    fwd = [(0.0, 0.0)]
-    for c00, c01, c10, c11 in c:
-        f0, f1 = min(f0 + c00, f1 + c10), min(f0 + c01, f1 + c11)
-        fwd.append((f0, f1))
-    b0, b1 = 0.0, 0.0
-    bwd = [(0.0, 0.0)]
-    for c00, c01, c10, c11 in reversed(c):
-        b0, b1 = min(c00 + b0, c01 + b1), min(c10 + b0, c11 + b1)
-        bwd.append((b0, b1))
-    total = np.array(fwd) + np.array(bwd[::-1])
-    gap = total[:, 0] - total[:, 1]  # > 0: heavy explains better
-    seen = np.zeros(n, dtype=bool)
-    seen[:-1] |= measured
-    seen[1:] |= measured
-    sure = seen & (np.abs(gap) >= 0.5)
-    kinds[sure] = (gap[sure] > 0).astype(np.int8)
-    return kinds
+    if d.size == 0:
+        return np.full(d.size + 1, -1, dtype=np.int8)
+    # forward and backward passes give each level's best total cost per kind: one compiled
+    # loop (code_placements; the numba import costs ~0.3 s, hence here)
+    from .code_placements import level_kinds
+
+    return level_kinds(
+        np.ascontiguousarray(d, dtype=np.float64),
+        np.ascontiguousarray(weight, dtype=np.float64),
+        float(lam),
+        float(tolerance),
+    )
 
 
 @dataclass(frozen=True)
@@ -264,24 +240,31 @@ def code_fit(
     n_off = code.size - n_levels + 1
     if n_off < 1:
         return CodeFit(np.zeros(0), 0.0, -1, 0.0, f"{n_levels} lines, more than the raster's")
-    measured = (~np.isnan(d)) & (weight > 0)
-    terms = float(weight[measured].sum())
+    # every placement's cost in one compiled loop (code_placements; the numba import costs
+    # ~0.3 s, hence here), summed in numpy's order; best two as a stable argsort's first two
+    from .code_placements import best_two, placement_costs
+
     if n_levels >= 2:
-        windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), n_levels)
-        expected = (windows[:, :-1] - windows[:, 1:]) * lam  # (offsets, n_levels - 1)
-        u = (np.where(measured, d, 0.0)[None, :] - expected) / (tolerance * lam)
-        cost = (np.minimum(u * u, 1.0) * np.where(measured, weight, 0.0)[None, :]).sum(axis=1)
+        cost, terms, n_measured = placement_costs(
+            np.ascontiguousarray(d, dtype=np.float64),
+            np.ascontiguousarray(weight, dtype=np.float64),
+            code.astype(np.float64),
+            float(lam),
+            float(tolerance),
+        )
     else:
+        measured = (~np.isnan(d)) & (weight > 0)
+        terms = float(weight[measured].sum())
+        n_measured = int(measured.sum())
         cost = np.zeros(n_off)
-    order = np.argsort(cost, kind="stable")
-    best = int(order[0])
+    best, second = best_two(cost)
     best_cost = float(cost[best])
-    margin = float(cost[order[1]] - best_cost) if n_off > 1 else float("inf")
+    margin = float(cost[second] - best_cost) if n_off > 1 else float("inf")
     if n_levels < min_lines:
         reason = f"{n_levels} lines, fewer than {min_lines}"
-    elif int(measured.sum()) < min_lines - 1 or terms < 0.5 * (min_lines - 1):
+    elif n_measured < min_lines - 1 or terms < 0.5 * (min_lines - 1):
         reason = (
-            f"only {int(measured.sum())} reliable neighbour intensity ratios "
+            f"only {n_measured} reliable neighbour intensity ratios "
             f"(weight {terms:.1f}; uneven albedo or too few columns)"
         )
     elif best_cost > max_cost_rate * terms:
@@ -328,31 +311,18 @@ def locally_contradicted(
     n_levels = d.size + 1
     if n_levels < span + 2:
         return np.zeros(0, dtype=np.int64)
-    bad = np.zeros(n_levels, dtype=bool)
-    windows = np.lib.stride_tricks.sliding_window_view(code.astype(np.float64), span)
-    expected = (windows[:, :-1] - windows[:, 1:]) * lam
-    for start in range(0, n_levels - span + 1, 2):
-        dd = d[start : start + span - 1]
-        ww = w[start : start + span - 1]
-        measured = ~np.isnan(dd) & (ww > 0)
-        terms = float(ww[measured].sum())
-        if terms < 0.5 * (span - 1):
-            continue
-        u = (np.where(measured, dd, 0.0)[None, :] - expected) / (tolerance * lam)
-        cost = (np.minimum(u * u, 1.0) * np.where(measured, ww, 0.0)[None, :]).sum(axis=1)
-        here = offset + start
-        if not 0 <= here < cost.size:
-            continue
-        order = np.argsort(cost, kind="stable")
-        best = int(order[0])
-        if best == here:
-            continue
-        excess = float(cost[here] - cost[best])
-        local_margin = float(cost[order[1]] - cost[best])
-        # another placement reads cleanly and uniquely here, or the component's placement
-        # explains this run of lines far worse than the component as a whole allows
-        clean_elsewhere = cost[best] <= max_cost_rate * terms and local_margin >= min_margin
-        poorly_explained = cost[here] > 2.0 * max_cost_rate * terms
-        if excess >= min_margin and (clean_elsewhere or poorly_explained):
-            bad[start : start + span] = True
+    # one compiled loop per run and placement (level_runs); the numba import costs ~0.3 s
+    from .level_runs import contradicted_levels
+
+    bad = contradicted_levels(
+        np.ascontiguousarray(d, dtype=np.float64),
+        np.ascontiguousarray(w, dtype=np.float64),
+        code.astype(np.float64),
+        int(offset),
+        int(span),
+        float(lam),
+        float(tolerance),
+        float(min_margin),
+        float(max_cost_rate),
+    )
     return np.flatnonzero(bad)

@@ -70,11 +70,11 @@ class CodeBands:
     ) -> None:
         self.n_lines = line_order.size
         self.step = max(band // 2, 1)
+        # per-peak loops compiled (column_pairs); the numba import costs ~0.3 s, hence here
+        from .column_pairs import band_keys, peak_levels
+
         self.lid = line_id.astype(np.int64)
-        has = self.lid >= 0
-        safe = np.maximum(self.lid, 0)
-        comp = np.where(has, line_component[safe], -1).astype(np.int64)
-        lev = np.where(has, line_order[safe], -1).astype(np.int64)
+        comp, lev = peak_levels(line_id, line_order, line_component)
         self.comp, self.lev = comp, lev
         self.col = col.astype(np.int64)
         self.rows = np.zeros(0, dtype=np.int64)
@@ -90,20 +90,21 @@ class CodeBands:
         self.compact[self.ids] = np.arange(self.ids.size)
         self.n_bands = int(col.max()) // self.step + 2
         self.n_lev = n_lev = int(lev[k].max()) + 2
-        p_ci, p_lev, p_band = self.compact[comp[k]], lev[k], self.col[k] // self.step
         # every difference belongs to two overlapping bands: (band, band - 1)
-        keys, ratios = [], []
-        for db in (0, 1):
-            b = p_band - db
-            ok = b >= 0
-            keys.append((p_ci[ok] * self.n_bands + b[ok]) * n_lev + p_lev[ok])
-            ratios.append(lr[ok])
-        groups, centre, count, spread = robust_centres(np.concatenate(keys), np.concatenate(ratios))
+        keys, ratios = band_keys(
+            k, lr, comp, lev, self.col, self.compact, self.step, self.n_bands, n_lev
+        )
+        groups, centre, count, spread = robust_centres(keys, ratios)
         weight = np.minimum(1.0, count / float(min_columns)) * reliability(
             count.astype(np.float64), spread, lam, correlation
         )
-        self.rows = np.unique(groups // n_lev)
-        r_inv = np.searchsorted(self.rows, groups // n_lev)
+        # the groups ascend: their rows (np.unique's) are where the row changes
+        row_of = groups // n_lev
+        new_row = np.empty(row_of.size, dtype=bool)
+        new_row[:1] = True
+        np.not_equal(row_of[1:], row_of[:-1], out=new_row[1:])
+        self.rows = row_of[new_row]
+        r_inv = np.cumsum(new_row) - 1
         self.w = np.zeros((self.rows.size, n_lev))
         d = np.zeros((self.rows.size, n_lev))
         d[r_inv, groups % n_lev] = centre
@@ -163,11 +164,17 @@ class CodeBands:
         kinds = code.astype(np.int64)
         diff_at = np.full(n_code + 1, 3, dtype=np.int64)
         diff_at[: n_code - 1] = kinds[:-1] - kinds[1:] + 1  # index into expected; 3 off
-        c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
-        measured = w > 0
         # the component's placement and the others: a block is a few levels off (lines
         # hidden by a step, dim lines not found), so shifts up to a code window each way
         shifts = np.array([0] + [s for s in range(-max_shift, max_shift + 1) if s != 0])
+        # On most frames no run gains enough: the best gains in one compiled loop decide
+        # that (band_runs, the same bits as ``best`` below; the numba import costs ~0.3 s).
+        from .band_runs import best_gains
+
+        if not np.any(best_gains(c3, w, r_off, diff_at, shifts) >= min_gain):
+            return refuse
+        c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
+        measured = w > 0
         pos = r_off[:, None, None] + shifts[None, :, None] + np.arange(n_lev)[None, None, :]
         inside = (pos >= 0) & (pos < n_code - 1)
         e = diff_at[np.clip(pos, 0, n_code)]

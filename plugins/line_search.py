@@ -76,44 +76,18 @@ def _chain_layout(left: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.nda
     a link always advances one column, so the depth along the chain is the column
     difference, and positions follow from the chain lengths: no sort.
     """
+    from .chain_scans import chain_order
     from .line_links import chain_heads
 
-    n = left.size
-    idx = np.arange(n, dtype=np.int64)
     head = chain_heads(np.ascontiguousarray(left, dtype=np.int64))
-    depth = col.astype(np.int64) - col[head]
-    length = np.bincount(head, minlength=n)
-    start = np.cumsum(length) - length
-    pos = start[head] + depth
-    perm = np.empty(n, dtype=np.int64)
-    perm[pos] = idx
-    return perm, head[perm]
+    return chain_order(head, col)
 
 
 def _corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray:
     """Links (by position ``k``: between ``k - 1`` and ``k``) that make a sharp corner."""
-    n = r.size
-    step = np.zeros(n)
-    step[1:] = r[1:] - r[:-1]
-    step[~linked] = np.nan
-    prev_step = np.full(n, np.nan)
-    prev_step[1:] = step[:-1]
-    next_step = np.full(n, np.nan)
-    next_step[:-1] = step[1:]
-    with np.errstate(invalid="ignore"):
-        around = np.where(
-            np.isnan(prev_step),
-            next_step,
-            np.where(np.isnan(next_step), prev_step, 0.5 * (prev_step + next_step)),
-        )
-        dev = np.abs(step - around)
-        dev = np.where(np.isnan(dev), 0.0, dev)
-    # Only the worst link of a kink: its neighbours see half the jump as well.
-    prev_dev = np.zeros(n)
-    prev_dev[1:] = dev[:-1]
-    next_dev = np.zeros(n)
-    next_dev[:-1] = dev[1:]
-    return (dev > corner) & (dev >= prev_dev) & (dev >= next_dev)
+    from .chain_scans import corner_cuts  # compiled; the numba import costs ~0.3 s
+
+    return corner_cuts(r, linked, float(corner))
 
 
 def _smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
@@ -122,19 +96,9 @@ def _smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
     ``linked[k]`` tells whether position ``k`` continues the chain of ``k - 1``; the window
     is clipped to the chain, and its sum taken from a cumulative sum.
     """
-    n = a.size
-    idx = np.arange(n)
-    first = np.where(linked, 0, idx)
-    np.maximum.accumulate(first, out=first)
-    ends = np.ones(n, dtype=bool)
-    ends[:-1] = ~linked[1:]
-    last = np.where(ends, idx, n)
-    last = np.minimum.accumulate(last[::-1])[::-1]
-    lo = np.maximum(idx - half, first)
-    hi = np.minimum(idx + half, last)
-    total = np.zeros(n + 1)
-    np.cumsum(a, out=total[1:])
-    return (total[hi + 1] - total[lo]) / (hi - lo + 1)
+    from .chain_scans import smooth_along  # compiled; the numba import costs ~0.3 s
+
+    return smooth_along(a, linked, int(half))
 
 
 def _step_cuts(a: np.ndarray, linked: np.ndarray, half: int, ratio: float) -> np.ndarray:
@@ -150,54 +114,34 @@ def _step_cuts(a: np.ndarray, linked: np.ndarray, half: int, ratio: float) -> np
     n = a.size
     if n < 2 * half or half < 1:
         return np.zeros(n, dtype=bool)
-    idx = np.arange(n)
-    first = np.where(linked, 0, idx)
-    np.maximum.accumulate(first, out=first)
-    ends = np.ones(n, dtype=bool)
-    ends[:-1] = ~linked[1:]
-    last = np.where(ends, idx, n)
-    last = np.minimum.accumulate(last[::-1])[::-1]
-    total = np.zeros(n + 1)
-    np.cumsum(a, out=total[1:])
-    lo = np.maximum(idx - half, first)  # before k: lo .. k - 1
-    hi = np.minimum(idx + half - 1, last)  # from k: k .. hi
-    n_before = idx - lo
-    n_after = hi - idx + 1
+    # the two sides' means and the strongest links in compiled loops (chain_scans; the
+    # numba import costs ~0.3 s); the logarithms stay numpy's
+    from .chain_scans import step_peaks, step_ratios
+
+    ratio_at, full = step_ratios(a, linked, int(half))
     with np.errstate(divide="ignore", invalid="ignore"):
-        before = (total[idx] - total[lo]) / n_before
-        after = (total[hi + 1] - total[idx]) / n_after
-        jump = np.abs(np.log(before / after))
+        jump = np.abs(np.log(ratio_at))
     # both sides need ``half`` peaks: a short run at a chain's end says nothing
-    full = linked & (n_before >= half) & (n_after >= half) & np.isfinite(jump)
-    jump = np.where(full, jump, 0.0)
-    prev_j = np.zeros(n)
-    prev_j[1:] = jump[:-1]
-    next_j = np.zeros(n)
-    next_j[:-1] = jump[1:]
-    return full & (jump > np.log(ratio)) & (jump >= prev_j) & (jump > next_j)
+    return step_peaks(jump, full, float(np.log(ratio)))
 
 
 def _side_max(
     a: np.ndarray, head: np.ndarray, at: np.ndarray, step: int, window: int
 ) -> np.ndarray:
     """Largest ``a`` within ``window`` positions from ``at`` in direction ``step``, same chain."""
-    src = at[:, None] + step * np.arange(1, window + 1)[None, :]
-    np.clip(src, 0, a.size - 1, out=src)
-    same = head[src] == head[at][:, None]
-    return np.where(same, a[src], 0.0).max(axis=1)
+    from .chain_scans import side_maxima  # compiled; the numba import costs ~0.3 s
+
+    return side_maxima(a, head, np.ascontiguousarray(at, dtype=np.int64), int(step), int(window))
 
 
 def _roots(parent: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Union-find roots of ``ids`` (-1 stays -1), by pointer jumping on the parent array."""
+    """Union-find roots of ``ids`` (-1 stays -1): each followed up the parent array."""
     ids = np.asarray(ids, dtype=np.int64)
     if parent.size == 0:
         return ids
-    out = np.where(ids >= 0, parent[np.maximum(ids, 0)], -1)
-    while True:
-        nxt = np.where(out >= 0, parent[np.maximum(out, 0)], -1)
-        if np.array_equal(nxt, out):
-            return out
-        out = nxt
+    from .chain_scans import union_roots  # compiled; the numba import costs ~0.3 s
+
+    return union_roots(parent, np.ascontiguousarray(ids))
 
 
 def search_lines(

@@ -76,44 +76,18 @@ def line_neighbours(
     empty = np.zeros(0, dtype=np.int64)
     if n < 2 or n_lines < 2:
         return empty, empty, empty
-    same_col = col[1:] == col[:-1]
-    gap = row[1:] - row[:-1]
-    # Gaps of the consecutive peaks directly above and below, same column only.
-    g_prev = np.full(n - 1, np.nan)
-    g_prev[1:] = np.where(same_col[:-1], gap[:-1], np.nan)
-    g_next = np.full(n - 1, np.nan)
-    g_next[:-1] = np.where(same_col[1:], gap[1:], np.nan)
-    with np.errstate(invalid="ignore"):
-        ref = np.where(
-            np.isnan(g_prev),
-            np.where(np.isnan(g_next), gap, g_next),
-            np.where(np.isnan(g_next), g_prev, 0.5 * (g_prev + g_next)),
-        )
-    # And the typical spacing around the pair: the mean gap in its cell of the image, after
-    # dropping gaps far above a first mean (the missing lines themselves). An isolated pair
-    # (no gaps above or below it in its column) is judged by this alone.
-    cell_col = col[:-1].astype(np.int64) // cell
-    cell_row = (np.maximum(row[:-1], 0.0) * (1.0 / cell)).astype(np.int64)
-    cell_id = cell_col * (int(cell_row.max()) + 1 if cell_row.size else 1) + cell_row
-    cell_id = np.where(same_col, cell_id, -1)
-    sel = cell_id >= 0
-    if np.any(sel):
-        n_cells = int(cell_id.max()) + 1
-        for_mean = sel.copy()
-        for _ in range(2):
-            total = np.bincount(cell_id[for_mean], weights=gap[for_mean], minlength=n_cells)
-            count = np.bincount(cell_id[for_mean], minlength=n_cells)
-            typical = np.where(count > 0, total / np.maximum(count, 1), np.inf)
-            for_mean = sel & (gap <= 1.4 * typical[np.maximum(cell_id, 0)])
-        cell_ref = typical[np.maximum(cell_id, 0)]
-    else:
-        cell_ref = np.full(n - 1, np.inf)
-    a, b = line_id[:-1].astype(np.int64), line_id[1:].astype(np.int64)
-    ok = same_col & (a >= 0) & (b >= 0) & (a != b)
-    ok &= (gap <= gap_ratio * ref) & (gap <= gap_ratio * cell_ref)
-    if not np.any(ok):
+    # Every column's neighbourhoods in compiled loops (line_contacts; the numba import
+    # costs ~0.3 s, hence here). A pair counts when its gap is at most gap_ratio times the
+    # mean of the gaps directly above and below it in its column, and gap_ratio times the
+    # typical spacing around it: the mean gap in its cell of the image, after dropping gaps
+    # far above a first mean (the missing lines themselves). An isolated pair (no gaps
+    # above or below it in its column) is judged by the latter alone.
+    from .line_contacts import neighbour_keys
+
+    pair_keys, skip_keys = neighbour_keys(col, row, line_id, n_lines, float(gap_ratio), cell)
+    if pair_keys.size == 0:
         return empty, empty, empty
-    keys, counts = _count_pairs(a[ok] * n_lines + b[ok], n_lines)
+    keys, counts = _count_pairs(pair_keys, n_lines)
     if keys.size == 0:
         return empty, empty, empty
     upper, lower = keys // n_lines, keys % n_lines
@@ -123,11 +97,8 @@ def line_neighbours(
     # is there that the pair skips (a line too broken to be searched, where lines crowd at
     # a fold), so where it is not detected the two are not neighbours either. Such columns
     # count against the pair.
-    lined = np.flatnonzero(line_id >= 0)
-    if lined.size > 1:
-        la, lb = line_id[lined[:-1]].astype(np.int64), line_id[lined[1:]].astype(np.int64)
-        skipped = (col[lined[1:]] == col[lined[:-1]]) & (lined[1:] - lined[:-1] > 1) & (la != lb)
-        s_keys, s_counts = _count_pairs(la[skipped] * n_lines + lb[skipped], n_lines)
+    if skip_keys.size:
+        s_keys, s_counts = _count_pairs(skip_keys, n_lines)
         net = net - _lookup(s_keys, s_counts, keys)
     keep = net > 0
     return upper[keep], lower[keep], net[keep]

@@ -41,51 +41,6 @@ __all__ = [
 ]
 
 
-def _line_ends(
-    col: np.ndarray, row: np.ndarray, line_id: np.ndarray, n_lines: int, fit: int
-) -> tuple[np.ndarray, ...]:
-    """Per line: first/last column and row, the slopes at both ends, and the peak count."""
-    lid = line_id.astype(np.int64)
-    ok = lid >= 0
-    idx = np.flatnonzero(ok)
-    order = idx[by_line(lid[idx])]  # peaks are sorted by column: line, then column
-    lines = lid[order]
-    starts = np.searchsorted(lines, np.arange(n_lines), side="left")
-    stops = np.searchsorted(lines, np.arange(n_lines), side="right")
-    count = stops - starts
-    c0 = np.full(n_lines, -1, np.int64)
-    c1 = np.full(n_lines, -1, np.int64)
-    r0 = np.full(n_lines, np.nan)
-    r1 = np.full(n_lines, np.nan)
-    s0 = np.zeros(n_lines)
-    s1 = np.zeros(n_lines)
-    cs, rs = col[order].astype(np.float64), row[order]
-    has = np.flatnonzero(count > 0)
-    a, b = starts[has], stops[has]
-    c0[has], c1[has] = cs[a].astype(np.int64), cs[b - 1].astype(np.int64)
-    r0[has], r1[has] = rs[a], rs[b - 1]
-    # End slopes by least squares over the first and last ``fit`` peaks of every line at
-    # once: a loop over the (few) positions in the window, not over the lines.
-    m = np.minimum(fit, b - a)
-    ok = m >= 3
-    if np.any(ok):
-        lines, a, b, m = has[ok], a[ok], b[ok], m[ok]
-        for first, out in ((a, s0), (b - m, s1)):
-            k = np.arange(fit)[None, :]
-            inside = k < m[:, None]
-            idx = np.where(inside, first[:, None] + k, first[:, None])
-            x, y = cs[idx], rs[idx]
-            w = inside.astype(np.float64)
-            xm = (x * w).sum(axis=1) / m
-            ym = (y * w).sum(axis=1) / m
-            dx = (x - xm[:, None]) * w
-            den = (dx * dx).sum(axis=1)
-            num = (dx * (y - ym[:, None])).sum(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out[lines] = np.where(den > 0, num / den, 0.0)
-    return c0, c1, r0, r1, s0, s1, count
-
-
 def contact_votes(
     col: np.ndarray,
     row: np.ndarray,
@@ -129,69 +84,34 @@ def contact_votes(
     n_lines = line_order.size
     if n < 2 or n_lines < 2:
         return votes
-    lid = line_id.astype(np.int64)
-    comp = np.where(lid >= 0, line_component[np.maximum(lid, 0)], -1).astype(np.int64)
-    lev = np.where(lid >= 0, line_order[np.maximum(lid, 0)], -1).astype(np.int64)
-    same_col = col[1:] == col[:-1]
-    gap = row[1:] - row[:-1]
+    # compiled loops over the peaks and the line ends (contact_tallies); the numba import
+    # costs ~0.3 s, hence here
+    from .column_pairs import peak_levels
+    from .contact_tallies import column_neighbours, continuations, level_gaps, line_ends
+
+    comp, lev = peak_levels(line_id, line_order, line_component)
     # Typical spacing: the median gap between consecutive levels of one component.
-    inside = same_col & (comp[1:] == comp[:-1]) & (comp[:-1] >= 0) & (lev[1:] == lev[:-1] + 1)
-    spacing = float(np.median(gap[inside])) if np.any(inside) else float("nan")
+    inside = level_gaps(col, row, comp, lev)
+    spacing = float(np.median(inside)) if inside.size else float("nan")
     if not np.isfinite(spacing) or spacing <= 0:
         return votes
-    # ---- column neighbours across two components
-    g_prev = np.full(n - 1, np.nan)
-    g_prev[1:] = np.where(same_col[:-1] & inside[:-1], gap[:-1], np.nan)
-    g_next = np.full(n - 1, np.nan)
-    g_next[:-1] = np.where(same_col[1:] & inside[1:], gap[1:], np.nan)
-    with np.errstate(invalid="ignore"):
-        ref = np.where(
-            np.isnan(g_prev),
-            np.where(np.isnan(g_next), spacing, g_next),
-            np.where(np.isnan(g_next), g_prev, 0.5 * (g_prev + g_next)),
-        )
-    cross = same_col & (comp[:-1] >= 0) & (comp[1:] >= 0) & (comp[:-1] != comp[1:])
-    cross &= np.abs(gap / ref - 1.0) <= gap_tolerance
-    cross &= np.abs(ref / spacing - 1.0) <= 0.5
-    k = np.flatnonzero(cross)
-    if k.size:
-        # one vote per column; tallied per (a, b, delta) and entered in the order of each
-        # group's first column (the dictionaries' order is that of a column-by-column loop)
-        comp_a, comp_b = comp[k], comp[k + 1]
-        deltas = lev[k] + 1 - lev[k + 1]  # offset(b) - offset(a)
-        n_comp = int(comp.max()) + 1
-        d0 = int(deltas.min())
-        span = int(deltas.max()) - d0 + 1
-        key = (comp_a * n_comp + comp_b) * span + (deltas - d0)
-        groups, first, count = np.unique(key, return_index=True, return_counts=True)
-        for i in np.argsort(first, kind="stable"):
-            g = int(groups[i])
-            d = g % span + d0
-            a, b = divmod(g // span, n_comp)
-            votes[(a, b)][d] += float(count[i])
-            votes[(b, a)][-d] += float(count[i])
+    # ---- column neighbours across two components: one vote per column, tallied per
+    # (a, b, delta) in the order of each tally's first column
+    comp_a, comp_b, deltas, count = column_neighbours(col, row, comp, lev, spacing, gap_tolerance)
+    for a, b, d, m in zip(
+        comp_a.tolist(), comp_b.tolist(), deltas.tolist(), count.tolist(), strict=True
+    ):
+        votes[(a, b)][d] += float(m)
+        votes[(b, a)][-d] += float(m)
     # ---- continuations of lines across short gaps
-    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, line_id, n_lines, fit=8)
+    c0, c1, r0, r1, s0, s1, count = line_ends(col, row, line_id, n_lines, 8)
     ok = (count >= min_line) & (line_component >= 0) & (line_order >= 0)
     ends = np.flatnonzero(ok)
     if ends.size < 2:
         return votes
     tol = row_tolerance * spacing
-    e_c0, e_r0, e_s0 = c0[ends], r0[ends], s0[ends]
-    e_comp = line_component[ends]
-    pairs: list[tuple[int, int]] = []
-    # every line end against every line start, in blocks of line ends (no Python loop per
-    # line: a fragmented frame has thousands)
-    for lo in range(0, ends.size, 256):
-        a_ = ends[lo : lo + 256]
-        dc = e_c0[None, :] - c1[a_][:, None]
-        cand = (dc >= 1) & (dc <= max_gap) & (e_comp[None, :] != line_component[a_][:, None])
-        dcc = dc.astype(np.float64)
-        fwd = r1[a_][:, None] + s1[a_][:, None] * dcc  # a extended to b's start
-        bwd = e_r0[None, :] - e_s0[None, :] * dcc  # b extended back to a's end
-        hit = cand & (np.abs(fwd - e_r0[None, :]) <= tol) & (np.abs(bwd - r1[a_][:, None]) <= tol)
-        one = np.flatnonzero(hit.sum(axis=1) == 1)  # none, or not unique: no evidence
-        pairs.extend(zip(a_[one].tolist(), ends[np.argmax(hit[one], axis=1)].tolist(), strict=True))
+    first, then = continuations(ends, line_component, c0, c1, r0, r1, s0, s1, max_gap, tol)
+    pairs = zip(first.tolist(), then.tolist(), strict=True)
     for a, b in pairs:
         ca, cb = int(line_component[a]), int(line_component[b])
         delta = int(line_order[a] - line_order[b])
@@ -258,54 +178,28 @@ def column_order_conflicts(
     out = np.zeros(n, dtype=bool)
     if n < 2:
         return out
-    numbered = np.flatnonzero(number >= 0)
-    if numbered.size < 2:
-        return out
-    a, b = numbered[:-1], numbered[1:]
-    same = col[a] == col[b]
-    a, b = a[same], b[same]
-    if a.size == 0:
-        return out
-    gap = row[b] - row[a]
-    k = number[b].astype(np.int64) - number[a].astype(np.int64)
-    one = k == 1
-    if not np.any(one):
+    # the pairs and the checks compiled (column_order); the numba import costs ~0.3 s
+    from .column_order import numbered_pairs, order_conflicts
+
+    a, b, gap, k = numbered_pairs(col, row, number)
+    if a.size == 0 or not np.any(k == 1):
         return out
     # the local spacing: mean gap of consecutive lines in cells of 32 x 32 px
     if spacing is None:
         spacing = local_spacing(col, row, number)
     if spacing is None:
         return out
-    ref = spacing[a]
     # One spacing apart, the numbers must differ by one. Two or three spacings apart (lines
     # between unnumbered), they must not differ by more: a line picked up across a depth
     # step of a whole spacing shows as a pair two spacings apart numbered three apart. (They
-    # may differ by less: the surface stretches the spacing towards a silhouette.)
-    steps = gap / ref
-    m = np.rint(steps)
-    near = (m <= max_multiple) & (np.abs(steps - m) <= tolerance)
-    conflict = (near & (m == 1) & (k != 1)) | (near & (m >= 2) & (k > m))
-    conflict |= (k <= 0) & (gap < 1.5 * ref)
-    # Against the gaps beside it in its own column (the cell's mean spacing is too coarse
-    # where lines crowd towards a silhouette): numbers k apart need about k gaps of the
-    # single steps above and below; a line's end that took the neighbouring line's peak
-    # shows as numbers two apart at one gap.
-    contiguous = np.r_[False, b[:-1] == a[1:]]  # pair i follows pair i - 1 in the column
-    single = np.where(one, gap, np.inf)
-    above = np.where(contiguous, np.r_[np.inf, single[:-1]], np.inf)
-    below = np.where(np.r_[contiguous[1:], False], np.r_[single[1:], np.inf], np.inf)
-    beside = np.minimum(above, below)
-    conflict |= (k >= 2) & np.isfinite(beside) & (gap < (k - 0.5) * beside)
-    # and numbers k apart more than k + 1/2 of the wider gap beside them apart: a line
-    # skipped between them that the numbers do not count (a piece numbered a level off
-    # below a gap where lines went unfound)
-    widest = np.maximum(
-        np.where(np.isfinite(above), above, 0.0), np.where(np.isfinite(below), below, 0.0)
-    )
-    conflict |= (k >= 1) & (widest > 0) & (gap > (k + 0.5) * widest)
-    out[a[conflict]] = True
-    out[b[conflict]] = True
-    return out
+    # may differ by less: the surface stretches the spacing towards a silhouette.) Against
+    # the gaps beside it in its own column (the cell's mean spacing is too coarse where
+    # lines crowd towards a silhouette): numbers k apart need about k gaps of the single
+    # steps above and below; a line's end that took the neighbouring line's peak shows as
+    # numbers two apart at one gap. And numbers k apart more than k + 1/2 of the wider gap
+    # beside them apart: a line skipped between them that the numbers do not count (a
+    # piece numbered a level off below a gap where lines went unfound).
+    return order_conflicts(n, a, b, gap, k, spacing, tolerance, max_multiple)
 
 
 def pair_contradictions(
@@ -359,27 +253,31 @@ def pair_contradictions(
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
         return empty, empty, empty
+    # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
+    # ~0.3 s, hence here
+    from .column_pairs import grouped_pairs, raster_pair_ratios
+
     lid = line_id.astype(np.int64)
-    # each line's index into the raster's lines (-1: unnumbered), then each peak's
+    # each line's index into the raster's lines (-1: unnumbered)
     lut = np.full(int(raster.numbers.max()) + 2, -1, dtype=np.int64)
     lut[raster.numbers] = np.arange(raster.n_lines)
     num = line_number.astype(np.int64)
     pos_line = np.where((num >= 0) & (num < lut.size - 1), lut[np.clip(num, 0, lut.size - 1)], -1)
-    pos = np.append(pos_line, -1)[lid]
     # consecutive raster lines are two lines (a line has one number)
-    a = np.flatnonzero((col[1:] == col[:-1]) & (pos[:-1] >= 0) & (pos[1:] == pos[:-1] + 1))
+    a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
+    if a.size == 0:
+        return empty, empty, empty
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(ratio)
+    good = np.isfinite(lr)
+    a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
         return empty, empty, empty
     b = a + 1
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lr = np.log(area[a].astype(np.float64) / area[b].astype(np.float64))
-    good = np.isfinite(lr)
-    a, b, lr = a[good], b[good], np.clip(lr[good], -1.0, 1.0)
-    if a.size == 0:
-        return empty, empty, empty
     code = raster.code.astype(np.float64)
-    expected = (code[pos[a]] - code[pos[b]]) * lam
-    keys, inv = _group_pairs(lid[a], lid[b], int(lid.max()) + 1)
+    upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
+    expected = (code[upper] - code[upper + 1]) * lam
+    keys, inv = grouped_pairs(lid[a], lid[b], int(lid.max()) + 1)
     # the robust centre of code_evidence.level_statistics (every pair has a column: the
     # groups are 0 .. keys.size - 1, all present)
     _, centre, counts, spread = robust_centres(inv, lr)
@@ -395,52 +293,15 @@ def pair_contradictions(
 def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:
     """Per peak, the mean row gap of consecutive numbered lines in its 32 x 32 px cell (the
     median over the frame where the cell has none); None without any such pair."""
-    numbered = np.flatnonzero(number >= 0)
-    if numbered.size < 2:
-        return None
-    a, b = numbered[:-1], numbered[1:]
-    one = (col[a] == col[b]) & (number[b].astype(np.int64) - number[a] == 1)
+    from .column_order import cell_spacing, numbered_pairs  # compiled; numba costs ~0.3 s
+
+    a, _, gap, k = numbered_pairs(col, row, number)
+    one = k == 1
     if not np.any(one):
         return None
-    a, b = a[one], b[one]
-    gap = row[b] - row[a]
-    # dense cell indices (a frame has a few hundred cells): counts by bincount, no sort
-    n_rows = int(np.max(row, initial=0.0)) // 32 + 1
-    cell_of = (col.astype(np.int64) // 32) * n_rows + np.maximum(row, 0.0).astype(np.int64) // 32
-    n_cells = int(cell_of.max()) + 1
-    total = np.bincount(cell_of[a], weights=gap, minlength=n_cells)
-    cnt = np.bincount(cell_of[a], minlength=n_cells)
-    mean = np.where(cnt > 0, total / np.maximum(cnt, 1), float(np.median(gap)))
-    return mean[cell_of]
-
-
-def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(keys, return_inverse=True)``, faster: one unstable argsort."""
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    start = np.empty(sorted_keys.size, dtype=bool)
-    start[:1] = True
-    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=start[1:])
-    group = np.cumsum(start) - 1
-    inv = np.empty(keys.size, dtype=np.int64)
-    inv[order] = group
-    return sorted_keys[start], inv
-
-
-def _group_pairs(first: np.ndarray, second: np.ndarray, span: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_group` of the keys ``first * span + second`` (non-negative ids below
-    ``span``), by two radix passes when the ids fit in 16 bits."""
-    if span > 65536:
-        return _group(first * span + second)
-    order = np.argsort(second.astype(np.uint16), kind="stable")
-    order = order[np.argsort(first[order].astype(np.uint16), kind="stable")]
-    keys = first[order] * span + second[order]
-    start = np.empty(keys.size, dtype=bool)
-    start[:1] = True
-    np.not_equal(keys[1:], keys[:-1], out=start[1:])
-    inv = np.empty(keys.size, dtype=np.int64)
-    inv[order] = np.cumsum(start) - 1
-    return keys[start], inv
+    a, gap = a[one], gap[one]
+    # dense cell indices (a frame has a few hundred cells), the gaps added pair by pair
+    return cell_spacing(col, row, a, gap, float(np.median(gap)))
 
 
 def by_line(lid: np.ndarray) -> np.ndarray:

@@ -88,19 +88,11 @@ def camera_rays(
     row = np.asarray(row, dtype=np.float64)
     if exact or col.size == 0:
         return camera.rays(np.column_stack([col.astype(np.float64), row]))
-    table = _ray_table(camera)
-    h, w = table.shape[1:]
-    # rows -0.5..0 and H-1..H-0.5 extrapolate from the edge pair: linear, like inside
-    r0 = np.clip(np.floor(row).astype(np.intp), 0, max(h - 2, 0))
-    f = row - r0
-    flat = r0 * w + col.astype(np.intp)
-    below = flat + (w if h > 1 else 0)
-    tx, ty = table[0].reshape(-1), table[1].reshape(-1)
-    device = np.empty((col.size, 3))
-    x0, y0 = tx[flat], ty[flat]
-    device[:, 0] = x0 + f * (tx[below] - x0)
-    device[:, 1] = y0 + f * (ty[below] - y0)
-    device[:, 2] = 1.0
+    # one compiled loop over the points (pixel_rays); the numba import costs ~0.3 s. Rows
+    # -0.5..0 and H-1..H-0.5 extrapolate from the edge pair: linear, like inside
+    from .pixel_rays import interpolated_rays
+
+    device = interpolated_rays(_ray_table(camera), col, row)
     # R.T @ d per row; the seed's camera defines the world frame (R = I): skip the product
     directions = device if np.array_equal(camera.R, np.eye(3)) else device @ camera.R
     origins = np.broadcast_to(camera.centre, directions.shape)
@@ -148,16 +140,23 @@ def _line_planes(
     the planes formed for the raster's lines and gathered: the same rows, N / lines fewer.
     Numbers the raster does not have get ``v`` NaN and a NaN plane, as ``light_plane`` of NaN.
     """
-    positions, k, known = _line_index(raster, number)
-    if positions.size == 0:
-        nan = np.full(k.shape, np.nan)
+    if raster.numbers.size == 0:
+        nan = np.full(np.shape(number), np.nan)
         return nan, projector.light_plane(nan)
-    positions = np.asarray(positions, dtype=np.float64)
-    v = np.where(known, positions[k], np.nan)
+    order = np.argsort(raster.numbers, kind="stable")
+    positions = np.asarray(raster.positions[order], dtype=np.float64)
     normals, offsets = projector.light_plane(positions)
-    n_w, off = normals[k], offsets[k]
-    n_w[~known] = np.nan
-    off[~known] = np.nan
+    # each peak's line looked up and its plane gathered in one compiled loop (line_planes;
+    # the numba import costs ~0.3 s, hence here)
+    from .line_planes import gathered_planes
+
+    v, n_w, off = gathered_planes(
+        np.ascontiguousarray(raster.numbers[order]),
+        positions,
+        np.ascontiguousarray(normals),
+        np.ascontiguousarray(offsets),
+        np.ascontiguousarray(number, dtype=np.int64),
+    )
     return v, (n_w, off)
 
 
@@ -266,17 +265,19 @@ class RayPlaneReconstruction(Stage[NumberedLines, Points]):
         xyz = station.projector.light_surface_intersection(
             origins, directions, v, tol=params.tolerance, planes=planes
         )
-        unknown = np.isnan(v)
-        finite = np.isfinite(xyz).all(axis=1)
-        with np.errstate(invalid="ignore"):
-            inside = np.abs(xyz[:, 2]) <= params.depth_limit
-        keep = finite & inside
+        # finite and within the measuring depth, in one compiled loop (point_screen; the
+        # numba import costs ~0.3 s, hence here)
+        from .point_screen import screened_points
+
+        keep, x, y, z, (unknown, missed, beyond) = screened_points(
+            np.ascontiguousarray(xyz, dtype=np.float64),
+            np.ascontiguousarray(v, dtype=np.float64),
+            float(params.depth_limit),
+        )
         dropped = {
-            "with a line number the raster does not have": int(np.count_nonzero(unknown)),
-            "whose ray misses the light surface": int(np.count_nonzero(~finite & ~unknown)),
-            f"beyond the measuring depth (|z| > {params.depth_limit:g} mm)": int(
-                np.count_nonzero(finite & ~inside)
-            ),
+            "with a line number the raster does not have": unknown,
+            "whose ray misses the light surface": missed,
+            f"beyond the measuring depth (|z| > {params.depth_limit:g} mm)": beyond,
         }
         dropped["outside the frame"] = outside
         notes += [f"{n} peaks {what} dropped" for what, n in dropped.items() if n]
@@ -284,9 +285,9 @@ class RayPlaneReconstruction(Stage[NumberedLines, Points]):
             notes.append(f"{data.col.size - numbered.size} unnumbered peaks not reconstructed")
         sel = numbered[keep]
         points = Points(
-            x=np.ascontiguousarray(xyz[keep, 0]),
-            y=np.ascontiguousarray(xyz[keep, 1]),
-            z=np.ascontiguousarray(xyz[keep, 2]),
+            x=x,
+            y=y,
+            z=z,
             number=data.number[sel].astype(np.int32),
             col=data.col[sel].astype(np.int32),
             row=data.row[sel].astype(np.float64),

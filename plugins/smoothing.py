@@ -71,36 +71,29 @@ def smooth_along_lines(
     # in the same column or another number starts a new one
     xyz = np.column_stack([points.x[order], points.y[order], points.z[order]])
     jump = np.einsum("ij,ij->i", np.diff(xyz, axis=0), np.diff(xyz, axis=0)) > max_jump**2
-    start = np.ones(n, dtype=bool)
-    start[1:] = (np.diff(col) != 1) | (number[1:] != number[:-1]) | jump
-    run = np.cumsum(start) - 1
-    run_first = np.flatnonzero(start)
-    run_len = np.diff(np.append(run_first, n))
-    pos = np.arange(n) - run_first[run]
-    half = window // 2
-    centre = (pos >= half) & ((pos - half) % step == 0) & (pos + half < run_len[run])
-    idx = np.flatnonzero(centre)
+    # the runs' kept centres and the means around them in compiled loops (run_means; the
+    # numba import costs ~0.3 s, hence here)
+    from .run_means import run_centres, window_means
+
+    idx = run_centres(number, col, jump, window, step)
     if idx.size == 0:
         return points.take(
             np.zeros(0, dtype=np.intp),
             reason=_join(points.reason, f"no line has {window} peaks in neighbouring columns"),
         )
-
-    # the peaks of each kept run, (window, runs): a gather of the few values averaged instead
-    # of a running sum over every peak (same means within float rounding, ~1e-13 mm)
-    members = order[idx[None, :] + np.arange(-half, half + 1)[:, None]]
-
-    def mean(values: np.ndarray) -> np.ndarray:
-        return values[members].sum(axis=0, dtype=np.float64) / window
-
+    # the peaks of each kept run: a sum of the few values averaged instead of a running sum
+    # over every peak (same means within float rounding, ~1e-13 mm)
+    x, y, z, row, area = window_means(
+        order, idx, window, points.x, points.y, points.z, points.row, points.area
+    )
     return Points(
-        x=mean(points.x),
-        y=mean(points.y),
-        z=mean(points.z),
+        x=x,
+        y=y,
+        z=z,
         number=np.ascontiguousarray(number[idx], dtype=np.int32),
         col=col[idx].astype(np.int32),
-        row=mean(points.row),
-        area=mean(points.area).astype(np.float32),
+        row=row,
+        area=area.astype(np.float32),
         image_shape=points.image_shape.copy(),
         reason=points.reason,
     )

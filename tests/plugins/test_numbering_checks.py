@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from rasterserver_plugins.numbering_checks import _line_ends, contact_votes, pair_contradictions
+from rasterserver_plugins.contact_tallies import line_ends
+from rasterserver_plugins.numbering_checks import contact_votes, pair_contradictions
 
 
 def _sorted(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -22,7 +23,7 @@ def test_line_ends_and_slopes_match_a_least_squares_fit() -> None:
         rows.append(r)
         ids.append(np.full(n, k))
     col, row, lid = _sorted(np.concatenate(cols), np.concatenate(rows), np.concatenate(ids))
-    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, lid, len(lengths), fit=8)
+    c0, c1, r0, r1, s0, s1, count = line_ends(col, row, lid, len(lengths), fit=8)
     for k, n in enumerate(lengths):
         c, r = cols[k], rows[k]
         assert count[k] == n and c0[k] == c[0] and c1[k] == c[-1]
@@ -39,7 +40,7 @@ def test_line_ends_of_a_line_without_peaks_are_empty() -> None:
     col = np.arange(5)
     row = np.full(5, 10.0)
     lid = np.zeros(5, dtype=np.int64)
-    c0, c1, r0, r1, s0, s1, count = _line_ends(col, row, lid, 2, fit=8)
+    c0, c1, r0, r1, s0, s1, count = line_ends(col, row, lid, 2, fit=8)
     assert np.isnan(r1[1])
     assert count.tolist() == [5, 0] and c0[1] == -1 and c1[1] == -1 and np.isnan(r0[1])
     assert s0[0] == 0.0 and s1[0] == 0.0  # a flat line
