@@ -508,7 +508,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     where, in the square of two line spacings around it, doubtful peaks number at least
     half the numbered ones (:func:`.peak_checks.doubtful_share`): a line's end carried
     onto a refused block lies among its peaks, a line beside a lone refused line has its
-    own numbered neighbours (fewer wrong peaks and more coverage than version 6).
+    own numbered neighbours (fewer wrong peaks and more coverage than version 6). Runs
+    of one or two numbered lines standing alone in their column, 2.5 spacings or more
+    from any other numbered peak, are refused (:func:`.peak_checks.column_islands`):
+    numbered by their lines' order across gaps that hide an unknown count of lines.
     """
 
     name: ClassVar[str] = "numbers.code-window"
@@ -580,6 +583,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             doubtful_lines=doubtful_lines if params.block_edge_check else None,
             block_gap=params.block_gap,
             block_share=params.block_share,
+            island_peaks=params.island_peaks,
             min_run=params.min_run,
         )
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)

@@ -93,6 +93,12 @@ class CodeWindowParams(StageParams):
         description="Doubtful lines for the block-edge check: those the code refused inside "
         "numbered components (version 6) or every line left unnumbered.",
     )
+    island_peaks: int = Field(
+        3,
+        ge=0,
+        description="Refuse column runs of fewer numbered lines standing alone, 2.5 "
+        "spacings or more from other numbered peaks (0: keep them).",
+    )
     min_run: int = Field(
         6,
         ge=0,

@@ -15,7 +15,13 @@ from rasterserver.records_lines import OrderedLines
 
 from .code_evidence import ComponentNumbering
 from .numbering_checks import column_order_conflicts, local_spacing, pair_contradictions
-from .peak_checks import beside_doubtful, isolated_peaks, line_jumps, stranded_runs
+from .peak_checks import (
+    beside_doubtful,
+    column_islands,
+    isolated_peaks,
+    line_jumps,
+    stranded_runs,
+)
 
 __all__ = ["refusal", "refuse_contradicted_pairs", "refuse_peaks", "summarise"]
 
@@ -126,13 +132,15 @@ def refuse_peaks(
     doubtful_lines: np.ndarray | None = None,
     block_gap: float = 1.25,
     block_share: float = 0.0,
+    island_peaks: int = 0,
     min_run: int = 6,
 ) -> tuple[np.ndarray, list[str]]:
     """The peak-by-peak checks of the numbered peaks, and a note for each that refused any.
 
     Line jumps (:func:`.peak_checks.line_jumps`), column order
     (:func:`.numbering_checks.column_order_conflicts`), with ``doubtful_lines`` peaks directly
-    beside doubtful ones (:func:`.peak_checks.beside_doubtful`), with
+    beside doubtful ones (:func:`.peak_checks.beside_doubtful`), short runs standing
+    alone in their column (:func:`.peak_checks.column_islands`), with
     ``column_check`` peaks with no numbered column neighbour
     (:func:`.peak_checks.isolated_peaks`) and short runs the others cut off
     (:func:`.peak_checks.stranded_runs`), in that order.
@@ -157,6 +165,10 @@ def refuse_peaks(
         With a share above 0, a peak beside a doubtful one is refused only among as many
         doubtful peaks as this share of the numbered ones around it
         (:func:`.peak_checks.doubtful_share`).
+    island_peaks : int
+        Runs of fewer numbered lines standing alone in their column are refused
+        (:func:`.peak_checks.column_islands`), after the peaks beside doubtful ones; 0 or
+        1 for none.
     min_run : int
         Last, runs of fewer numbered peaks of a line next to its refused peaks are refused
         (:func:`.peak_checks.stranded_runs`); 0 or 1 for none.
@@ -197,6 +209,15 @@ def refuse_peaks(
                 f"{int(edge.sum())} peak(s) directly beside a doubtful line or a peak out of "
                 "column order, with no gap between, among doubtful peaks (a line's end may "
                 "have crossed onto the neighbouring line) left unnumbered"
+            )
+    if island_peaks > 1 and spacing is not None:
+        islands = column_islands(col, row, number, spacing, min_peaks=island_peaks)
+        if np.any(islands):
+            number = np.where(islands, -1, number).astype(np.int32)
+            notes.append(
+                f"{int(islands.sum())} peak(s) in runs of fewer than {island_peaks} numbered "
+                "lines standing alone in their column (numbered across gaps that hide an "
+                "unknown count of lines) left unnumbered"
             )
     if column_check:
         lone = isolated_peaks(col, number)

@@ -462,7 +462,7 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
     the peaks beside the refused block and the stranded line ends, and keeps the back."""
     bench = _real_bodies()
     frame = bench.render_scene(7285)
-    bench._init(None, {"numbers": {"block_edge_check": False, "min_run": 0}})
+    bench._init(None, {"numbers": {"block_edge_check": False, "min_run": 0, "island_peaks": 0}})
     before = bench.score_frame(frame)
     bench._init(None, None)
     after = bench.score_frame(frame)
@@ -508,7 +508,7 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
         right = out.number == truth
         return int(np.sum(known & ~right)), int(np.sum(known & right))
 
-    wrong_6, right_6 = wrong_and_right({"doubtful": "code", "block_share": 0.0})
+    wrong_6, right_6 = wrong_and_right({"doubtful": "code", "block_share": 0.0, "island_peaks": 0})
     wrong_7, right_7 = wrong_and_right(None)
     assert wrong_6 > 0
     assert wrong_7 == 0

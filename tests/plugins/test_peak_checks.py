@@ -115,6 +115,46 @@ def test_with_a_share_peaks_beside_a_lone_doubtful_line_stay() -> None:
     assert none.size == 0
 
 
+def test_short_runs_standing_alone_in_their_column_are_refused() -> None:
+    """Two numbered lines four spacings below the rest of their column go (numbered across
+    a gap hiding an unknown count of lines); a run of three, a run with a near neighbour
+    and a pair broken by a skipped number (two runs of one) are judged by their kind."""
+    from rasterserver_plugins.peak_checks import column_islands
+
+    s = 8.0
+    # column 0: lines 10-14, then 19, 20 four spacings on (an island of two)
+    # column 1: lines 10-14, then 19, 20, 21 (a run of three stays)
+    # column 2: lines 10-14, then 16, 17 two spacings on (under 2.5: stays)
+    # column 3: 30 alone, far from 40 (runs of one each: both go)
+    rows = {
+        0: [100 + s * k for k in range(5)] + [100 + s * 9, 100 + s * 10],
+        1: [100 + s * k for k in range(5)] + [100 + s * 9, 100 + s * 10, 100 + s * 11],
+        2: [100 + s * k for k in range(5)] + [100 + s * 6, 100 + s * 7],
+        3: [100.0, 100 + s * 5],
+    }
+    numbers = {
+        0: [10, 11, 12, 13, 14, 19, 20],
+        1: [10, 11, 12, 13, 14, 19, 20, 21],
+        2: [10, 11, 12, 13, 14, 16, 17],
+        3: [30, 40],
+    }
+    col = np.concatenate([np.full(len(rows[c]), c) for c in rows])
+    row = np.concatenate([rows[c] for c in rows])
+    number = np.concatenate([numbers[c] for c in numbers]).astype(np.int32)
+    spacing = np.full(col.size, s)
+    refused = column_islands(col, row, number, spacing)
+    assert sorted(zip(col[refused].tolist(), number[refused].tolist(), strict=True)) == [
+        (0, 19), (0, 20), (3, 30), (3, 40)
+    ]
+    # unnumbered peaks neither count nor get refused; a larger least run takes column 1 too
+    number[0] = -1
+    assert not column_islands(col, row, number, spacing)[0]
+    assert column_islands(col, row, number, spacing, min_peaks=4)[col == 1].sum() == 3
+    assert not np.any(column_islands(col, row, number, spacing, min_peaks=1))
+    empty = np.zeros(0)
+    assert column_islands(empty, empty, empty.astype(np.int32), empty).size == 0
+
+
 def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
     """A line's end of three numbered peaks beyond refused ones goes; a run of six stays,
     and so does a short line that nothing was refused from."""
