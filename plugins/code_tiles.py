@@ -30,7 +30,7 @@ import numpy as np
 
 from .code_evidence import level_pairs, reliability, robust_centres
 
-__all__ = ["CodeBands", "contradicted_lines"]
+__all__ = ["CodeBands", "band_gains", "contradicted_lines"]
 
 
 class CodeBands:
@@ -173,21 +173,7 @@ class CodeBands:
 
         if not np.any(best_gains(c3, w, r_off, diff_at, shifts) >= min_gain):
             return refuse
-        c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
-        measured = w > 0
-        pos = r_off[:, None, None] + shifts[None, :, None] + np.arange(n_lev)[None, None, :]
-        inside = (pos >= 0) & (pos < n_code - 1)
-        e = diff_at[np.clip(pos, 0, n_code)]
-        cost = np.take_along_axis(c4[:, None, :, :], e[:, :, :, None], axis=3)[:, :, :, 0]
-        off_code = ~inside & measured[:, None, :]
-        here = np.where(off_code[:, 0], 0.0, cost[:, 0])
-        alt = np.where(off_code[:, 1:], 0.0, cost[:, 1:])
-        # an off-code level ends a run: a gain no run survives
-        gain = np.where(off_code[:, 1:], -1e9, here[:, None, :] - alt)
-        gain = np.where(measured[:, None, :], gain, 0.0)
-        # maximum-sum run of levels of every (row, shift): the largest S[b + 1] - min S[<= b]
-        csum = np.concatenate([np.zeros((*gain.shape[:2], 1)), np.cumsum(gain, axis=2)], axis=2)
-        ends = csum[:, :, 1:] - np.minimum.accumulate(csum[:, :, :-1], axis=2)
+        alt, csum, ends = band_gains(c3, w, r_off, diff_at, shifts)
         best = ends.max(axis=2)
         cand = best >= min_gain
         if not np.any(cand):
@@ -230,6 +216,54 @@ class CodeBands:
         seen_per_line = np.bincount(self.lid[pk[in_band]], minlength=self.n_lines)
         hit_per_line = np.bincount(self.lid[pk[in_run]], minlength=self.n_lines)
         return (hit_per_line > 0) & (hit_per_line >= min_share * np.maximum(seen_per_line, 1))
+
+
+def band_gains(
+    c3: np.ndarray, w: np.ndarray, r_off: np.ndarray, diff_at: np.ndarray, shifts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What every run of a band's levels gains, placed at each shift instead of its own
+    offset (the whole-array passes of :meth:`CodeBands.contradicted`).
+
+    Parameters
+    ----------
+    c3 : numpy.ndarray
+        ``(rows, levels, 3)`` cost of each band level's difference for each expected kind.
+    w : numpy.ndarray
+        ``(rows, levels)`` weights; 0 where a level is not measured.
+    r_off : numpy.ndarray
+        ``(rows,)`` each band's placement on the code.
+    diff_at : numpy.ndarray
+        ``(n_code + 1,)`` expected kind of each code position (3: off the code).
+    shifts : numpy.ndarray
+        Shifts tried, 0 (the placement itself) first.
+
+    Returns
+    -------
+    alt : numpy.ndarray
+        ``(rows, shifts - 1, levels)`` cost at each other shift.
+    csum : numpy.ndarray
+        ``(rows, shifts - 1, levels + 1)`` running sums of the gains.
+    ends : numpy.ndarray
+        ``(rows, shifts - 1, levels)`` the best gain of a run ending at each level.
+    """
+    n_rows, n_lev = w.shape
+    n_code = diff_at.size - 1
+    c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
+    measured = w > 0
+    pos = r_off[:, None, None] + shifts[None, :, None] + np.arange(n_lev)[None, None, :]
+    inside = (pos >= 0) & (pos < n_code - 1)
+    e = diff_at[np.clip(pos, 0, n_code)]
+    cost = np.take_along_axis(c4[:, None, :, :], e[:, :, :, None], axis=3)[:, :, :, 0]
+    off_code = ~inside & measured[:, None, :]
+    here = np.where(off_code[:, 0], 0.0, cost[:, 0])
+    alt = np.where(off_code[:, 1:], 0.0, cost[:, 1:])
+    # an off-code level ends a run: a gain no run survives
+    gain = np.where(off_code[:, 1:], -1e9, here[:, None, :] - alt)
+    gain = np.where(measured[:, None, :], gain, 0.0)
+    # maximum-sum run of levels of every (row, shift): the largest S[b + 1] - min S[<= b]
+    csum = np.concatenate([np.zeros((*gain.shape[:2], 1)), np.cumsum(gain, axis=2)], axis=2)
+    ends = csum[:, :, 1:] - np.minimum.accumulate(csum[:, :, :-1], axis=2)
+    return alt, csum, ends
 
 
 def contradicted_lines(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from rasterserver_plugins.band_runs import best_gains
+from rasterserver_plugins.code_tiles import band_gains
 
 from rasterserver.raster import make_raster
 
@@ -14,23 +15,8 @@ SHIFTS = np.array([0] + [s for s in range(-9, 10) if s != 0])
 def _passes(
     c3: np.ndarray, w: np.ndarray, r_off: np.ndarray, diff_at: np.ndarray, shifts: np.ndarray
 ) -> np.ndarray:
-    """``best`` of code_tiles.CodeBands.contradicted of rasterserver 0.x."""
-    n_rows, n_lev = w.shape
-    n_code = diff_at.size - 1
-    c4 = np.concatenate([c3, np.zeros((n_rows, n_lev, 1))], axis=2)
-    measured = w > 0
-    pos = r_off[:, None, None] + shifts[None, :, None] + np.arange(n_lev)[None, None, :]
-    inside = (pos >= 0) & (pos < n_code - 1)
-    e = diff_at[np.clip(pos, 0, n_code)]
-    cost = np.take_along_axis(c4[:, None, :, :], e[:, :, :, None], axis=3)[:, :, :, 0]
-    off_code = ~inside & measured[:, None, :]
-    here = np.where(off_code[:, 0], 0.0, cost[:, 0])
-    alt = np.where(off_code[:, 1:], 0.0, cost[:, 1:])
-    gain = np.where(off_code[:, 1:], -1e9, here[:, None, :] - alt)
-    gain = np.where(measured[:, None, :], gain, 0.0)
-    csum = np.concatenate([np.zeros((*gain.shape[:2], 1)), np.cumsum(gain, axis=2)], axis=2)
-    ends = csum[:, :, 1:] - np.minimum.accumulate(csum[:, :, :-1], axis=2)
-    return ends.max(axis=2)
+    """``best`` of code_tiles.CodeBands.contradicted: its whole-array passes."""
+    return band_gains(c3, w, r_off, diff_at, shifts)[2].max(axis=2)
 
 
 def _bands(seed: int, n_rows: int = 30, n_lev: int = 40) -> tuple[np.ndarray, ...]:
