@@ -189,6 +189,10 @@ class Registry:
         # Every plugin described, sorted: resolving a chain asks for it a few hundred times,
         # and loading is settled once every name has been loaded (until discover()).
         self._all_infos: list[PluginInfo] | None = None
+        # The same settled state decides the stage kinds and each kind's unconfigured default;
+        # a chain resolution asks for them about fifty times (0.5 ms of a 20 ms chain).
+        self._kinds: list[str] | None = None
+        self._found_defaults: dict[str, Stage[Any, Any]] = {}
 
     def discover(self) -> Registry:
         """Read the entry points again and forget every loaded plugin.
@@ -205,6 +209,8 @@ class Registry:
             self._entry_points = found
             self._loaded = {}
             self._all_infos = None
+            self._kinds = None
+            self._found_defaults = {}
         return self
 
     def _eps(self) -> dict[str, list[EntryPoint]]:
@@ -392,16 +398,19 @@ class Registry:
 
     def stage_kinds(self) -> list[str]:
         """Return the stage kinds that at least one working plugin implements, in chain order."""
-        kinds = {info.stage for info in self.infos() if info.ok and info.stage is not None}
-        return sorted(
-            kinds,
-            key=lambda k: (
-                BUILTIN_STAGE_KINDS.index(k)
-                if k in BUILTIN_STAGE_KINDS
-                else len(BUILTIN_STAGE_KINDS),
-                k,
-            ),
-        )
+        with self._lock:
+            if self._kinds is None:
+                kinds = {info.stage for info in self.infos() if info.ok and info.stage is not None}
+                self._kinds = sorted(
+                    kinds,
+                    key=lambda k: (
+                        BUILTIN_STAGE_KINDS.index(k)
+                        if k in BUILTIN_STAGE_KINDS
+                        else len(BUILTIN_STAGE_KINDS),
+                        k,
+                    ),
+                )
+            return list(self._kinds)
 
     def default_for(self, kind: str) -> Stage[Any, Any]:
         """Return the plugin used for stage ``kind`` when the user names none.
@@ -438,6 +447,10 @@ class Registry:
                     f"which implements stage {stage.stage!r}"
                 )
             return stage
+        with self._lock:
+            found = self._found_defaults.get(kind)
+        if found is not None:
+            return found
         candidates = [info for info in self.infos(kind) if info.ok]
         if not candidates:
             kinds = ", ".join(self.stage_kinds()) or "none"
@@ -450,7 +463,10 @@ class Registry:
             if _normalize(info.package) == _normalize(self.builtin_distribution)
         ]
         chosen = min(builtin or candidates, key=lambda info: info.name)
-        return self.get(chosen.name)
+        stage = self.get(chosen.name)
+        with self._lock:
+            self._found_defaults[kind] = stage
+        return stage
 
     def graph(self) -> list[GraphEdge]:
         """The stage graph: one edge per working plugin, from the record kind it takes to the

@@ -252,6 +252,13 @@ def test_default_for_is_deterministic_and_configurable(
     assert preferring.default_for("invert").name == "thirdparty.invert"
     configured = Registry(defaults={"invert": "z.invert"}).discover()
     assert configured.default_for("invert").name == "z.invert"
+    # The found default is kept, but a default configured later still wins, and forgetting it
+    # finds the first by name again.
+    assert registry.default_for("invert").name == "a.invert"
+    registry.defaults["invert"] = "z.invert"
+    assert registry.default_for("invert").name == "z.invert"
+    del registry.defaults["invert"]
+    assert registry.default_for("invert").name == "a.invert"
 
     with pytest.raises(NotFoundError, match=r"no working stage plugin implements stage 'peakz'"):
         registry.default_for("peakz")
