@@ -133,14 +133,18 @@ def beside_doubtful(
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    out = np.zeros(col.size, dtype=bool)
     if col.size < 2 or not np.any(doubtful):
-        return out
-    a, b = np.arange(col.size - 1), np.arange(1, col.size)
-    near = (col[a] == col[b]) & (row[b] - row[a] < max_gap * np.minimum(spacing[a], spacing[b]))
-    out[a[near & doubtful[b]]] = True  # the doubtful peak below
-    out[b[near & doubtful[a]]] = True  # the doubtful peak above
-    out &= number >= 0
+        return np.zeros(col.size, dtype=bool)
+    from .check_scans import beside_flags  # compiled; the numba import costs ~0.3 s
+
+    out = beside_flags(
+        col,
+        np.asarray(row, dtype=np.float64),
+        number,
+        np.asarray(doubtful, dtype=bool),
+        np.asarray(spacing, dtype=np.float64),
+        float(max_gap),
+    )
     if min_share > 0 and np.any(out):
         cand = np.flatnonzero(out)
         numbered = number >= 0
@@ -188,17 +192,21 @@ def doubtful_share(
     reach = int(np.ceil(half.max(initial=0.0)))
     # one key orders the peaks as they are sorted: a column's rows stay inside its stride
     stride = float(np.ceil(np.max(row, initial=0.0))) + 2.0 * reach + 2.0
-    key = col.astype(np.float64) * stride + row
-    cum_d = np.r_[0, np.cumsum(doubtful, dtype=np.int64)]
-    cum_n = np.r_[0, np.cumsum(numbered, dtype=np.int64)]
-    offsets = np.arange(-reach, reach + 1)
-    centre = col[at].astype(np.float64)[:, None] + offsets[None, :]
-    lo = np.searchsorted(key, centre * stride + (row[at] - half)[:, None], side="left")
-    hi = np.searchsorted(key, centre * stride + (row[at] + half)[:, None], side="right")
-    inside = np.abs(offsets)[None, :] <= half[:, None]
-    n_doubtful = np.where(inside, cum_d[hi] - cum_d[lo], 0).sum(axis=1)
-    n_numbered = np.where(inside, cum_n[hi] - cum_n[lo], 0).sum(axis=1)
-    return n_doubtful, n_numbered
+    rows = np.asarray(row, dtype=np.float64)
+    key = col.astype(np.float64) * stride + rows
+    from .check_scans import doubtful_counts  # compiled; the numba import costs ~0.3 s
+
+    return doubtful_counts(
+        key,
+        col,
+        rows,
+        np.asarray(at, dtype=np.int64),
+        half,
+        np.asarray(doubtful, dtype=bool),
+        np.asarray(numbered, dtype=bool),
+        stride,
+        reach,
+    )
 
 
 def isolated_peaks(col: np.ndarray, number: np.ndarray) -> np.ndarray:
@@ -267,26 +275,18 @@ def column_islands(
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    out = np.zeros(col.size, dtype=bool)
-    idx = np.flatnonzero(number >= 0)
-    if idx.size == 0 or min_peaks <= 1:
-        return out
-    c, r, n, s = col[idx], row[idx], number[idx], spacing[idx]
-    same = c[1:] == c[:-1]
-    gap = np.where(same, r[1:] - r[:-1], np.inf)
-    unit = np.minimum(s[1:], s[:-1])
-    linked = same & (n[1:] - n[:-1] == 1) & (gap < 1.5 * unit)
-    start = np.r_[True, ~linked]
-    run = np.cumsum(start) - 1
-    first = np.flatnonzero(start)
-    last = np.r_[first[1:], idx.size] - 1
-    length = last - first + 1
-    # the gap above a run's first peak and below its last one (inf at a column's end)
-    above = np.r_[np.inf, gap][first] / s[first]
-    below = np.r_[gap, np.inf][last] / s[last]
-    alone = (length < min_peaks) & (above >= min_gap) & (below >= min_gap)
-    out[idx[alone[run]]] = True
-    return out
+    if min_peaks <= 1:
+        return np.zeros(col.size, dtype=bool)
+    from .check_scans import island_flags  # compiled; the numba import costs ~0.3 s
+
+    return island_flags(
+        col,
+        np.asarray(row, dtype=np.float64),
+        number,
+        np.asarray(spacing, dtype=np.float64),
+        int(min_peaks),
+        float(min_gap),
+    )
 
 
 def stranded_runs(line_id: np.ndarray, number: np.ndarray, min_run: int) -> np.ndarray:
@@ -313,29 +313,11 @@ def stranded_runs(line_id: np.ndarray, number: np.ndarray, min_run: int) -> np.n
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    out = np.zeros(line_id.size, dtype=bool)
     lid = line_id.astype(np.int64)
     idx = np.flatnonzero(lid >= 0)
     if idx.size == 0:
-        return out
+        return np.zeros(line_id.size, dtype=bool)
+    from .check_scans import stranded_flags  # compiled; the numba import costs ~0.3 s
+
     order = idx[by_line(lid[idx])]  # line by line, each in column order
-    line = lid[order]
-    numbered = number[order] >= 0
-    same_line = line[1:] == line[:-1]
-    start = numbered & ~np.r_[False, numbered[:-1] & same_line]
-    first = np.flatnonzero(start)
-    if first.size == 0:
-        return out
-    run = np.cumsum(start) - 1
-    length = np.bincount(run[numbered], minlength=first.size)
-    last = first + length - 1
-    # a refused peak of the same line just before or after the run
-    before = np.zeros(first.size, dtype=bool)
-    after = np.zeros(first.size, dtype=bool)
-    has = first > 0
-    before[has] = same_line[first[has] - 1] & ~numbered[first[has] - 1]
-    has = last < line.size - 1
-    after[has] = same_line[last[has]] & ~numbered[last[has] + 1]
-    drop = (length < min_run) & (before | after)
-    out[order[numbered & drop[np.maximum(run, 0)]]] = True
-    return out
+    return stranded_flags(order.astype(np.int64), lid[order], number, int(min_run))

@@ -1,0 +1,246 @@
+"""Scans of the peak checks down the columns and along the lines, compiled.
+
+:func:`.peak_checks.beside_doubtful`, :func:`.peak_checks.doubtful_share`,
+:func:`.peak_checks.column_islands` and :func:`.peak_checks.stranded_runs` were each a
+dozen whole-array passes over all peaks (shifted copies, cumulative sums, run starts and
+lengths, a sorted key searched for every candidate and column offset): ~1.2 ms of the
+numbering's ~6 on a medium back, for checks that look at a peak's neighbours only. Here
+each is one loop computing the same comparisons on the same float64 values; the decisions
+are the same.
+
+Importing this module costs the numba import (~0.3 s): the peak checks import it on use.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rasterserver.compiled import kernel
+
+__all__ = ["beside_flags", "doubtful_counts", "island_flags", "stranded_flags"]
+
+
+@kernel()
+def _smaller(a: float, b: float) -> float:
+    """``np.minimum`` of two floats: NaN when either is (Python's ``min`` depends on order)."""
+    if a != a or b != b:
+        return math.nan
+    return a if a < b else b
+
+
+@kernel()
+def beside_flags(
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    doubtful: np.ndarray,
+    spacing: np.ndarray,
+    max_gap: float,
+) -> np.ndarray:
+    """Numbered peaks with a doubtful column neighbour less than ``max_gap`` local spacings
+    away (:func:`.peak_checks.beside_doubtful` without the share).
+
+    Parameters
+    ----------
+    col : numpy.ndarray
+        Column of every peak, peaks sorted by ``(col, row)``.
+    row, spacing : numpy.ndarray
+        float64 row and local line spacing of every peak.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    doubtful : numpy.ndarray
+        bool, the doubtful peaks.
+    max_gap : float
+        Largest row gap, in local line spacings.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool.
+    """
+    n = col.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n - 1):
+        if col[i] != col[i + 1]:
+            continue
+        if row[i + 1] - row[i] < max_gap * _smaller(spacing[i], spacing[i + 1]):
+            if doubtful[i + 1]:
+                out[i] = True
+            if doubtful[i]:
+                out[i + 1] = True
+    for i in range(n):
+        out[i] = out[i] and number[i] >= 0
+    return out
+
+
+@kernel()
+def _first_at_least(key: np.ndarray, value: float, strictly: bool) -> int:
+    """``np.searchsorted(key, value, side="right" if strictly else "left")``."""
+    lo, hi = 0, key.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if key[mid] < value or (strictly and key[mid] == value):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@kernel()
+def doubtful_counts(
+    key: np.ndarray,
+    col: np.ndarray,
+    row: np.ndarray,
+    at: np.ndarray,
+    half: np.ndarray,
+    doubtful: np.ndarray,
+    numbered: np.ndarray,
+    stride: float,
+    reach: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Doubtful and numbered peaks in the square of half-width ``half`` around peaks ``at``
+    (:func:`.peak_checks.doubtful_share`: the same sorted key, the same bounds).
+
+    Parameters
+    ----------
+    key : numpy.ndarray
+        float64 ``col * stride + row`` of every peak, ascending.
+    col, row : numpy.ndarray
+        Column and float64 row of every peak.
+    at : numpy.ndarray
+        int64 indices of the peaks counted around.
+    half : numpy.ndarray
+        float64 half-width of each square (px).
+    doubtful, numbered : numpy.ndarray
+        bool flags counted.
+    stride : float
+        The key's column stride.
+    reach : int
+        Largest column offset searched.
+
+    Returns
+    -------
+    n_doubtful, n_numbered : numpy.ndarray
+        int64 counts.
+    """
+    m = at.shape[0]
+    n_doubtful = np.zeros(m, dtype=np.int64)
+    n_numbered = np.zeros(m, dtype=np.int64)
+    for j in range(m):
+        p = at[j]
+        lower = row[p] - half[j]
+        upper = row[p] + half[j]
+        for offset in range(-reach, reach + 1):
+            if not abs(offset) <= half[j]:  # NaN: outside, as numpy compares
+                continue
+            centre = np.float64(col[p]) + np.float64(offset)
+            lo = _first_at_least(key, centre * stride + lower, False)
+            hi = _first_at_least(key, centre * stride + upper, True)
+            for q in range(lo, hi):
+                n_doubtful[j] += doubtful[q]
+                n_numbered[j] += numbered[q]
+    return n_doubtful, n_numbered
+
+
+@kernel(error_model="numpy")
+def island_flags(
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    spacing: np.ndarray,
+    min_peaks: int,
+    min_gap: float,
+) -> np.ndarray:
+    """Numbered peaks in runs of fewer than ``min_peaks`` consecutive numbers standing
+    ``min_gap`` local spacings apart from the column's other numbered peaks
+    (:func:`.peak_checks.column_islands`).
+
+    Parameters
+    ----------
+    col : numpy.ndarray
+        Column of every peak, peaks sorted by ``(col, row)``.
+    row, spacing : numpy.ndarray
+        float64 row and local line spacing of every peak.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    min_peaks : int
+        Least peaks of a run that stands alone.
+    min_gap : float
+        Gap, in local spacings, that makes a run stand alone.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool.
+    """
+    n = col.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    idx = np.flatnonzero(number >= 0)
+    m = idx.shape[0]
+    # gap[k]: rows from numbered peak k - 1 to k in the same column (inf across columns)
+    gap = np.full(m + 1, np.inf)
+    linked = np.zeros(m + 1, dtype=np.bool_)
+    for k in range(1, m):
+        p, q = idx[k - 1], idx[k]
+        if col[q] == col[p]:
+            gap[k] = row[q] - row[p]
+            linked[k] = number[q] - number[p] == 1 and gap[k] < 1.5 * _smaller(
+                spacing[q], spacing[p]
+            )
+    first = 0
+    for k in range(1, m + 1):
+        if k < m and linked[k]:
+            continue
+        last = k - 1
+        above = gap[first] / spacing[idx[first]]
+        below = gap[k] / spacing[idx[last]]
+        if last - first + 1 < min_peaks and above >= min_gap and below >= min_gap:
+            for j in range(first, last + 1):
+                out[idx[j]] = True
+        first = k
+    return out
+
+
+@kernel()
+def stranded_flags(
+    order: np.ndarray, line: np.ndarray, number: np.ndarray, min_run: int
+) -> np.ndarray:
+    """Numbered peaks in runs of fewer than ``min_run`` along their line beside a refused
+    peak of the same line (:func:`.peak_checks.stranded_runs`).
+
+    Parameters
+    ----------
+    order : numpy.ndarray
+        int64 indices of the peaks in lines, line by line, each in column order.
+    line : numpy.ndarray
+        int64 line of each peak of ``order`` (in that order).
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered (indexed by peak).
+    min_run : int
+        Least length of a run kept beside refused peaks.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, one per peak (``number``'s length).
+    """
+    out = np.zeros(number.shape[0], dtype=np.bool_)
+    m = order.shape[0]
+    k = 0
+    while k < m:
+        if number[order[k]] < 0:
+            k += 1
+            continue
+        first = k
+        while k + 1 < m and line[k + 1] == line[k] and number[order[k + 1]] >= 0:
+            k += 1
+        last = k
+        before = first > 0 and line[first - 1] == line[first]  # refused: else in the run
+        after = last < m - 1 and line[last + 1] == line[last]
+        if last - first + 1 < min_run and (before or after):
+            for j in range(first, last + 1):
+                out[order[j]] = True
+        k += 1
+    return out
