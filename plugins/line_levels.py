@@ -7,7 +7,8 @@ maxima and union-find roots, a Python loop over the lines joined) and a last pas
 and relabelling: ~1.5 ms of its ~2.8 on a frame, most of it the calls' overhead on a few
 hundred runs. Here one loop per level walks the runs of free peaks and decides each as the
 passes did, with the same comparisons on the same floats; the threshold levels' scale (the
-median area) stays numpy's. The lines are the same.
+median area) stays numpy's. The lines are the same; the levels take ~0.2 ms, the line
+search 1.0 instead of 2.4 ms on the medium back (22,000 peaks).
 
 Importing this module costs the numba import (~0.3 s): the line search imports it on use.
 """
