@@ -20,7 +20,8 @@ The seed's method, vectorised:
 
 Chains are laid out once in chain order (a permutation computed without sorting); each level
 works on the still unlabelled peaks only, so the levels together cost about one pass over the
-peaks. Python loops run over the threshold levels and the fragments joined, never over peaks.
+peaks. The scans along chains and the levels are compiled loops (:mod:`.chain_scans`,
+:mod:`.line_levels`).
 """
 
 from __future__ import annotations
@@ -128,14 +129,21 @@ def _step_cuts(a: np.ndarray, linked: np.ndarray, half: int, ratio: float) -> np
 def _side_max(
     a: np.ndarray, head: np.ndarray, at: np.ndarray, step: int, window: int
 ) -> np.ndarray:
-    """Largest ``a`` within ``window`` positions from ``at`` in direction ``step``, same chain."""
+    """Largest ``a`` within ``window`` positions from ``at`` in direction ``step``, same chain.
+
+    The levels' loop (:func:`.line_levels.level_labels`) searches one run at a time; this
+    array form is the tests' reference for the replaced passes.
+    """
     from .chain_scans import side_maxima  # compiled; the numba import costs ~0.3 s
 
     return side_maxima(a, head, np.ascontiguousarray(at, dtype=np.int64), int(step), int(window))
 
 
 def _roots(parent: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Union-find roots of ``ids`` (-1 stays -1): each followed up the parent array."""
+    """Union-find roots of ``ids`` (-1 stays -1): each followed up the parent array.
+
+    As :func:`_side_max`, the array form the tests' reference of the levels calls.
+    """
     ids = np.asarray(ids, dtype=np.int64)
     if parent.size == 0:
         return ids
@@ -213,97 +221,48 @@ def search_lines(
     a = area[perm].astype(np.float64)
     if step_ratio is not None:
         linked &= ~_step_cuts(a, linked, step_half, step_ratio)
-    # Chains cut at corners and area steps are separate chains from here on.
-    head = perm[np.maximum.accumulate(np.where(linked, 0, np.arange(n)))]
     if smooth > 0:
         a = _smooth_along(a, linked, smooth)
-    label = np.full(n, -1, dtype=np.int64)
-    # Union-find over line ids: two fragments of one line, met across a shallow minimum,
-    # become one line. Roots are resolved on the few ids concerned, and once at the end.
-    parent = np.zeros(0, dtype=np.int64)
-    scale = float(np.median(a))
-    # Only the unlabelled peaks matter at a level, and they only shrink: each level works on
-    # them alone. A run of free peaks meets a line exactly where its neighbour in the chain
-    # is labelled (a labelled peak is always active), so its lines are its ends' neighbours.
-    unlabelled = np.arange(n)
-    for li, factor in enumerate(levels):
-        last = li == len(levels) - 1
-        unlabelled = unlabelled[label[unlabelled] < 0]
-        free = unlabelled[a[unlabelled] >= factor * scale]
-        if free.size == 0:
-            continue
-        brk = np.ones(free.size, dtype=bool)
-        brk[1:] = (free[1:] != free[:-1] + 1) | ~linked[free[1:]]
-        run_start = np.flatnonzero(brk)
-        run_len = np.diff(np.append(run_start, free.size))
-        s_pos = free[run_start]
-        e_pos = free[run_start + run_len - 1]
-        left_lab = np.where(linked[s_pos], label[np.maximum(s_pos - 1, 0)], -1)
-        nxt = np.minimum(e_pos + 1, n - 1)
-        right_lab = np.where((e_pos + 1 < n) & linked[nxt], label[nxt], -1)
-        left_lab = _roots(parent, left_lab)
-        right_lab = _roots(parent, right_lab)
-        run_label = np.where(left_lab >= 0, left_lab, right_lab)
-        run_of = np.repeat(np.arange(run_start.size), run_len)
-        new_label = run_label[run_of]
-        conflict = (left_lab >= 0) & (right_lab >= 0) & (left_lab != right_lab)
-        if np.any(conflict):
-            cr = np.flatnonzero(conflict)
-            # weakest peak of each conflicting run: the intensity minimum between the lines
-            a_free = a[free]
-            lowest = np.minimum.reduceat(a_free, run_start)
-            at_min = np.flatnonzero(conflict[run_of] & (a_free == lowest[run_of]))
-            _, first = np.unique(run_of[at_min], return_index=True)
-            cut_at = free[at_min[first]]  # one per conflicting run, in the order of cr
-            side = np.minimum(
-                _side_max(a, head, s_pos[cr], -1, dip_window),
-                _side_max(a, head, e_pos[cr], 1, dip_window),
-            )
-            pronounced = a[cut_at] < dip * side
-            # pronounced: split at the minimum, which itself belongs to neither line
-            cut_of_run = np.full(run_start.size, -1, dtype=np.int64)
-            cut_of_run[cr[pronounced]] = cut_at[pronounced]
-            cut_el = cut_of_run[run_of]
-            split = cut_el >= 0
-            new_label[split] = np.where(
-                free[split] < cut_el[split],
-                left_lab[run_of[split]],
-                np.where(free[split] > cut_el[split], right_lab[run_of[split]], -1),
-            )
-            # shallow: noise or shading around a threshold, the two fragments are one line
-            shallow = cr[~pronounced]
-            if shallow.size:
-                par = parent.tolist()  # plain ints: a few finds, no numpy call overhead
-                for x, y in zip(
-                    left_lab[shallow].tolist(), right_lab[shallow].tolist(), strict=True
-                ):
-                    while par[x] != x:
-                        x = par[x]
-                    while par[y] != y:
-                        y = par[y]
-                    if x != y:
-                        par[max(x, y)] = min(x, y)
-                parent = np.asarray(par, dtype=np.int64)
-        label[free] = new_label
-        # Runs touching no line: new lines, if long enough.
-        lonely = (left_lab < 0) & (right_lab < 0)
-        need = min_length if last else max(min_seed, min_length)
-        seeds = lonely & (run_len >= need)
-        if np.any(seeds):
-            ids = parent.size + np.cumsum(seeds) - 1
-            label[free] = np.where(seeds[run_of], ids[run_of], label[free])
-            parent = np.concatenate([parent, parent.size + np.arange(int(seeds.sum()))])
-    label = np.where(label >= 0, _roots(parent, label), -1)
-    return _compact(label, perm, min_length)
-
-
-def _compact(label: np.ndarray, perm: np.ndarray, min_length: int) -> np.ndarray:
-    """Labels back in peak order, short lines dropped, ids ranked by each line's first peak."""
     from .line_links import ranked_labels
 
-    out = np.full(label.size, -1, dtype=np.int64)
-    out[perm] = label
-    return ranked_labels(out, int(min_length))
+    # Chains cut at corners and area steps are separate chains from here on.
+    label = _line_labels(
+        a,
+        linked,
+        perm,
+        levels,
+        dip=dip,
+        dip_window=dip_window,
+        min_seed=min_seed,
+        min_length=min_length,
+    )
+    return ranked_labels(label, int(min_length))
+
+
+def _line_labels(
+    a: np.ndarray,
+    linked: np.ndarray,
+    perm: np.ndarray,
+    levels: tuple[float, ...],
+    *,
+    dip: float,
+    dip_window: int,
+    min_seed: int,
+    min_length: int,
+) -> np.ndarray:
+    """Line label of every peak (peak order, not yet ranked or filtered) from the levels.
+
+    The levels are one compiled loop (:func:`.line_levels.level_labels`; the numba import
+    costs ~0.3 s); the thresholds' scale, the median area, stays numpy's: numba's median
+    differs in the last bits.
+    """
+    from .line_levels import level_labels
+
+    scale = float(np.median(a))
+    thresholds = np.array([factor * scale for factor in levels], dtype=np.float64)
+    return level_labels(
+        a, linked, perm, thresholds, float(dip), int(dip_window), int(min_seed), int(min_length)
+    )
 
 
 class HierarchicalLineSearch(Stage[Peaks, Lines]):
