@@ -74,8 +74,12 @@ CLIENT_CONFIG: dict[str, object] = {
     "distributed.admin.low-level-log-length": 16,
 }
 
-#: Acquisitions to a Dask task (:func:`rasterserver.worker.work_batch`).
-DASK_BATCH = 8
+#: Acquisitions to a Dask task (:func:`rasterserver.worker.work_batch`). Sixteen rather than
+#: eight: the coordinator's CPU per acquisition 4.4-5.7 → 3.6-4.6 ms on two local workers
+#: (BENCHMARKS.md, "Reprocessing throughput", 2026-11-27 (4)); a worker killed mid-task has
+#: at most sixteen acquisitions redone, and the last task of a job may keep one worker busy
+#: up to sixteen acquisitions' time (~1 s) after the other is done.
+DASK_BATCH = 16
 
 #: Acquisitions the in-process engine computes ahead of committing them (and plans in one
 #: page, :meth:`rasterserver.pipeline.Pipeline.plan_many`).
