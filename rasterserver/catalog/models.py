@@ -312,6 +312,9 @@ class StageResult(Base):
     __table_args__ = (
         UniqueConstraint("acquisition_id", "chain_key"),
         Index("ix_stage_result_acquisition_stage", "acquisition_id", "stage"),
+        # deleting a result or a run checks that no result names it (prune): a lookup each
+        Index("ix_stage_result_parent", "parent_id"),
+        Index("ix_stage_result_run", "run_id"),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)
