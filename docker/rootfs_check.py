@@ -364,6 +364,20 @@ def run(rootfs: Path, config_path: Path) -> int:
               ["python", "-c", "import open3d, cv2, h5py, rasterserver.cli; "
                                "print('open3d', open3d.__version__)"],
               detail=lambda out: out.strip())
+        # the build compiled the chain's loops into the image's numba cache: a fresh process
+        # loads them and compiles nothing (numba says "data saved" for what it compiles)
+        c.run("a fresh process compiles none of the chain's loops (the image's numba cache)", [
+            "sh", "-c",
+            "set -e; d=$(mktemp -d); "
+            f"{' '.join(config['entrypoint'])} simulate back -o \"$d\" > /dev/null; "
+            "NUMBA_DEBUG_CACHE=1 "
+            f"{' '.join(config['entrypoint'])} reconstruct \"$d/frame.png\" "
+            "--calibration \"$d/calibration.json\" -o \"$d/points.ply\" > \"$d/log\" 2>&1; "
+            "loaded=$(grep -c 'data loaded' \"$d/log\" || true); "
+            "saved=$(grep -c 'data saved' \"$d/log\" || true); rm -rf \"$d\"; "
+            "echo \"$loaded kernels loaded, $saved compiled\"; "
+            "test \"$saved\" -eq 0 && test \"$loaded\" -gt 0"],
+            detail=lambda out: out.strip().splitlines()[-1])
         c.run("rasterserver demo (SQLite catalogue in /archive, as the image's user)",
               [*config["entrypoint"], "demo"],
               detail=lambda out: f"{len(out.splitlines())} lines of output")

@@ -167,6 +167,26 @@ def test_runs_as_a_non_root_user_with_a_health_check() -> None:
     assert cmd == '["serve"]', "the health check is the API's: serve is the default command"
 
 
+def test_the_build_compiles_the_chains_loops_into_a_cache_the_user_owns() -> None:
+    # without it every new container (and `docker compose run` of one command) compiled the
+    # numba kernels again: ~25 s of CPU before the first frame
+    steps = instructions()
+    env = " ".join(a for k, a in steps if k == "ENV")
+    match = re.search(r"NUMBA_CACHE_DIR=(\S+)", env)
+    assert match, "the image sets no numba cache folder"
+    cache = match.group(1)
+    runs = [(i, a) for i, (k, a) in enumerate(steps) if k == "RUN"]
+    owned = rf"install -d -o rasterserver .*{re.escape(cache)}"
+    made = [i for i, a in runs if re.search(owned, a)]
+    assert made, "the cache folder is not given to the service account"
+    user = max(i for i, (k, _a) in enumerate(steps) if k == "USER")
+    warm = [(i, a) for i, a in runs if "rasterserver demo" in a]
+    assert warm and warm[-1][0] > user, "the loops are compiled as another user than the service's"
+    # the warm-up's demo patient goes to a throw-away archive, never into the image's /archive
+    assert re.search(r"RASTERSERVER_ARCHIVE=/tmp/\S+ rasterserver demo", warm[-1][1])
+    assert "rm -rf /tmp/" in warm[-1][1]
+
+
 def test_pip_installs_are_pinned_by_the_constraints_file() -> None:
     steps = instructions()
     copied = [a for k, a in steps if k == "COPY" and "docker/constraints.txt" in a]
