@@ -181,21 +181,27 @@ def refuse_peaks(
         One sentence per check that refused peaks.
     """
     notes: list[str] = []
+
+    def refuse(refused: np.ndarray, why: str) -> np.ndarray:
+        """``number`` with the ``refused`` peaks unnumbered; a note "N peak(s) ``why``"."""
+        if not np.any(refused):
+            return number
+        notes.append(f"{int(refused.sum())} peak(s) {why} left unnumbered")
+        return np.where(refused, -1, number).astype(np.int32)
+
     spacing = local_spacing(col, row, number)
     clash = column_order_conflicts(col, row, number, spacing=spacing)
     jumps = line_jumps(col, row, line_id, number, spacing=spacing)
-    if np.any(jumps):
-        number = np.where(jumps, -1, number).astype(np.int32)
-        notes.append(
-            f"{int(jumps.sum())} peak(s) where their line jumps by a fraction of a line "
-            "spacing (a peak of the neighbouring line) left unnumbered"
-        )
-    if np.any(clash):
-        number = np.where(clash, -1, number).astype(np.int32)
-        notes.append(
-            f"{int(clash.sum())} peak(s) numbered out of order in their column (a peak "
-            "taken from a neighbouring line where lines crowd) left unnumbered"
-        )
+    number = refuse(
+        jumps,
+        "where their line jumps by a fraction of a line spacing (a peak of the neighbouring "
+        "line)",
+    )
+    number = refuse(
+        clash,
+        "numbered out of order in their column (a peak taken from a neighbouring line where "
+        "lines crowd)",
+    )
     if doubtful_lines is not None and spacing is not None:
         lid = line_id.astype(np.int64)
         per_line = np.append(np.asarray(doubtful_lines, dtype=bool), False)
@@ -203,36 +209,29 @@ def refuse_peaks(
         edge = beside_doubtful(
             col, row, number, doubt | clash, spacing, max_gap=block_gap, min_share=block_share
         )
-        if np.any(edge):
-            number = np.where(edge, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(edge.sum())} peak(s) directly beside a doubtful line or a peak out of "
-                "column order, with no gap between, among doubtful peaks (a line's end may "
-                "have crossed onto the neighbouring line) left unnumbered"
-            )
+        number = refuse(
+            edge,
+            "directly beside a doubtful line or a peak out of column order, with no gap "
+            "between, among doubtful peaks (a line's end may have crossed onto the "
+            "neighbouring line)",
+        )
     if island_peaks > 1 and spacing is not None:
         islands = column_islands(col, row, number, spacing, min_peaks=island_peaks)
-        if np.any(islands):
-            number = np.where(islands, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(islands.sum())} peak(s) in runs of fewer than {island_peaks} numbered "
-                "lines standing alone in their column (numbered across gaps that hide an "
-                "unknown count of lines) left unnumbered"
-            )
+        number = refuse(
+            islands,
+            f"in runs of fewer than {island_peaks} numbered lines standing alone in their "
+            "column (numbered across gaps that hide an unknown count of lines)",
+        )
     if column_check:
-        lone = isolated_peaks(col, number)
-        if np.any(lone):
-            number = np.where(lone, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(lone.sum())} peak(s) with no numbered peak above or below them in "
-                "their column (numbered by their line's continuity alone) left unnumbered"
-            )
+        number = refuse(
+            isolated_peaks(col, number),
+            "with no numbered peak above or below them in their column (numbered by their "
+            "line's continuity alone)",
+        )
     if min_run > 1:
-        stranded = stranded_runs(line_id, number, min_run)
-        if np.any(stranded):
-            number = np.where(stranded, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(stranded.sum())} peak(s) in runs of fewer than {min_run} numbered "
-                "peaks of a line cut off by its refused peaks left unnumbered"
-            )
+        number = refuse(
+            stranded_runs(line_id, number, min_run),
+            f"in runs of fewer than {min_run} numbered peaks of a line cut off by its refused "
+            "peaks",
+        )
     return number, notes
