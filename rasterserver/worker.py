@@ -27,7 +27,8 @@ from rasterserver.chain import Computation, Plan, compute
 from rasterserver.errors import IntegrityError, NotFoundError
 from rasterserver.records import Image, Record
 from rasterserver.registry import Registry, get_registry
-from rasterserver.store.derived import DerivedStore, StoredBase
+from rasterserver.store.derived import AREA, DerivedStore, StoredBase
+from rasterserver.store.pending import PendingFiles
 from rasterserver.store.raw import RawStore
 
 __all__ = ["input_record", "work", "work_batch"]
@@ -64,6 +65,7 @@ def work(
     *,
     registry: Registry | None = None,
     keep: str = "final",
+    pending: PendingFiles | None = None,
 ) -> Computation:
     """Compute the steps of ``plan`` without stored results and store them durably.
 
@@ -79,6 +81,9 @@ def work(
     keep : {"final", "all", "none"}, optional
         Which records to send back besides their stored form: the last one (what
         ``process`` shows), every one, or none.
+    pending : PendingFiles, optional
+        Leave the files to it (see :func:`work_batch`): they are durable and published only
+        after its :meth:`~rasterserver.store.pending.PendingFiles.publish`.
 
     Returns
     -------
@@ -94,7 +99,8 @@ def work(
     record = input_record(plan, root, derived)
     input_checksum = plan.input_checksum or record.content_hash()
     computation = compute(record, plan.to_compute, plan.context, registry=registry)
-    store_computed(derived, plan, computation, input_checksum, input_record=record)
+    store_computed(derived, plan, computation, input_checksum, input_record=record,
+                   pending=pending)
     if keep != "all":
         last = plan.steps[-1].kind
         computation.records = (
@@ -114,6 +120,11 @@ def work_batch(
     the whole batch redone elsewhere; the files already written are adopted (their names are
     their chain keys), so redoing is idempotent.
 
+    The files of the whole batch are made durable together, with two syncs of the
+    filesystem rather than one fsync per file and folder
+    (:class:`~rasterserver.store.pending.PendingFiles`), before this returns: an
+    acquisition whose files could not be made durable or published is reported failed.
+
     Parameters
     ----------
     plans : list of Plan
@@ -131,12 +142,15 @@ def work_batch(
         One per plan.
     """
     out: list[Computation | Exception] = []
-    for plan in plans:
-        try:
-            out.append(work(plan, root, keep=keep))
-        except Exception as exc:  # reported for this acquisition alone
-            out.append(exc)
-    return out
+    with PendingFiles(Path(root) / AREA) as pending:
+        for plan in plans:
+            try:
+                out.append(work(plan, root, keep=keep, pending=pending))
+            except Exception as exc:  # reported for this acquisition alone
+                out.append(exc)
+        errors = pending.publish()
+    return [errors.get(plan.uid, outcome) if isinstance(outcome, Computation) else outcome
+            for plan, outcome in zip(plans, out, strict=True)]
 
 
 def store_computed(
@@ -146,6 +160,7 @@ def store_computed(
     input_checksum: str,
     *,
     input_record: Record | None = None,
+    pending: PendingFiles | None = None,
 ) -> None:
     """Write each computed step of ``plan`` not yet in ``computation.stored``, durably.
 
@@ -166,6 +181,8 @@ def store_computed(
     input_record : Record, optional
         That record (``plan.input_record`` when not given): a stored result's fields are
         inherited by the first step's result; a raw frame's are not.
+    pending : PendingFiles, optional
+        Where the files are left to be made durable (see :func:`work_batch`).
     """
     if all(step.kind in computation.stored for step in plan.to_compute):
         return
@@ -196,10 +213,12 @@ def store_computed(
             input_checksum=input_checksum,
             sync_dir=False,
             base=base,
+            pending=pending,
         )
         computation.stored[step.kind] = (written, input_checksum)
         input_checksum = written.output_checksum
         base = StoredBase(written.path, output, input_checksum)
     # every result of the acquisition is in its one shard folder: one fsync makes the names
     # durable, before the coordinator may commit a row naming them
-    derived.sync(plan.uid)
+    if pending is None or not pending.deferring:
+        derived.sync(plan.uid)

@@ -35,6 +35,9 @@ def test_a_failed_write_is_reported_for_its_acquisition_alone(settings: Settings
         for done in (out[0], out[2]):
             assert len(done.stored) == 7
             assert all(stored.path for stored, _checksum in done.stored.values())
+        # the batch's files were made durable together and published: none left unnamed
+        kinds = [entry.kind for entry in derived.scan()]
+        assert kinds.count("final") == 14 and "temp" not in kinds
         results = pipeline.commit_many([(plans[0], out[0]), (plans[2], out[2])], final=False)
         assert all(not isinstance(r, BaseException) and r.computed == 7 for r in results)
 

@@ -47,8 +47,8 @@ kept. For the built-in chain this stores 4.0 MB per 604x576 acquisition instead 
 (the three line stages 0.27 MB instead of 1.9 MB): fewer bytes to build, write and fsync.
 
 Durability: written under a temporary name in the final folder, fsynced and published with a
-link that refuses to replace (:mod:`.durable`), like the raw store; files are opened without
-HDF5 file locking for the same reasons (see :mod:`.raw`).
+link that refuses to replace (:mod:`.durable`; a Dask task's files synced together,
+:mod:`.pending`), like the raw store; opened without HDF5 file locking (see :mod:`.raw`).
 """
 
 from __future__ import annotations
@@ -59,6 +59,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -71,6 +72,7 @@ from rasterserver.hashing import canonical_array
 from rasterserver.records import Record, record_type
 from rasterserver.store.durable import ensure_dir, fsync_dir, publish, write_synced
 from rasterserver.store.layout import shard_path, temp_path, validate_uid
+from rasterserver.store.pending import PendingFiles
 
 __all__ = ["AREA", "FORMAT_NAME", "FORMAT_VERSION", "DerivedEntry", "DerivedStore", "RecentRecords",
            "StoredBase", "StoredResult"]
@@ -354,6 +356,7 @@ class DerivedStore:
         sync_dir: bool = True,
         checksum: str | None = None,
         base: StoredBase | None = None,
+        pending: PendingFiles | None = None,
     ) -> StoredResult:
         """Store one stage result durably; never replaces a file.
 
@@ -382,6 +385,8 @@ class DerivedStore:
             The stored record this one was computed from: the fields they share byte for
             byte are not stored again but read from its file (format version 3). Only a
             result's catalogue parent may be its base (pruning keeps parents).
+        pending : PendingFiles, optional
+            If deferring, the file is left to it unsynced and unpublished (its ``publish``).
 
         Returns
         -------
@@ -396,9 +401,11 @@ class DerivedStore:
         relative = final.relative_to(self.root).as_posix()
         checksum = checksum or record.content_hash()
         reason = str(getattr(record, "reason", "") or "")
+        adopt = partial(self._adopt, final, relative, chain_key, checksum, record.kind, reason)
         if final.exists():
-            return self._adopt(final, relative, chain_key, checksum, record.kind, reason)
-        ensure_dir(final.parent)
+            return adopt()
+        defer = pending is not None and pending.deferring
+        ensure_dir(final.parent, sync=not defer)
         temp = temp_path(final)
         meta = {
             "acquisition": uid,
@@ -420,12 +427,15 @@ class DerivedStore:
             meta["base_checksum"] = base.checksum
             meta["inherited"] = json.dumps(sorted(inherited))
         try:
-            write_synced(temp, _file_image(temp.name, meta, record, frozenset(inherited)))
+            write_synced(temp, _file_image(temp.name, meta, record, frozenset(inherited)),
+                         sync=not defer)
+            if pending is not None and defer:
+                pending.add(uid, temp, final, adopt)
+                return StoredResult(relative, checksum, False, record.kind, reason)
             try:
                 publish(temp, final, sync_dir=sync_dir)
-            except ConflictError:
-                # another writer published the same name between our check and now
-                return self._adopt(final, relative, chain_key, checksum, record.kind, reason)
+            except ConflictError:  # another writer published the same name since our check
+                return adopt()
         except Exception:
             temp.unlink(missing_ok=True)
             raise
@@ -445,9 +455,8 @@ class DerivedStore:
         except IntegrityError as exc:
             raise ConflictError(f"{relative} exists but is unreadable: {exc}") from None
         if meta.get("chain_key") != chain_key or meta.get("output_checksum") != checksum:
-            raise ConflictError(
-                f"{relative} exists with other contents; derived files are write-once"
-            )
+            raise ConflictError(f"{relative} exists with other contents; derived files are "
+                                "write-once")
         return StoredResult(relative, checksum, True, kind, reason)
 
     # --- reading ---------------------------------------------------------------------------
@@ -584,8 +593,6 @@ class DerivedStore:
     def exists(self, relative: str) -> bool:
         """True if the file ``relative`` exists."""
         return self._absolute(relative).is_file()
-
-    # --- verification ----------------------------------------------------------------------
 
     def scan(self) -> Iterator[DerivedEntry]:
         """List every file under ``<root>/derived``, sorted.
