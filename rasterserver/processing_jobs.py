@@ -34,7 +34,7 @@ import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, cast
 
-from sqlalchemy import Table, func, or_, select, update
+from sqlalchemy import Table, bindparam, func, or_, select, update
 
 from rasterserver.archive import Archive
 from rasterserver.catalog.job_models import JOB_STATES, ProcessingJob, ProcessingTask
@@ -69,6 +69,20 @@ log = logging.getLogger(__name__)
 _PAGE = 500
 #: Seconds between two reads of the job's state by a coordinator (pause, cancel).
 _POLL_S = 0.25
+
+
+_TASKS = cast(Table, ProcessingTask.__table__)
+#: A finished task's outcome, only if it is still pending: each task is counted once, whatever
+#: happens (a Core UPDATE run once for many tasks; the ORM's would check each row's objects).
+_MARK_TASK = (
+    update(_TASKS)
+    .where(_TASKS.c.job_id == bindparam("b_job"), _TASKS.c.position == bindparam("b_position"),
+           _TASKS.c.state == "pending")
+    .values(state=bindparam("b_state"), computed=bindparam("b_computed"),
+            reused=bindparam("b_reused"), reason=bindparam("b_reason"),
+            error=bindparam("b_error"), exit_code=bindparam("b_exit_code"),
+            finished_at=bindparam("b_finished_at"))
+)
 
 
 def _rowcount(result: object) -> int:
@@ -451,19 +465,17 @@ def run_job(
         now = _now()
         added = {"done": 0, "failed": 0}
         with archive.session() as s:
-            for position, outcome in ended:
-                state = "done" if outcome.status == "done" else "failed"
-                # only if still pending: the task is counted once whatever happens
-                marked = _rowcount(s.execute(
-                    update(ProcessingTask)
-                    .where(ProcessingTask.job_id == job.id, ProcessingTask.position == position,
-                           ProcessingTask.state == "pending")
-                    .values(state=state, computed=outcome.computed, reused=outcome.reused,
-                            reason=outcome.reason[:10_000], error=outcome.error[:10_000],
-                            exit_code=outcome.exit_code, finished_at=now)
-                ))
-                if marked:
-                    added[state] += 1
+            for state in added:
+                rows = [
+                    {"b_job": job.id, "b_position": position, "b_state": state,
+                     "b_computed": outcome.computed, "b_reused": outcome.reused,
+                     "b_reason": outcome.reason[:10_000], "b_error": outcome.error[:10_000],
+                     "b_exit_code": outcome.exit_code, "b_finished_at": now}
+                    for position, outcome in ended
+                    if ("done" if outcome.status == "done" else "failed") == state
+                ]
+                if rows:  # one statement for all (the count is the sum over the rows)
+                    added[state] = _rowcount(s.execute(_MARK_TASK, rows))
             if added["done"] or added["failed"]:
                 s.execute(
                     update(ProcessingJob)

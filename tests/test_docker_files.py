@@ -294,10 +294,11 @@ def test_only_the_api_is_published_and_only_on_the_loopback() -> None:
 
 def test_the_archive_volume_is_mounted_where_the_image_keeps_it() -> None:
     services = compose()["services"]
-    for name in ("api", "cli"):
+    # workers read the frames and write the derived files under the root the driver (`cli`)
+    # sends them: the same volume at the same path; the catalogue only the driver has
+    for name in ("api", "cli", "worker"):
         assert "archive:/archive" in services[name]["volumes"], name
-    # workers compute from what the driver sends them: no archive, no catalogue
-    assert "volumes" not in services["worker"]
+    assert services["cli"]["environment"]["RASTERSERVER_ARCHIVE"] == "/archive"
     assert "RASTERSERVER_DATABASE_URL" not in str(services["worker"])
 
 
