@@ -254,6 +254,14 @@ def main() -> None:
             f"coordinator saturates at about {1000 / loop:.0f} acquisitions/s, i.e. about "
             f"{work / loop:.0f} single-threaded workers."
         )
+        derived = Path(settings_for(args.cache / f"n{args.count}").archive) / "derived"
+        written = sum(f.stat().st_size for f in derived.rglob("*.h5")) / args.count / 1e6
+        per_worker = written * 1000 / work  # MB/s one busy worker writes
+        lines.append(
+            f"Storage: {written:.1f} MB of derived files per acquisition, ~{per_worker:.0f} "
+            f"MB/s per busy worker: shared storage of 1.1 GB/s (10 GbE) serves about "
+            f"{1100 / per_worker:.0f} workers."
+        )
     sizes = f" --sizes {args.sizes}" if args.sizes else ""
     starts = ", ".join(f"{r.engine}: {r.start_s:.1f} s" for r in runs if r.start_s)
     load = f"load average {load_before[0]:.1f} before, {load_after[0]:.1f} after"
