@@ -131,3 +131,7 @@ def test_dask_info_logs_stay_off_the_terminal(tmp_path: Path) -> None:
     assert " INFO " not in done.stderr and "distributed." not in done.stderr, done.stderr
     shown = json.loads(_cli(settings, "jobs", "list", "--json").stdout.splitlines()[0])
     assert shown["engine"] == "local-cluster"
+    # the workers' files were synced and published together (store/pending.py): a fresh
+    # `verify` finds every row's file whole, and no temporary or orphaned file
+    checked = _cli(settings, "verify")
+    assert checked.returncode == 0, describe(checked)
