@@ -18,8 +18,11 @@ leaves at most temporary files (recognisable by their names) and published files
 ``syncfs`` flushes the whole filesystem the derived area is on (other writers' dirty data
 too) and reports the writeback errors that happened since the descriptor it is given was
 opened (Linux 5.8 and later): the descriptor is opened before the first file is written.
-Elsewhere (another system, an older kernel) :attr:`PendingFiles.deferring` is False and the
-writer syncs each file as before.
+It is as strong as an fsync of each file only where the filesystem commits what it writes
+back: a local journaling filesystem, overlay (it syncs its upper one), NFS (its writeback
+ends in COMMIT). On FUSE or SMB mounts it may do less than fsync, which reaches the server.
+So only on :data:`SYNCFS_FILESYSTEMS`, Linux 5.8 or later, is :attr:`PendingFiles.deferring`
+True; elsewhere the writer fsyncs each file as before.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,7 +42,12 @@ from typing import Any
 from rasterserver.errors import ConflictError
 from rasterserver.store.durable import ensure_dir, publish
 
-__all__ = ["PendingFiles", "syncfs_available"]
+__all__ = ["SYNCFS_FILESYSTEMS", "PendingFiles", "filesystem_type", "syncfs_available"]
+
+#: Filesystem types (as in /proc/self/mountinfo) whose syncfs makes every file durable.
+SYNCFS_FILESYSTEMS = frozenset(
+    {"ext3", "ext4", "xfs", "btrfs", "f2fs", "overlay", "tmpfs", "nfs", "nfs4"}
+)
 
 
 @cache
@@ -63,6 +72,40 @@ def _syncfs() -> Callable[[int], int] | None:
 def syncfs_available() -> bool:
     """Whether this system can make many files durable with one ``syncfs``."""
     return _syncfs() is not None
+
+
+def filesystem_type(path: Path, mountinfo: str | None = None) -> str | None:
+    """The type of the filesystem ``path`` is on, from ``/proc/self/mountinfo`` (Linux).
+
+    Parameters
+    ----------
+    path : Path
+        An existing path (symbolic links are resolved).
+    mountinfo : str, optional
+        The table's text (read from ``/proc/self/mountinfo`` when not given).
+
+    Returns
+    -------
+    str or None
+        For instance ``"ext4"`` or ``"nfs4"``; None when there is no such table.
+    """
+    if mountinfo is None:
+        try:
+            mountinfo = Path("/proc/self/mountinfo").read_text()
+        except OSError:
+            return None
+    target = os.path.realpath(path)
+    found: tuple[int, str | None] = (-1, None)
+    for line in mountinfo.splitlines():
+        fields, separator, rest = line.partition(" - ")
+        parts = fields.split()
+        if not separator or len(parts) < 5 or not rest.split():
+            continue
+        point = re.sub(r"\\([0-7]{3})", lambda m: chr(int(m[1], 8)), parts[4])  # \040: space
+        inside = target == point or target.startswith(point.rstrip("/") + "/")
+        if inside and len(point) >= found[0]:  # the deepest; of mounts on one point, the last
+            found = (len(point), rest.split()[0])
+    return found[1]
 
 
 @dataclass(frozen=True)
@@ -90,8 +133,9 @@ class PendingFiles:
         self._fd: int | None = None
         if _syncfs() is not None:
             ensure_dir(folder)
-            # opened before any file is written: syncfs reports errors since this open
-            self._fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+            if filesystem_type(folder) in SYNCFS_FILESYSTEMS:
+                # opened before any file is written: syncfs reports errors since this open
+                self._fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
 
     @property
     def deferring(self) -> bool:

@@ -15,7 +15,12 @@ from rasterserver.errors import ConflictError
 from rasterserver.records_surface import Points
 from rasterserver.store import pending as pending_module
 from rasterserver.store.derived import AREA, DerivedStore
-from rasterserver.store.pending import PendingFiles, syncfs_available
+from rasterserver.store.pending import (
+    SYNCFS_FILESYSTEMS,
+    PendingFiles,
+    filesystem_type,
+    syncfs_available,
+)
 
 UIDS = ("0123456789abcdef0123456789abcdef", "fedcba9876543210fedcba9876543210")
 KEY = hashlib.sha256(b"chain").hexdigest()
@@ -47,9 +52,39 @@ def _files(store: DerivedStore) -> dict[str, list[Path]]:
     return found
 
 
-def test_this_machine_defers() -> None:
+def test_this_machine_defers(tmp_path: Path) -> None:
     # the benchmarks and the Docker image run on Linux >= 5.8: the batched path is the one used
     assert syncfs_available()
+    assert filesystem_type(tmp_path) in SYNCFS_FILESYSTEMS
+
+
+MOUNTINFO = r"""22 1 252:0 / / rw,relatime shared:1 - ext4 /dev/vda rw
+30 22 0:40 / /mnt/nas rw shared:2 - nfs4 nas:/export rw,vers=4.2
+31 22 0:41 / /mnt/my\040share rw shared:3 - cifs //server/share rw
+32 30 0:42 / /mnt/nas/cloud rw shared:4 - fuse.sshfs user@host: rw
+33 22 0:43 / /mnt/twice rw shared:5 - tmpfs tmpfs rw
+34 22 0:44 / /mnt/twice rw shared:6 - cifs //other/share rw
+"""
+
+
+@pytest.mark.parametrize(
+    ("path", "expected"),
+    [
+        ("/srv/archive/derived", "ext4"),
+        ("/mnt/nas", "nfs4"),
+        ("/mnt/nas/archive/derived", "nfs4"),
+        ("/mnt/nasty", "ext4"),  # a prefix of the name is not a mount point above it
+        ("/mnt/my share/archive", "cifs"),  # \040 is a space
+        ("/mnt/nas/cloud/archive", "fuse.sshfs"),  # the deepest mount point
+        ("/mnt/twice/archive", "cifs"),  # of two mounts on one point, the later
+    ],
+)
+def test_the_filesystem_of_a_path(path: str, expected: str) -> None:
+    assert filesystem_type(Path(path), MOUNTINFO) == expected
+
+
+def test_no_mount_table_no_type() -> None:
+    assert filesystem_type(Path("/srv"), "") is None
 
 
 def test_files_get_their_names_only_when_published(tmp_path: Path) -> None:
@@ -120,10 +155,15 @@ def test_a_failed_sync_fails_every_owner_and_names_nothing(
     assert _files(store) == {"final": [], "temp": [], "stray": []}
 
 
-def test_without_syncfs_each_file_is_synced_and_published_at_once(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("where", ["no syncfs", "a FUSE mount"])
+def test_without_a_trusted_syncfs_each_file_is_synced_and_published_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, where: str
 ) -> None:
-    monkeypatch.setattr(pending_module, "_syncfs", lambda: None)
+    # a FUSE (or SMB) filesystem's syncfs may not reach the server as each file's fsync does
+    if where == "no syncfs":
+        monkeypatch.setattr(pending_module, "_syncfs", lambda: None)
+    else:
+        monkeypatch.setattr(pending_module, "filesystem_type", lambda path: "fuse.sshfs")
     store = DerivedStore(tmp_path)
     with PendingFiles(tmp_path / AREA) as pending:
         assert not pending.deferring
