@@ -21,6 +21,7 @@ import sys
 from collections.abc import Callable
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from rasterserver.errors import ConflictError
 from rasterserver.store.modes import dir_mode, set_dir_mode, set_file_mode
@@ -88,17 +89,32 @@ def write_synced(path: Path, data: bytes, *, sync: bool = True) -> None:
         os.close(fd)
 
 
-@cache
-def _sync_file_range() -> Callable[..., int] | None:
+def linux_function(name: str, argtypes: list[Any]) -> Callable[..., int] | None:
+    """The C library's function ``name`` (returning int) on Linux; None elsewhere or if absent.
+
+    Parameters
+    ----------
+    name : str
+        For instance ``"syncfs"``.
+    argtypes : list
+        Its parameters' ctypes types.
+    """
     if sys.platform != "linux":
         return None
     try:
-        function = ctypes.CDLL(None, use_errno=True).sync_file_range
+        function = getattr(ctypes.CDLL(None, use_errno=True), name)
     except (OSError, AttributeError):
         return None
-    function.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+    function.argtypes = argtypes
     function.restype = ctypes.c_int
     return function
+
+
+@cache
+def _sync_file_range() -> Callable[..., int] | None:
+    return linux_function(
+        "sync_file_range", [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
+    )
 
 
 def start_writeback(fd: int) -> None:

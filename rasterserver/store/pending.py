@@ -31,7 +31,6 @@ import ctypes
 import os
 import platform
 import re
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
@@ -40,7 +39,7 @@ from types import TracebackType
 from typing import Any
 
 from rasterserver.errors import ConflictError
-from rasterserver.store.durable import ensure_dir, publish
+from rasterserver.store.durable import ensure_dir, linux_function, publish
 
 __all__ = ["SYNCFS_FILESYSTEMS", "PendingFiles", "filesystem_type", "syncfs_available"]
 
@@ -52,21 +51,13 @@ SYNCFS_FILESYSTEMS = frozenset(
 
 @cache
 def _syncfs() -> Callable[[int], int] | None:
-    if sys.platform != "linux":
-        return None
     try:
         major, minor = (int(part) for part in platform.release().split(".")[:2])
     except ValueError:
         return None
     if (major, minor) < (5, 8):  # syncfs reports writeback errors from 5.8 on
         return None
-    try:
-        function = ctypes.CDLL(None, use_errno=True).syncfs
-    except (OSError, AttributeError):
-        return None
-    function.argtypes = [ctypes.c_int]
-    function.restype = ctypes.c_int
-    return function
+    return linux_function("syncfs", [ctypes.c_int])
 
 
 def syncfs_available() -> bool:
