@@ -31,6 +31,7 @@ from rasterserver.raster import Raster
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import Stage, StageContext
 
+from .bracketed_peaks import fill_brackets
 from .code_evidence import (
     EXPLAINS_TOO_LITTLE,
     CodeFit,
@@ -512,11 +513,15 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     of one or two numbered lines standing alone in their column, 2.5 spacings or more
     from any other numbered peak, are refused (:func:`.peak_checks.column_islands`):
     numbered by their lines' order across gaps that hide an unknown count of lines.
+    Version 8: last, runs of up to eight unnumbered peaks between numbered peaks ``n``
+    and ``n + m + 1`` of their column, every gap one line spacing, are numbered
+    ``n + 1 .. n + m`` (:func:`.bracketed_peaks.fill_brackets`): line fragments in
+    hair and peaks refused for their line's doing, whose column settles the number.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "7"
+    version: ClassVar[str] = "8"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -586,6 +591,11 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             island_peaks=params.island_peaks,
             min_run=params.min_run,
         )
+        if params.bracket_run > 0:
+            number, note = fill_brackets(
+                data.col, data.row, number, params.bracket_run, params.bracket_tolerance
+            )
+            notes += [note] if note else []
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(
             data,

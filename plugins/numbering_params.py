@@ -13,7 +13,7 @@ __all__ = ["CodeWindowParams"]
 
 
 class CodeWindowParams(StageParams):
-    """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 7)."""
+    """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 8)."""
 
     area_ratio: float | None = Field(
         None,
@@ -104,4 +104,17 @@ class CodeWindowParams(StageParams):
         ge=0,
         description="Refuse runs of fewer numbered peaks of a line cut off by its refused "
         "peaks (0: keep them).",
+    )
+    bracket_run: int = Field(
+        8,
+        ge=0,
+        description="Last, number runs of up to this many unnumbered peaks lying one line "
+        "spacing apart between numbered peaks of their column (0: none).",
+    )
+    bracket_tolerance: float = Field(
+        0.2,
+        gt=0,
+        lt=0.5,
+        description="Largest departure of a bracketed run's gaps from one line spacing "
+        "(share of the spacing).",
     )

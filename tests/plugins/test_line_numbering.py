@@ -347,7 +347,7 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "7"
+    assert CodeWindowNumbering.version == "8"
 
 
 def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> None:
@@ -466,7 +466,9 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
     before = bench.score_frame(frame)
     bench._init(None, None)
     after = bench.score_frame(frame)
-    assert before["wrong_peaks"] >= 10 and before["wrong_objects"] == ["clothing"]
+    # 16 wrong peaks with version 5 on AMD EPYC, 6 on an Intel Xeon: the rendering's last
+    # bits differ between processors, and which line ends land on the next line with them
+    assert before["wrong_peaks"] >= 5 and before["wrong_objects"] == ["clothing"]
     assert after["wrong_peaks"] == 0
     assert after["back_covered"] >= 0.97 * after["back_crossings"]
     assert after["back_covered"] >= before["back_covered"] - 0.01 * before["back_crossings"]
@@ -474,44 +476,64 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
 
 @pytest.mark.slow
 def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
-    """Clinic scene 7325 of ``benchmarks/real_bodies.py`` (window-7 m-sequence, arms close,
-    waistband): with version 6's block-edge check (only the code's refusals doubtful,
-    refused wherever they touch) three peaks at the cloth's edge carry their line's number
-    onto the cloth's next line; version 7 refuses them and numbers more of the back."""
+    """Clinic scenes 7325 and 7401 of ``benchmarks/real_bodies.py`` (window-7 m-sequence,
+    arms close, waistband): with version 6's block-edge check (only the code's refusals
+    doubtful, refused wherever they touch) peaks at the cloth's edge carry their line's
+    number onto the cloth's next line; version 7 refuses them and numbers more of the back.
+    The rendering's last bits differ between processors, and with them which line ends land
+    on the next line: version 6 errs in 7325 on AMD EPYC, in 7401 on an Intel Xeon."""
     from rasterserver.simulator.body import clinic_station, make_body, random_body
     from rasterserver.simulator.render import RenderSettings, render
 
-    seed = 7325
-    rng = np.random.default_rng([seed, 0xBEEF])  # the benchmark's light, noise and blur
-    settings = RenderSettings(
-        supersampling=1,
-        projector_electrons=float(rng.uniform(15000.0, 45000.0)),
-        ambient_electrons=float(rng.uniform(300.0, 1500.0)),
-        read_noise=float(rng.uniform(8.0, 25.0)),
-        projector_defocus=float(rng.uniform(0.4, 0.9)),
-        camera_blur=float(rng.uniform(0.35, 0.7)),
-        threads=1,
-    )
-    station = clinic_station(seed, "mseq7")
-    rendering = render(make_body(random_body(seed)), station, settings=settings, seed=seed)
-    context = StageContext(calibration=station, raster=station.raster_definition)
-    peaks = run_stage(FirstMomentPeaks, Image(rendering.image))
-    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
-    truth, _ = truth_of_peaks(ordered.col, ordered.row, rendering.line_rows)
-    h = rendering.line_number.shape[0]
-    pixel = rendering.line_number[np.clip(np.rint(ordered.row).astype(int), 0, h - 1), ordered.col]
-    truth = np.where(pixel == truth, truth, -1)
+    erring = 0
+    for seed in (7325, 7401):
+        rng = np.random.default_rng([seed, 0xBEEF])  # the benchmark's light, noise and blur
+        settings = RenderSettings(
+            supersampling=1,
+            projector_electrons=float(rng.uniform(15000.0, 45000.0)),
+            ambient_electrons=float(rng.uniform(300.0, 1500.0)),
+            read_noise=float(rng.uniform(8.0, 25.0)),
+            projector_defocus=float(rng.uniform(0.4, 0.9)),
+            camera_blur=float(rng.uniform(0.35, 0.7)),
+            threads=1,
+        )
+        station = clinic_station(seed, "mseq7")
+        rendering = render(make_body(random_body(seed)), station, settings=settings, seed=seed)
+        context = StageContext(calibration=station, raster=station.raster_definition)
+        peaks = run_stage(FirstMomentPeaks, Image(rendering.image))
+        ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+        truth, _ = truth_of_peaks(ordered.col, ordered.row, rendering.line_rows)
+        h = rendering.line_number.shape[0]
+        rows = np.clip(np.rint(ordered.row).astype(int), 0, h - 1)
+        truth = np.where(rendering.line_number[rows, ordered.col] == truth, truth, -1)
 
-    def wrong_and_right(params: dict[str, object] | None) -> tuple[int, int]:
-        out = run_stage(CodeWindowNumbering, ordered, params=params, context=context)
-        known = (out.number >= 0) & (truth >= 0)
-        right = out.number == truth
-        return int(np.sum(known & ~right)), int(np.sum(known & right))
+        v6 = {"doubtful": "code", "block_share": 0.0, "island_peaks": 0, "bracket_run": 0}
+        counts = []
+        for params in (v6, {"bracket_run": 0}):
+            out = run_stage(CodeWindowNumbering, ordered, params=params, context=context)
+            known = (out.number >= 0) & (truth >= 0)
+            right = out.number == truth
+            counts.append((int(np.sum(known & ~right)), int(np.sum(known & right))))
+        (wrong_6, right_6), (wrong_7, right_7) = counts
+        reason = out.reason
+        assert wrong_7 == 0
+        if wrong_6 > 0:
+            erring += 1
+            assert right_7 > right_6
+            assert "directly beside a doubtful line" in reason
+    assert erring >= 1
 
-    wrong_6, right_6 = wrong_and_right({"doubtful": "code", "block_share": 0.0, "island_peaks": 0})
-    wrong_7, right_7 = wrong_and_right(None)
-    assert wrong_6 > 0
-    assert wrong_7 == 0
-    assert right_7 > right_6
-    out = run_stage(CodeWindowNumbering, ordered, context=context)
-    assert "directly beside a doubtful line" in out.reason
+
+@pytest.mark.slow
+def test_a_clinic_scene_numbers_more_of_its_back_with_bracketed_peaks() -> None:
+    """Clinic scene 7044 of ``benchmarks/real_bodies.py`` (default code, dark hair): lines
+    of the upper back broken into fragments by the hair stay unnumbered in version 7;
+    version 8 numbers those its columns settle, and numbers none wrongly."""
+    bench = _real_bodies()
+    frame = bench.render_scene(7044)
+    bench._init(None, {"numbers": {"bracket_run": 0}})
+    before = bench.score_frame(frame)
+    bench._init(None, None)
+    after = bench.score_frame(frame)
+    assert before["wrong_peaks"] == 0 and after["wrong_peaks"] == 0
+    assert after["back_covered"] >= before["back_covered"] + 0.01 * before["back_crossings"]
