@@ -13,10 +13,13 @@ def _column(rows: list[float], numbers: list[int], col: int = 0) -> tuple[np.nda
     )
 
 
-def _fill(col: np.ndarray, row: np.ndarray, number: np.ndarray, **kw: float) -> np.ndarray:
+def _fill(
+    col: np.ndarray, row: np.ndarray, number: np.ndarray, max_run: int = 8, tolerance: float = 0.2
+) -> np.ndarray:
     from rasterserver_plugins.bracketed_peaks import bracketed_numbers
 
-    return bracketed_numbers(col, row, number, np.full(col.size, 10.0), **kw)  # type: ignore[arg-type]
+    spacing = np.full(col.size, 10.0)
+    return bracketed_numbers(col, row, number, spacing, max_run=max_run, tolerance=tolerance)
 
 
 def test_a_run_between_numbered_peaks_one_spacing_apart_is_numbered() -> None:
