@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .numbering_checks import local_spacing
-
 __all__ = ["bracketed_numbers", "fill_brackets"]
 
 
@@ -87,15 +85,21 @@ def bracketed_numbers(
 
 
 def fill_brackets(
-    col: np.ndarray, row: np.ndarray, number: np.ndarray, max_run: int, tolerance: float
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    spacing: np.ndarray | None,
+    max_run: int,
+    tolerance: float,
 ) -> tuple[np.ndarray, str]:
-    """:func:`bracketed_numbers` with the local spacing of ``number``, and the note for the
-    numbering's reason (empty when no peak was numbered).
+    """:func:`bracketed_numbers`, and the note for the numbering's reason.
 
     Parameters
     ----------
     col, row, number : numpy.ndarray
         As in :func:`bracketed_numbers`.
+    spacing : numpy.ndarray or None
+        Per-peak local line spacing; None (no numbered pair anywhere) numbers nothing.
     max_run, tolerance
         As in :func:`bracketed_numbers`.
 
@@ -104,9 +108,8 @@ def fill_brackets(
     number : numpy.ndarray
         ``(N,)`` int32, the bracketed peaks numbered.
     note : str
-        "N unnumbered peak(s) numbered ...", or "".
+        "N unnumbered peak(s) numbered ...", or "" when none was.
     """
-    spacing = local_spacing(col, row, number)
     if spacing is None:
         return np.asarray(number, dtype=np.int32), ""
     filled = bracketed_numbers(col, row, number, spacing, max_run=max_run, tolerance=tolerance)

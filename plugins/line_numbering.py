@@ -48,6 +48,7 @@ from .numbering_checks import (
     by_line,
     column_order_conflicts,
     contact_votes,
+    local_spacing,
     plausible_distance,
 )
 from .numbering_params import CodeWindowParams
@@ -579,6 +580,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             reason = "no lines"
         table = np.append(line_number, -1).astype(np.int32)
         number = table[np.where(lid >= 0, lid, -1)]
+        spacing = local_spacing(data.col, data.row, number)
         number, notes = refuse_peaks(
             data.col,
             data.row,
@@ -590,10 +592,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             block_share=params.block_share,
             island_peaks=params.island_peaks,
             min_run=params.min_run,
+            spacing=spacing,
         )
         if params.bracket_run > 0:
+            # the spacing of the numbers before the refusals: the geometry they measured
             number, note = fill_brackets(
-                data.col, data.row, number, params.bracket_run, params.bracket_tolerance
+                data.col, data.row, number, spacing, params.bracket_run, params.bracket_tolerance
             )
             notes += [note] if note else []
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)

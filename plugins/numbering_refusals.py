@@ -134,6 +134,7 @@ def refuse_peaks(
     block_share: float = 0.0,
     island_peaks: int = 0,
     min_run: int = 6,
+    spacing: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """The peak-by-peak checks of the numbered peaks, and a note for each that refused any.
 
@@ -172,6 +173,9 @@ def refuse_peaks(
     min_run : int
         Last, runs of fewer numbered peaks of a line next to its refused peaks are refused
         (:func:`.peak_checks.stranded_runs`); 0 or 1 for none.
+    spacing : numpy.ndarray, optional
+        Per-peak local line spacing of ``number`` (:func:`.numbering_checks.local_spacing`),
+        when already computed.
 
     Returns
     -------
@@ -189,13 +193,13 @@ def refuse_peaks(
         notes.append(f"{int(refused.sum())} peak(s) {why} left unnumbered")
         return np.where(refused, -1, number).astype(np.int32)
 
-    spacing = local_spacing(col, row, number)
+    if spacing is None:
+        spacing = local_spacing(col, row, number)
     clash = column_order_conflicts(col, row, number, spacing=spacing)
     jumps = line_jumps(col, row, line_id, number, spacing=spacing)
     number = refuse(
         jumps,
-        "where their line jumps by a fraction of a line spacing (a peak of the neighbouring "
-        "line)",
+        "where their line jumps by a fraction of a line spacing (a peak of the neighbouring line)",
     )
     number = refuse(
         clash,

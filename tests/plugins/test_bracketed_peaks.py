@@ -78,13 +78,16 @@ def test_unknown_spacing_and_degenerate_inputs() -> None:
     assert bracketed_numbers(empty_i, empty_i * 1.0, empty_i, empty_i * 1.0).size == 0
     none = np.full(3, -1, np.int32)
     assert bracketed_numbers(col, row, none, np.full(3, 10.0)).tolist() == [-1, -1, -1]
-    # no consecutive numbers in any column: no local spacing, nothing numbered, no note
-    out, note = fill_brackets(col, row, np.array([10, -1, 13], np.int32), 8, 0.2)
+    # no local spacing (no consecutive numbers anywhere): nothing numbered, no note
+    out, note = fill_brackets(col, row, number, None, 8, 0.2)
+    assert out.tolist() == [10, -1, 12] and note == ""
+    out, note = fill_brackets(col, row, np.array([10, -1, 13], np.int32), np.full(3, 10.0), 8, 0.2)
     assert out.tolist() == [10, -1, 13] and note == ""
 
 
-def test_fill_brackets_measures_the_spacing_and_says_how_many() -> None:
+def test_fill_brackets_with_the_measured_spacing_says_how_many() -> None:
     from rasterserver_plugins.bracketed_peaks import fill_brackets
+    from rasterserver_plugins.numbering_checks import local_spacing
 
     # 30 columns of lines 5..9, 10 px apart; line 7 unnumbered in columns 10-19
     cols = np.repeat(np.arange(30), 5)
@@ -92,6 +95,6 @@ def test_fill_brackets_measures_the_spacing_and_says_how_many() -> None:
     number = np.tile([5, 6, 7, 8, 9], 30).astype(np.int32)
     gap = (number == 7) & (cols >= 10) & (cols < 20)
     given = np.where(gap, -1, number).astype(np.int32)
-    out, note = fill_brackets(cols, rows, given, 8, 0.2)
+    out, note = fill_brackets(cols, rows, given, local_spacing(cols, rows, given), 8, 0.2)
     assert np.array_equal(out, number)
     assert note.startswith("10 unnumbered peak(s) numbered")
