@@ -12,7 +12,7 @@ would leave a gap of a different size or a count that does not add up, so nothin
 numbered there.
 
 On the clinic tuning scenes (``benchmarks/real_bodies.py``, seeds 7000-8199) this numbered
-no peak wrongly and covered 0.19-0.23 % more of the back (version 8 of the numbering).
+no peak wrongly and covered 0.19-0.23 point more of the back (version 8 of the numbering).
 """
 
 from __future__ import annotations
