@@ -516,9 +516,9 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
             counts.append((int(np.sum(known & ~right)), int(np.sum(known & right))))
         (wrong_6, right_6), (wrong_7, right_7) = counts
         reason = out.reason
-        assert wrong_7 == 0
         if wrong_6 > 0:
             erring += 1
+            assert wrong_7 == 0
             assert right_7 > right_6
             assert "directly beside a doubtful line" in reason
     assert erring >= 1
