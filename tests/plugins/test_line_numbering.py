@@ -482,23 +482,13 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
     number onto the cloth's next line; version 7 refuses them and numbers more of the back.
     The rendering's last bits differ between processors, and with them which line ends land
     on the next line: version 6 errs in 7325 on AMD EPYC, in 7401 on an Intel Xeon."""
-    from rasterserver.simulator.body import clinic_station, make_body, random_body
-    from rasterserver.simulator.render import RenderSettings, render
+    from rasterserver.simulator.body import clinic_station
 
+    bench = _real_bodies()  # its scenes: the benchmark's light, noise and blur
     erring = 0
     for seed in (7325, 7401):
-        rng = np.random.default_rng([seed, 0xBEEF])  # the benchmark's light, noise and blur
-        settings = RenderSettings(
-            supersampling=1,
-            projector_electrons=float(rng.uniform(15000.0, 45000.0)),
-            ambient_electrons=float(rng.uniform(300.0, 1500.0)),
-            read_noise=float(rng.uniform(8.0, 25.0)),
-            projector_defocus=float(rng.uniform(0.4, 0.9)),
-            camera_blur=float(rng.uniform(0.35, 0.7)),
-            threads=1,
-        )
-        station = clinic_station(seed, "mseq7")
-        rendering = render(make_body(random_body(seed)), station, settings=settings, seed=seed)
+        rendering = bench.render_scene(seed)
+        station = clinic_station(seed, rendering.code)
         context = StageContext(calibration=station, raster=station.raster_definition)
         peaks = run_stage(FirstMomentPeaks, Image(rendering.image))
         ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
