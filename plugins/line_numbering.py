@@ -46,7 +46,6 @@ from .code_evidence import (
 from .code_tiles import CodeBands
 from .numbering_checks import (
     by_line,
-    column_order_conflicts,
     contact_votes,
     local_spacing,
     plausible_distance,
@@ -61,10 +60,6 @@ __all__ = [
     "level_statistics",
     "number_lines",
 ]
-
-# the names of the functions before they moved to code_evidence / numbering_checks
-_column_order_conflicts = column_order_conflicts
-_plausible_distance = plausible_distance
 
 
 def number_lines(
@@ -84,6 +79,7 @@ def number_lines(
     station: Any = None,
     max_depth: float = 600.0,
     pair_check: bool = True,
+    pair_agreement: float = 0.0,
     min_contact_share: float = 0.2,
     tile_check: bool = True,
     tile_band: int = 64,
@@ -138,6 +134,9 @@ def number_lines(
     pair_check : bool
         Refuse the shorter line of numbered column neighbours whose intensity ratio
         contradicts the code at their numbers (:func:`.numbering_checks.pair_contradictions`).
+    pair_agreement : float
+        Spare such a line where the code confirms its other pair (``max_agreement`` of
+        :func:`.numbering_refusals.refuse_contradicted_pairs`).
     min_contact_share : float
         Least contact weight, as a share of a component's column extent, for it to inherit
         a number: a wide component touching numbered lines at a corner only (across a
@@ -454,7 +453,9 @@ def number_lines(
             )
         )
     if pair_check:
-        refused = refuse_contradicted_pairs(data, raster, lam, line_number, peaks_per_line)
+        refused = refuse_contradicted_pairs(
+            data, raster, lam, line_number, peaks_per_line, max_agreement=pair_agreement
+        )
         if refused:
             results.append(
                 refusal(
@@ -518,11 +519,14 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     and ``n + m + 1`` of their column, every gap one line spacing, are numbered
     ``n + 1 .. n + m`` (:func:`.bracketed_peaks.fill_brackets`): line fragments in
     hair and peaks refused for their line's doing, whose column settles the number.
+    Version 9: the shorter line of a pair contradicting the code is kept where the code
+    confirms it with its other neighbour, itself clean and confirmed on its other side
+    (``pair_agreement``; :func:`.numbering_refusals.refuse_contradicted_pairs`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "8"
+    version: ClassVar[str] = "9"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -559,6 +563,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             station=station,
             max_depth=params.max_depth,
             min_contact_share=params.min_contact_share,
+            pair_agreement=params.pair_agreement,
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,

@@ -202,7 +202,7 @@ def column_order_conflicts(
     return order_conflicts(n, a, b, gap, k, spacing, tolerance, max_multiple)
 
 
-def pair_contradictions(
+def pair_judgements(
     col: np.ndarray,
     area: np.ndarray,
     line_id: np.ndarray,
@@ -214,9 +214,9 @@ def pair_contradictions(
     min_z: float = 3.0,
     min_departure: float = 0.75,
     correlation: float = 4.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs of numbered lines, direct column neighbours numbered as consecutive raster lines,
-    whose intensity ratio contradicts the kinds the code gives those numbers.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of numbered lines, direct column neighbours numbered as consecutive raster
+    lines, judged: does their intensity ratio contradict the kinds the code gives them?
 
     The numbering of a component rests on the ratios of all its level pairs; a short piece
     placed a level or two off (a cloth line across a waistband whose depth step is close to a
@@ -246,13 +246,17 @@ def pair_contradictions(
     Returns
     -------
     upper, lower, columns : numpy.ndarray
-        The contradicting pairs' line ids (the upper line, the lower one) and the number of
-        columns where they are neighbours.
+        Every pair's line ids (the upper line, the lower one) and the number of columns
+        where they are neighbours.
+    departure : numpy.ndarray
+        How far the pair's ratio departs from the code's, in units of ``lam``.
+    contradicts : numpy.ndarray
+        Bool: the pair contradicts the code (judged over ``min_columns`` columns or more).
     """
     empty = np.zeros(0, dtype=np.int64)
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
-        return empty, empty, empty
+        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
     # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
     # ~0.3 s, hence here
     from .column_pairs import grouped_pairs, raster_pair_ratios
@@ -266,13 +270,13 @@ def pair_contradictions(
     # consecutive raster lines are two lines (a line has one number)
     a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
     if a.size == 0:
-        return empty, empty, empty
+        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(ratio)
     good = np.isfinite(lr)
     a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
-        return empty, empty, empty
+        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
     b = a + 1
     code = raster.code.astype(np.float64)
     upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
@@ -287,7 +291,44 @@ def pair_contradictions(
     departure = np.abs(centre - exp_pair)
     bad = (counts >= min_columns) & (departure >= min_departure * lam) & (departure >= min_z * se)
     span = int(lid.max()) + 1
-    return keys[bad] // span, keys[bad] % span, counts[bad]
+    return keys // span, keys % span, counts, departure / lam, bad
+
+
+def pair_contradictions(
+    col: np.ndarray,
+    area: np.ndarray,
+    line_id: np.ndarray,
+    line_number: np.ndarray,
+    raster: Raster,
+    lam: float,
+    *,
+    min_columns: int = 5,
+    min_z: float = 3.0,
+    min_departure: float = 0.75,
+    correlation: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs of :func:`pair_judgements` whose intensity ratio contradicts the code
+    (parameters as there).
+
+    Returns
+    -------
+    upper, lower, columns : numpy.ndarray
+        The contradicting pairs' line ids (the upper line, the lower one) and the number of
+        columns where they are neighbours.
+    """
+    upper, lower, columns, _, bad = pair_judgements(
+        col,
+        area,
+        line_id,
+        line_number,
+        raster,
+        lam,
+        min_columns=min_columns,
+        min_z=min_z,
+        min_departure=min_departure,
+        correlation=correlation,
+    )
+    return upper[bad], lower[bad], columns[bad]
 
 
 def local_spacing(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray | None:

@@ -59,6 +59,13 @@ class CodeWindowParams(StageParams):
         description="Least contact columns, as a share of a component's width, to inherit.",
     )
 
+    pair_agreement: float = Field(
+        0.4,
+        ge=0.0,
+        description="Spare the shorter line of a pair contradicting the code where its pair "
+        "with its other column neighbour departs from the code by less than this (in units "
+        "of the log heavy/light ratio); 0 always refuses it.",
+    )
     tile_check: bool = Field(
         True,
         description="Refuse lines where the code read in their own columns contradicts "

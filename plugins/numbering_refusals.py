@@ -14,7 +14,7 @@ from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
 from .code_evidence import ComponentNumbering
-from .numbering_checks import column_order_conflicts, local_spacing, pair_contradictions
+from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
 from .peak_checks import (
     beside_doubtful,
     column_islands,
@@ -37,6 +37,8 @@ def refuse_contradicted_pairs(
     lam: float,
     line_number: np.ndarray,
     peaks_per_line: np.ndarray,
+    *,
+    max_agreement: float = 0.0,
 ) -> int:
     """Unnumber (in place) the shorter line of every pair of column neighbours whose
     intensity ratio contradicts the code at their numbers.
@@ -53,20 +55,43 @@ def refuse_contradicted_pairs(
         ``(L,)`` absolute numbers, -1 when unnumbered; changed in place.
     peaks_per_line : numpy.ndarray
         ``(L,)`` peak count of every line.
+    max_agreement : float
+        When positive, the shorter line is spared where its pair with its *other* column
+        neighbour (judged over five columns or more) departs from the code by less than
+        this (in units of ``lam``), that neighbour is in no contradicting pair and the code
+        confirms it with another neighbour as well: the contradiction is then the
+        longer line's doing or the intensities' (an albedo edge, a shadow), not a piece
+        placed off. 0 refuses the shorter line always.
 
     Returns
     -------
     int
         The number of lines refused.
     """
-    upper, lower, _ = pair_contradictions(
+    upper, lower, columns, departure, bad = pair_judgements(
         data.col, data.area, data.line_id, line_number, raster, lam
     )
-    if upper.size == 0:
+    if not np.any(bad):
         return 0
     # The image cannot tell which of the two is off; the shorter is the piece (a whole line
     # misread as the other kind loses one of its neighbours or itself, never a number).
-    shorter = np.where(peaks_per_line[upper] <= peaks_per_line[lower], upper, lower)
+    bu, bl = upper[bad], lower[bad]
+    short_is_upper = peaks_per_line[bu] <= peaks_per_line[bl]
+    shorter = np.where(short_is_upper, bu, bl)
+    if max_agreement > 0:
+        # Spared: a shorter line that the code confirms on its other side, through a pair
+        # with a neighbour that is in no contradiction itself and that the code confirms on
+        # its own other side too. A block placed off agrees with itself: a confirmation
+        # from inside it is worthless, and its lines beyond show a contradiction.
+        clean = np.ones(line_number.size, dtype=bool)
+        clean[bu] = clean[bl] = False
+        ok = (columns >= 5) & (departure < max_agreement)  # judged as a contradiction is
+        agreeing = np.bincount(upper[ok], minlength=line_number.size)
+        agreeing += np.bincount(lower[ok], minlength=line_number.size)
+        confirmed = np.zeros(line_number.size, dtype=bool)
+        for x, y in ((upper[ok], lower[ok]), (lower[ok], upper[ok])):
+            confirmed[x[clean[y] & (agreeing[y] >= 2)]] = True
+        shorter = shorter[~confirmed[shorter]]
     shorter = np.unique(shorter)
     line_number[shorter] = -1
     return int(shorter.size)

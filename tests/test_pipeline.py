@@ -162,7 +162,7 @@ def test_process_stores_every_stage_with_provenance(archived) -> None:
         assert len(row.params_hash) == len(row.chain_key) == 64
         # numbers.code-window is at version 7, peaks.first-moment at 3, lines.hierarchical
         # at 2 (issue 13), others at 1
-        assert row.params and row.plugin_version in ("1", "2", "3", "8") and row.package_version
+        assert row.params and row.plugin_version in ("1", "2", "3", "9") and row.package_version
         assert row.plugin_package.startswith("rasterserver ")
         assert row.host and row.duration_s > 0 and row.created_at is not None
         assert row.store_path.startswith("derived/")

@@ -331,7 +331,7 @@ def test_uneven_albedo_is_not_read_as_code() -> None:
 
 
 def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -> None:
-    from rasterserver_plugins.line_numbering import _column_order_conflicts
+    from rasterserver_plugins.numbering_checks import column_order_conflicts
 
     # five columns, lines every 8 px numbered 10, 11, 12, 13 where the third line is not
     # numbered (a line left out); in the last two columns the line below the gap carries a
@@ -340,14 +340,14 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
     row = np.tile([100.0, 108.0, 116.0, 124.0], 5)
     number = np.tile([10, 11, -1, 13], 5).astype(np.int32)
     number[[15, 19]] = 14
-    clash = _column_order_conflicts(col, row, number)
+    clash = column_order_conflicts(col, row, number)
     assert clash.tolist() == [False] * 13 + [True, False, True] + [False, True, False, True]
     # the correct columns stay: two spacings, numbers two apart
-    assert not np.any(_column_order_conflicts(col[:12], row[:12], number[:12]))
+    assert not np.any(column_order_conflicts(col[:12], row[:12], number[:12]))
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "8"
+    assert CodeWindowNumbering.version == "9"
 
 
 def test_cloth_pieces_two_levels_off_are_refused_by_their_intensity_ratios() -> None:

@@ -112,14 +112,14 @@ def test_lines_of_the_right_kinds_contradict_nothing() -> None:
 def test_column_order_against_the_gaps_beside_it() -> None:
     """A line's end that took the neighbouring line's peak where lines crowd: numbers two
     apart at one gap of its own column (the cell's mean spacing is wider) are refused."""
-    from rasterserver_plugins.line_numbering import _column_order_conflicts
+    from rasterserver_plugins.numbering_checks import column_order_conflicts
 
     col = np.zeros(5, np.int64)
     row = np.array([100.0, 108.0, 117.0, 123.0, 129.0])  # gaps 8, 9, 6, 6
     number = np.array([10, 11, 12, 14, 15], np.int32)  # 12 is really 13
     wide = np.full(5, 9.0)  # the cell's spacing: 6 px is 0.67 of it, not one spacing
-    clash = _column_order_conflicts(col, row, number, spacing=wide)
+    clash = column_order_conflicts(col, row, number, spacing=wide)
     assert clash.tolist() == [False, False, True, True, False]
     # a line missing in between (two gaps wide) is not refused
     row_ok = np.array([100.0, 108.0, 116.0, 128.0, 134.0])
-    assert not np.any(_column_order_conflicts(col, row_ok, number, spacing=wide))
+    assert not np.any(column_order_conflicts(col, row_ok, number, spacing=wide))

@@ -1,0 +1,84 @@
+"""Lines refused for their intensity ratios with column neighbours, and when they are spared."""
+
+from __future__ import annotations
+
+import numpy as np
+from rasterserver_plugins.numbering_refusals import refuse_contradicted_pairs
+
+from rasterserver.raster import Raster, get_raster
+from rasterserver.records_lines import OrderedLines
+
+LAM = float(np.log(2.0))  # w8-1to2: heavy lines twice as wide as light ones
+
+
+def _stack(
+    extents: list[tuple[int, int]], gains: list[float], raster: Raster, seed: int = 3
+) -> tuple[OrderedLines, np.ndarray]:
+    """Line ``i`` (raster line ``i``, row ``10 i``) over the columns ``extents[i]``, its
+    areas those of its kind times ``gains[i]`` (an albedo edge, a shadow) with 3 % noise;
+    one component, numbered right. Returns the lines and their numbers."""
+    rng = np.random.default_rng(seed)
+    cols, rows, lids, areas = [], [], [], []
+    for i, ((c0, c1), gain) in enumerate(zip(extents, gains, strict=True)):
+        c = np.arange(c0, c1)
+        cols.append(c)
+        rows.append(np.full(c.size, 10.0 * i))
+        lids.append(np.full(c.size, i))
+        kind_area = 200.0 if raster.code[i] else 100.0
+        areas.append(gain * kind_area * (1.0 + 0.03 * rng.standard_normal(c.size)))
+    col, row, lid, area = (np.concatenate(a) for a in (cols, rows, lids, areas))
+    order = np.lexsort((row, col))
+    n = len(extents)
+    line_order = np.arange(n, dtype=np.int32)
+    data = OrderedLines(
+        col=col[order].astype(np.int32),
+        row=row[order],
+        area=area[order].astype(np.float32),
+        height=np.full(col.size, 40.0, np.float32),
+        width=np.full(col.size, 5, np.int16),
+        image_shape=np.array([100, 100]),
+        line_id=lid[order].astype(np.int32),
+        order=line_order[lid[order]],
+        line_order=line_order,
+        line_component=np.zeros(n, np.int32),
+    )
+    return data, raster.numbers[:n].astype(np.int32)
+
+
+def _refused(data: OrderedLines, numbers: np.ndarray, max_agreement: float) -> set[int]:
+    line_number = numbers.copy()
+    per_line = np.bincount(data.line_id, minlength=numbers.size)
+    refuse_contradicted_pairs(
+        data, get_raster("w8-1to2"), LAM, line_number, per_line, max_agreement=max_agreement
+    )
+    return set(np.flatnonzero(line_number < 0).tolist())
+
+
+def test_a_line_confirmed_on_its_other_side_is_spared() -> None:
+    """A long line three times as bright (an albedo edge) above a short right line: their
+    pair contradicts the code. The short line's pair with the line below agrees, and that
+    one agrees with the next: the short line is kept (refused when nothing is spared)."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 40), (0, 20), (0, 40), (0, 40)], [3.0, 1.0, 1.0, 1.0], raster)
+    assert _refused(data, numbers, 0.0) == {1}
+    assert _refused(data, numbers, 0.4) == set()
+
+
+def test_a_confirmation_from_a_doubtful_or_unconfirmed_neighbour_does_not_count() -> None:
+    """The confirming line itself in a contradiction (a block placed off agrees with itself),
+    or confirmed by nothing else (the last line of the frame): the short line is refused."""
+    raster = get_raster("w8-1to2")
+    block, numbers = _stack([(0, 40), (0, 20), (0, 40), (0, 40)], [3.0, 1.0, 1.0, 3.0], raster)
+    assert 1 in _refused(block, numbers, 0.4)
+    last, numbers = _stack([(0, 40), (0, 20), (0, 40)], [3.0, 1.0, 1.0], raster)
+    assert _refused(last, numbers, 0.4) == {1}
+
+
+def test_no_contradiction_refuses_nothing() -> None:
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30)] * 4, [1.0] * 4, raster)
+    assert _refused(data, numbers, 0.0) == set()
+    assert _refused(data, numbers, 0.4) == set()
+    none = np.full(numbers.shape, -1, np.int32)
+    per_line = np.bincount(data.line_id, minlength=4)
+    assert refuse_contradicted_pairs(data, raster, LAM, none, per_line, max_agreement=0.4) == 0
