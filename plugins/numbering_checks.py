@@ -214,7 +214,7 @@ def pair_judgements(
     min_z: float = 3.0,
     min_departure: float = 0.75,
     correlation: float = 4.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every pair of numbered lines, direct column neighbours numbered as consecutive raster
     lines, judged: does their intensity ratio contradict the kinds the code gives them?
 
@@ -248,15 +248,16 @@ def pair_judgements(
     upper, lower, columns : numpy.ndarray
         Every pair's line ids (the upper line, the lower one) and the number of columns
         where they are neighbours.
-    departure : numpy.ndarray
-        How far the pair's ratio departs from the code's, in units of ``lam``.
+    departure, z : numpy.ndarray
+        How far the pair's ratio departs from the code's, in units of ``lam`` and in
+        standard errors of the ratio's centre.
     contradicts : numpy.ndarray
         Bool: the pair contradicts the code (judged over ``min_columns`` columns or more).
     """
     empty = np.zeros(0, dtype=np.int64)
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
-        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
+        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
     # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
     # ~0.3 s, hence here
     from .column_pairs import grouped_pairs, raster_pair_ratios
@@ -270,13 +271,13 @@ def pair_judgements(
     # consecutive raster lines are two lines (a line has one number)
     a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
     if a.size == 0:
-        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
+        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(ratio)
     good = np.isfinite(lr)
     a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
-        return empty, empty, empty, np.zeros(0), np.zeros(0, dtype=bool)
+        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
     b = a + 1
     code = raster.code.astype(np.float64)
     upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
@@ -291,7 +292,7 @@ def pair_judgements(
     departure = np.abs(centre - exp_pair)
     bad = (counts >= min_columns) & (departure >= min_departure * lam) & (departure >= min_z * se)
     span = int(lid.max()) + 1
-    return keys // span, keys % span, counts, departure / lam, bad
+    return keys // span, keys % span, counts, departure / lam, departure / se, bad
 
 
 def pair_contradictions(
@@ -316,7 +317,7 @@ def pair_contradictions(
         The contradicting pairs' line ids (the upper line, the lower one) and the number of
         columns where they are neighbours.
     """
-    upper, lower, columns, _, bad = pair_judgements(
+    upper, lower, columns, _, _, bad = pair_judgements(
         col,
         area,
         line_id,

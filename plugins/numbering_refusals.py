@@ -56,19 +56,20 @@ def refuse_contradicted_pairs(
     peaks_per_line : numpy.ndarray
         ``(L,)`` peak count of every line.
     max_agreement : float
-        When positive, the shorter line is spared where its pair with its *other* column
-        neighbour (judged over five columns or more) departs from the code by less than
-        this (in units of ``lam``), that neighbour is in no contradicting pair and the code
-        confirms it with another neighbour as well: the contradiction is then the
-        longer line's doing or the intensities' (an albedo edge, a shadow), not a piece
-        placed off. 0 refuses the shorter line always.
+        When positive, the shorter line is spared where its pairs with its other column
+        neighbours that agree with the code (judged over five columns or more, departing
+        from it by less than this in units of ``lam`` and by less than three standard
+        errors; the neighbour agreeing with another line as well) span more columns than
+        its contradicting pairs: the contradiction is then the longer line's doing or the
+        intensities' (an albedo edge, a shadow), not a piece placed off. 0 refuses the
+        shorter line always.
 
     Returns
     -------
     int
         The number of lines refused.
     """
-    upper, lower, columns, departure, bad = pair_judgements(
+    upper, lower, columns, departure, z, bad = pair_judgements(
         data.col, data.area, data.line_id, line_number, raster, lam
     )
     if not np.any(bad):
@@ -79,19 +80,21 @@ def refuse_contradicted_pairs(
     short_is_upper = peaks_per_line[bu] <= peaks_per_line[bl]
     shorter = np.where(short_is_upper, bu, bl)
     if max_agreement > 0:
-        # Spared: a shorter line that the code confirms on its other side, through a pair
-        # with a neighbour that is in no contradiction itself and that the code confirms on
-        # its own other side too. A block placed off agrees with itself: a confirmation
-        # from inside it is worthless, and its lines beyond show a contradiction.
-        clean = np.ones(line_number.size, dtype=bool)
-        clean[bu] = clean[bl] = False
-        ok = (columns >= 5) & (departure < max_agreement)  # judged as a contradiction is
-        agreeing = np.bincount(upper[ok], minlength=line_number.size)
-        agreeing += np.bincount(lower[ok], minlength=line_number.size)
-        confirmed = np.zeros(line_number.size, dtype=bool)
+        # Spared: a shorter line that the code confirms on its other side over more
+        # columns than it contradicts it, through neighbours the code confirms on their
+        # own other side too (a lone confirming pair may be a block placed off agreeing
+        # with itself; its lines beyond then show the contradiction).
+        n = line_number.size
+        # judged like a contradiction (five columns or more), close to the code and not
+        # significantly off it (a ratio half a kind off over many columns is no agreement)
+        ok = (columns >= 5) & (departure < max_agreement) & (z < 3.0)
+        agreeing = np.bincount(upper[ok], minlength=n) + np.bincount(lower[ok], minlength=n)
+        support = np.zeros(n)
         for x, y in ((upper[ok], lower[ok]), (lower[ok], upper[ok])):
-            confirmed[x[clean[y] & (agreeing[y] >= 2)]] = True
-        shorter = shorter[~confirmed[shorter]]
+            confirmed = agreeing[y] >= 2
+            np.add.at(support, x[confirmed], columns[ok][confirmed])
+        against = np.bincount(bu, columns[bad], n) + np.bincount(bl, columns[bad], n)
+        shorter = shorter[support[shorter] <= against[shorter]]
     shorter = np.unique(shorter)
     line_number[shorter] = -1
     return int(shorter.size)

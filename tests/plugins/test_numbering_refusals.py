@@ -55,22 +55,31 @@ def _refused(data: OrderedLines, numbers: np.ndarray, max_agreement: float) -> s
 
 
 def test_a_line_confirmed_on_its_other_side_is_spared() -> None:
-    """A long line three times as bright (an albedo edge) above a short right line: their
-    pair contradicts the code. The short line's pair with the line below agrees, and that
-    one agrees with the next: the short line is kept (refused when nothing is spared)."""
+    """A longer line three times as bright (an albedo edge) beside a short right line over
+    10 columns: their pair contradicts the code. The short line's pair with the line below
+    agrees over 30 columns, and that line agrees with the next: the short line is kept
+    (refused when nothing is spared)."""
     raster = get_raster("w8-1to2")
-    data, numbers = _stack([(0, 40), (0, 20), (0, 40), (0, 40)], [3.0, 1.0, 1.0, 1.0], raster)
+    data, numbers = _stack([(20, 60), (0, 30), (0, 60), (0, 60)], [3.0, 1.0, 1.0, 1.0], raster)
     assert _refused(data, numbers, 0.0) == {1}
     assert _refused(data, numbers, 0.4) == set()
 
 
-def test_a_confirmation_from_a_doubtful_or_unconfirmed_neighbour_does_not_count() -> None:
-    """The confirming line itself in a contradiction (a block placed off agrees with itself),
-    or confirmed by nothing else (the last line of the frame): the short line is refused."""
+def test_a_confirmation_over_fewer_columns_than_the_contradiction_does_not_count() -> None:
+    """Contradicted over 30 columns, confirmed over 10: the short line is refused."""
     raster = get_raster("w8-1to2")
-    block, numbers = _stack([(0, 40), (0, 20), (0, 40), (0, 40)], [3.0, 1.0, 1.0, 3.0], raster)
+    data, numbers = _stack([(0, 60), (0, 30), (20, 30), (20, 30)], [3.0, 1.0, 1.0, 1.0], raster)
+    assert 1 in _refused(data, numbers, 0.4)
+
+
+def test_a_confirmation_from_an_unconfirmed_neighbour_does_not_count() -> None:
+    """The confirming line in a contradiction on its other side (a block placed off agrees
+    with itself) or confirmed by nothing else (the last line): the short line is refused."""
+    raster = get_raster("w8-1to2")
+    extents = [(20, 60), (0, 30), (0, 60), (0, 60)]
+    block, numbers = _stack(extents, [3.0, 1.0, 1.0, 3.0], raster)
     assert 1 in _refused(block, numbers, 0.4)
-    last, numbers = _stack([(0, 40), (0, 20), (0, 40)], [3.0, 1.0, 1.0], raster)
+    last, numbers = _stack(extents[:3], [3.0, 1.0, 1.0], raster)
     assert _refused(last, numbers, 0.4) == {1}
 
 
