@@ -302,14 +302,10 @@ def pair_contradictions(
     line_number: np.ndarray,
     raster: Raster,
     lam: float,
-    *,
-    min_columns: int = 5,
-    min_z: float = 3.0,
-    min_departure: float = 0.75,
-    correlation: float = 4.0,
+    **thresholds: Any,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pairs of :func:`pair_judgements` whose intensity ratio contradicts the code
-    (parameters as there).
+    """The pairs of :func:`pair_judgements` (same parameters, ``thresholds`` its keywords)
+    whose intensity ratio contradicts the code.
 
     Returns
     -------
@@ -317,18 +313,8 @@ def pair_contradictions(
         The contradicting pairs' line ids (the upper line, the lower one) and the number of
         columns where they are neighbours.
     """
-    upper, lower, columns, _, _, bad = pair_judgements(
-        col,
-        area,
-        line_id,
-        line_number,
-        raster,
-        lam,
-        min_columns=min_columns,
-        min_z=min_z,
-        min_departure=min_departure,
-        correlation=correlation,
-    )
+    judged = pair_judgements(col, area, line_id, line_number, raster, lam, **thresholds)
+    upper, lower, columns, bad = judged[0], judged[1], judged[2], judged[5]
     return upper[bad], lower[bad], columns[bad]
 
 
