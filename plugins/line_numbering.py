@@ -79,7 +79,7 @@ def number_lines(
     station: Any = None,
     max_depth: float = 600.0,
     pair_check: bool = True,
-    pair_agreement: float = 0.0,
+    pair_agreement: float = 0.4,
     min_contact_share: float = 0.2,
     tile_check: bool = True,
     tile_band: int = 64,
@@ -520,7 +520,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     ``n + 1 .. n + m`` (:func:`.bracketed_peaks.fill_brackets`): line fragments in
     hair and peaks refused for their line's doing, whose column settles the number.
     Version 9: the shorter line of a pair contradicting the code is kept where the code
-    confirms it with its other neighbour, itself clean and confirmed on its other side
+    confirms it with its other neighbours over more columns than it contradicts it
     (``pair_agreement``; :func:`.numbering_refusals.refuse_contradicted_pairs`).
     """
 

@@ -62,9 +62,9 @@ class CodeWindowParams(StageParams):
     pair_agreement: float = Field(
         0.4,
         ge=0.0,
-        description="Spare the shorter line of a pair contradicting the code where its pair "
-        "with its other column neighbour departs from the code by less than this (in units "
-        "of the log heavy/light ratio); 0 always refuses it.",
+        description="Spare the shorter line of a pair contradicting the code where its pairs "
+        "with its other column neighbours agree with the code (depart by less than this, in "
+        "units of the log heavy/light ratio) over more columns; 0 always refuses it.",
     )
     tile_check: bool = Field(
         True,
