@@ -8,7 +8,8 @@ The seed's method, over the whole frame at once:
    plateau belongs to the flank it continues); its pixels run from the nearest minimum on
    its left to the nearest minimum on its right (column ends count as minima), found for
    all maxima at once by a binary search in the sorted minima;
-3. the peak is kept when its rise and fall are high enough (``min_height``) and steep enough
+3. the peak is kept when its rise and fall are high enough (``min_height``, raised to
+   ``noise_factor`` times the frame's pixel noise when that is more) and steep enough
    (``min_slope``: the height over the number of pixels above the bias on each flank, which
    rejects broad shading humps but keeps the broad dim lines of inclined skin);
 4. a bias is subtracted: the larger of the two bounding minima, raised by ``bias_fraction``
@@ -33,6 +34,8 @@ from pydantic import Field
 from rasterserver.records import Image
 from rasterserver.records_lines import Peaks
 from rasterserver.stage import Stage, StageContext, StageParams
+
+from .image_noise import noise_level
 
 __all__ = ["FirstMomentPeaks", "PeakArrays", "detect_peaks"]
 
@@ -81,19 +84,20 @@ def _empty() -> PeakArrays:
 def detect_peaks(
     image: np.ndarray,
     *,
-    min_height: float = 5.0,
-    min_slope: float = 2.5,
+    min_height: float = 3.0,
+    min_slope: float = 2.0,
     bias: BiasMode = "max-minimum",
     bias_fraction: float = 0.1,
     min_width: int = 2,
     max_width: int = 25,
     smooth: bool = True,
     trust: bool = True,
-    min_trust_height: float = 6.0,
+    min_trust_height: float = 3.0,
     max_base_step: float = 0.4,
     max_flank_asymmetry: int = 1,
     clip_level: float | None = None,
     narrow: bool = True,
+    noise_factor: float = 3.5,
 ) -> PeakArrays:
     """Find the raster-line peaks in every column of ``image``.
 
@@ -137,6 +141,11 @@ def detect_peaks(
         Keep peaks narrower than ``min_width`` above the bias (lines sharper than a pixel),
         located by the centroid of the maximum and its two neighbours above the bounding
         minima; otherwise they are not found.
+    noise_factor : float
+        Raise ``min_height`` and ``min_trust_height`` to this many times the frame's pixel
+        noise (:func:`~rasterserver_plugins.image_noise.noise_level`) where that is more:
+        the heights are then floors for a quiet camera, and a noisy one does not fill the
+        dark background with peaks. 0 uses the heights as given.
 
     Returns
     -------
@@ -149,6 +158,10 @@ def detect_peaks(
     h, w = img.shape
     if h < 3 or w < 1:
         return _empty()
+    if noise_factor > 0:
+        floor = noise_factor * noise_level(img)
+        min_height = max(min_height, floor)
+        min_trust_height = max(min_trust_height, floor)
     # Columns as contiguous rows of the transposed image: every pass below then streams
     # through memory, and a flat index walks column by column.
     if clip_level is None and img.dtype.kind in "iu":
@@ -254,20 +267,27 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
     Version 3: lines sharper than a pixel (one pixel above the bias) are kept, located by
     the centroid of three pixels above the bounding minima (``narrow``); bounding minima may
     differ by 0.4 of the height (was 0.3).
+    Version 4: the heights are floors for a quiet camera, raised to ``noise_factor`` times
+    the frame's own pixel noise (:mod:`~rasterserver_plugins.image_noise`): least height
+    3 DN (was a fixed 5), least trusted height 3 DN (was 6), least flank slope 2 DN/px
+    (was 2.5). The dim lines of dark scenes and light lines of a 1:2 code are found, and a
+    noisy camera (3 DN rms) no longer fills the background with peaks.
     """
 
     name: ClassVar[str] = "peaks.first-moment"
     stage: ClassVar[str] = "peaks"
-    version: ClassVar[str] = "3"
+    version: ClassVar[str] = "4"
     input_type = Image
     output_type = Peaks
 
     class Params(StageParams):
         """Parameters of :class:`FirstMomentPeaks` (grey values in DN of the input)."""
 
-        min_height: float = Field(5.0, ge=0, description="Least rise and fall of a peak (DN).")
+        min_height: float = Field(
+            3.0, ge=0, description="Least rise and fall of a peak (DN; see noise_factor)."
+        )
         min_slope: float = Field(
-            2.5, ge=0, description="Least mean slope of each flank above the bias (DN/px)."
+            2.0, ge=0, description="Least mean slope of each flank above the bias (DN/px)."
         )
         bias: BiasMode = Field(
             "max-minimum", description="Base subtracted: larger/smaller bounding minimum or 0."
@@ -282,7 +302,7 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
         smooth: bool = Field(True, description="Find extrema on [1, 2, 1]-smoothed columns.")
         trust: bool = Field(True, description="Drop peaks whose location cannot be trusted.")
         min_trust_height: float = Field(
-            6.0, ge=0, description="Least height above the bias of a trusted peak (DN)."
+            3.0, ge=0, description="Least height above the bias of a trusted peak (DN)."
         )
         max_base_step: float = Field(
             0.4, ge=0, description="Largest difference of the bounding minima / height."
@@ -295,6 +315,11 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
         )
         narrow: bool = Field(
             True, description="Keep lines sharper than a pixel (3-pixel centroid)."
+        )
+        noise_factor: float = Field(
+            3.5,
+            ge=0,
+            description="Heights at least this many times the frame's pixel noise (0: off).",
         )
 
     def run(self, data: Image, params: Params, context: StageContext) -> Peaks:
@@ -315,5 +340,6 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
             max_flank_asymmetry=params.max_flank_asymmetry,
             clip_level=params.clip_level,
             narrow=params.narrow,
+            noise_factor=params.noise_factor,
         )
         return found.to_record((int(pixels.shape[0]), int(pixels.shape[1])))

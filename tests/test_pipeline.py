@@ -160,9 +160,10 @@ def test_process_stores_every_stage_with_provenance(archived) -> None:
         assert row.run_id == runs[0].id
         assert row.parent_id == (previous.id if previous else None)
         assert len(row.params_hash) == len(row.chain_key) == 64
-        # numbers.code-window is at version 7, peaks.first-moment at 3, lines.hierarchical
-        # at 2 (issue 13), others at 1
-        assert row.params and row.plugin_version in ("1", "2", "3", "9") and row.package_version
+        # numbers.code-window is at version 9, peaks.first-moment at 4, lines.hierarchical
+        # at 2, analysis.back-shape at 3, others at 1
+        assert row.params and row.plugin_version in ("1", "2", "3", "4", "9")
+        assert row.package_version
         assert row.plugin_package.startswith("rasterserver ")
         assert row.host and row.duration_s > 0 and row.created_at is not None
         assert row.store_path.startswith("derived/")
@@ -347,9 +348,15 @@ def test_verify_explains_every_derived_file(archived) -> None:
     computation = pipeline.compute(plan)
     step = plan.steps[-1]
     pipeline.derived.write(
-        uid, computation.records["points"], stage="points", plugin=step.plugin,
-        plugin_version=step.version, params=step.params, params_hash=step.params_hash,
-        chain_key=plan.keys[-1], input_checksum=plan.input_checksum,
+        uid,
+        computation.records["points"],
+        stage="points",
+        plugin=step.plugin,
+        plugin_version=step.version,
+        params=step.params,
+        params_hash=step.params_hash,
+        chain_key=plan.keys[-1],
+        input_checksum=plan.input_checksum,
     )
     assert [r.stage for r in rows[:4]] == ["peaks", "lines", "order", "numbers"]
     (root / rows[0].store_path).unlink()

@@ -159,10 +159,48 @@ def test_degenerate_images_give_no_peaks(pixels: np.ndarray) -> None:
     assert tuple(peaks.image_shape) == pixels.shape
 
 
-def test_pure_noise_gives_few_peaks() -> None:
+@pytest.mark.parametrize("sigma", [1.0, 1.5, 2.0, 3.0, 6.0])
+def test_pure_noise_gives_few_peaks(sigma: float) -> None:
+    # the heights rise with the frame's noise: a noisier camera finds no more false peaks
     rng = np.random.default_rng(7)
-    pixels = np.clip(rng.normal(20.0, 1.5, (604, 576)), 0, 255).astype(np.uint8)
+    pixels = np.clip(rng.normal(40.0, sigma, (604, 576)), 0, 255).astype(np.uint8)
     assert _run(pixels).n_peaks < 10
+
+
+# version 3's fixed heights, for comparison
+_VERSION_3 = {"min_height": 5.0, "min_trust_height": 6.0, "min_slope": 2.5, "noise_factor": 0.0}
+
+
+def test_noisy_frame_needed_fixed_heights_higher() -> None:
+    # version 3's fixed 5 DN let a noisy camera's background through; version 4 does not
+    rng = np.random.default_rng(7)
+    pixels = np.clip(rng.normal(40.0, 3.0, (604, 576)), 0, 255).astype(np.uint8)
+    assert _run(pixels, **_VERSION_3).n_peaks > 1000
+    assert _run(pixels).n_peaks == 0
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.5])
+def test_dim_lines_of_a_quiet_camera_are_found_and_kept(noise: float) -> None:
+    # lines 8 DN high: below version 3's fixed heights, above a quiet camera's noise
+    image, cols, rows = synthetic_lines(
+        sigma=1.2, amplitude=8.0, background=20.0, noise=noise, seed=3
+    )
+    old = _run(image, **_VERSION_3)
+    new = _run(image)
+    assert new.n_peaks > 2 * old.n_peaks
+    assert new.n_peaks >= (1.0 if noise == 0 else 0.7) * rows.size
+    # every peak found is a line's (no false peak), and located to a tenth of a pixel
+    truth = {c: rows[cols == c] for c in np.unique(cols)}
+    off = [np.min(np.abs(truth[c] - r)) for c, r in zip(new.col, new.row, strict=True)]
+    assert max(off) < 1.0
+    assert np.sqrt(np.mean(np.square(off))) < (0.05 if noise == 0 else 0.15)
+
+
+def test_noise_factor_zero_uses_the_heights_as_given() -> None:
+    image, _cols, _rows = synthetic_lines(sigma=1.2, amplitude=8.0, background=20.0, noise=2.0)
+    floor = detect_peaks(image, min_height=3.0, min_trust_height=3.0, noise_factor=0.0)
+    scaled = detect_peaks(image, min_height=3.0, min_trust_height=3.0, noise_factor=3.5)
+    assert floor.col.size + floor.dropped > scaled.col.size + scaled.dropped
 
 
 def test_one_column_image_with_lines() -> None:
