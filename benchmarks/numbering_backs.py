@@ -101,16 +101,16 @@ def run_back(seed: int) -> dict[str, Any]:
     ctx = StageContext(raster=station.raster_definition)
     times = []
     t = time.perf_counter()
-    peaks = run_stage(FirstMomentPeaks, Image(rendering.image))
+    peaks = run_stage(FirstMomentPeaks, Image(rendering.image), params=_PARAMS.get("peaks"))
     times.append(time.perf_counter() - t)
     t = time.perf_counter()
-    lines = run_stage(HierarchicalLineSearch, peaks)
+    lines = run_stage(HierarchicalLineSearch, peaks, params=_PARAMS.get("lines"))
     times.append(time.perf_counter() - t)
     t = time.perf_counter()
-    ordered = run_stage(HierarchicalLineOrder, lines)
+    ordered = run_stage(HierarchicalLineOrder, lines, params=_PARAMS.get("order"))
     times.append(time.perf_counter() - t)
     t = time.perf_counter()
-    result = run_stage(CodeWindowNumbering, ordered, context=ctx)
+    result = run_stage(CodeWindowNumbering, ordered, params=_PARAMS.get("numbers"), context=ctx)
     times.append(time.perf_counter() - t)
 
     lr = rendering.line_rows
@@ -156,6 +156,15 @@ def run_back(seed: int) -> dict[str, Any]:
     }
 
 
+# per-stage parameters (``--params``), to compare a plugin's settings on the same backs
+_PARAMS: dict[str, dict[str, Any]] = {}
+
+
+def _init(params: dict[str, dict[str, Any]] | None) -> None:
+    global _PARAMS
+    _PARAMS = params or {}
+
+
 def _safe(seed: int) -> dict[str, Any]:
     try:
         return run_back(seed)
@@ -196,6 +205,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/numbering.jsonl"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
+    ap.add_argument(
+        "--params",
+        default=None,
+        help='stage parameters, JSON: {"peaks": {...}, "numbers": {...}} (default: installed)',
+    )
     args = ap.parse_args(argv)
     if args.summary is not None:
         print(json.dumps(summary(args.summary), indent=2))
@@ -208,7 +222,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(done)} backs done, {len(todo)} to go", flush=True)
     start = time.time()
     with (
-        mp.get_context("spawn").Pool(args.workers, maxtasksperchild=50) as pool,
+        mp.get_context("spawn").Pool(
+            args.workers,
+            initializer=_init,
+            initargs=(json.loads(args.params) if args.params else None,),
+            maxtasksperchild=50,
+        ) as pool,
         args.out.open("a") as fh,
     ):
         for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):

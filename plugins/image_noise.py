@@ -22,7 +22,7 @@ _KEPT_RMS = 0.789
 _KEEP = 0.9
 
 
-def noise_level(image: np.ndarray, *, row_step: int = 4) -> float:
+def noise_level(image: np.ndarray, *, row_step: int = 8) -> float:
     """Robust standard deviation of the pixel noise of ``image`` (grey values).
 
     Parameters
