@@ -277,3 +277,10 @@ def test_line_in_one_pixel_above_the_bias_is_found_only_with_narrow() -> None:
 def test_line_entirely_inside_one_pixel_is_not_told_from_a_hot_pixel() -> None:
     pixels = np.repeat(_sharp_column(20.0, sigma=0.05), 3, axis=1)
     assert detect_peaks(pixels).col.size == 0
+
+
+def test_version_4_defaults() -> None:
+    # results of version 3 in an archive are told from version 4's by the version
+    assert FirstMomentPeaks.version == "4"
+    p = FirstMomentPeaks.Params()
+    assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 3.5)
