@@ -31,6 +31,8 @@ from rasterserver.commands import COMMANDS, command_module
 from rasterserver.commands.light_params import lighten
 from rasterserver.config import Settings
 from rasterserver.errors import InputError, RasterServerError, UnavailableError
+from rasterserver.interrupts import install as install_interrupt_handler
+from rasterserver.interrupts import interrupted
 
 log = logging.getLogger(__name__)
 
@@ -237,15 +239,15 @@ def main(argv: list[str] | None = None) -> int:
         app(args=argv, prog_name="rasterserver", standalone_mode=True)
     except SystemExit as exc:
         if exc.code is None or isinstance(exc.code, int):
-            return exc.code or 0
+            # Ctrl-C whose KeyboardInterrupt a finaliser swallowed still ends with 130
+            return exc.code or (_interrupted() if interrupted() else 0)
         typer.echo(str(exc.code), err=True)
         return 1
     except RasterServerError as exc:
         typer.echo(f"error: {exc}", err=True)
         return exc.exit_code
     except KeyboardInterrupt:
-        typer.echo("interrupted", err=True)
-        return 130  # the shell's code for a command stopped by Ctrl-C (SIGINT)
+        return _interrupted()
     except Exception as exc:
         # No traceback reaches a user: what the environment refused gets its sentence and
         # code; anything else is a bug, said as such (the traceback with --verbose).
@@ -261,6 +263,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 1
     return 0
+
+
+def _interrupted() -> int:
+    typer.echo("interrupted", err=True)
+    return 130  # the shell's code for a command stopped by Ctrl-C (SIGINT)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -298,4 +305,5 @@ def _environment_error(exc: Exception) -> RasterServerError | None:
 
 def run() -> None:
     """Console-script entry point."""
+    install_interrupt_handler()
     sys.exit(main())

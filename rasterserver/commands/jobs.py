@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from rasterserver.commands.common import open_archive
+from rasterserver.interrupts import raise_if_interrupted
 
 if TYPE_CHECKING:
     from rasterserver.processing_jobs import JobStatus
@@ -58,12 +59,13 @@ def job_progress(*, enabled: bool = True) -> Iterator[Callable[[JobStatus], None
     moving without a line per acquisition.
     """
     if not enabled:
-        yield lambda _status: None
+        yield lambda _status: raise_if_interrupted()
         return
     if not sys.stderr.isatty():
         last = [time.monotonic()]
 
         def line(status: JobStatus) -> None:
+            raise_if_interrupted()  # a Ctrl-C swallowed in a finaliser stops the job here
             if time.monotonic() - last[0] >= LINE_EVERY_S:
                 last[0] = time.monotonic()
                 typer.echo(_progress_text(status), err=True)
@@ -75,6 +77,7 @@ def job_progress(*, enabled: bool = True) -> Iterator[Callable[[JobStatus], None
     with rich_bar("processing") as (bar, task):
 
         def update(status: JobStatus) -> None:
+            raise_if_interrupted()
             job = status.job
             bar.update(
                 task, completed=job.done + job.failed, total=job.total,

@@ -14,6 +14,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from rasterserver.interrupts import raise_if_interrupted
+
 __all__ = ["duration", "progress_bar", "rich_bar"]
 
 
@@ -70,15 +72,18 @@ def progress_bar(
     Yields
     ------
     callable
-        ``progress(done, total)``; a no-op when stderr is not a terminal or not enabled.
+        ``progress(done, total)``; draws nothing when stderr is not a terminal or not
+        enabled. Either way it raises ``KeyboardInterrupt`` once Ctrl-C came
+        (:func:`~rasterserver.interrupts.raise_if_interrupted`).
     """
     if not enabled or not sys.stderr.isatty():
-        yield lambda _done, _total: None
+        yield lambda _done, _total: raise_if_interrupted()
         return
     with rich_bar(description) as (bar, task):
         started = time.monotonic()
 
         def update(done: int, total: int) -> None:
+            raise_if_interrupted()  # a Ctrl-C swallowed in a finaliser stops the work here
             # the mean rate since the start: steadier than a moving window for uneven items
             spent = time.monotonic() - started
             rate = done / spent if done and spent > 0 else None

@@ -17,6 +17,7 @@ from typing import Annotated, Any
 import typer
 
 from rasterserver.errors import InputError
+from rasterserver.interrupts import raise_if_interrupted
 
 # NumPy, the simulator and the output files (through the store package: HDF5) are imported by
 # the commands that use them, so that every other command starts without them.
@@ -81,6 +82,7 @@ _Truth = Annotated[
 
 
 def _echo_progress(text: str) -> None:
+    raise_if_interrupted()  # a Ctrl-C swallowed in a finaliser stops the work here
     typer.echo(text, err=True)
 
 
