@@ -19,7 +19,7 @@ import numpy as np
 
 from rasterserver.compiled import kernel
 
-__all__ = ["beside_flags", "doubtful_counts", "island_flags", "stranded_flags"]
+__all__ = ["beside_flags", "doubtful_counts", "end_flags", "island_flags", "stranded_flags"]
 
 
 @kernel()
@@ -243,4 +243,75 @@ def stranded_flags(
             for j in range(first, last + 1):
                 out[order[j]] = True
         k += 1
+    return out
+
+
+@kernel()
+def end_flags(
+    order: np.ndarray,
+    line: np.ndarray,
+    number: np.ndarray,
+    height: np.ndarray,
+    min_refused: int,
+    margin: int,
+    dim_ratio: float,
+    inner: int,
+) -> np.ndarray:
+    """Numbered peaks at either end of a line's numbered peaks that the ends' evidence
+    leaves in doubt (:func:`.peak_checks.line_ends`).
+
+    Parameters
+    ----------
+    order : numpy.ndarray
+        int64 indices of the peaks in lines, line by line, each in column order.
+    line : numpy.ndarray
+        int64 line of each peak of ``order`` (in that order).
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered (indexed by peak).
+    height : numpy.ndarray
+        float64 height of every peak (indexed by peak).
+    min_refused, margin : int
+        Beyond at least ``min_refused`` unnumbered peaks of the line, its first ``margin``
+        numbered peaks are flagged (0: none).
+    dim_ratio : float
+        The end peak lower than this share of the mean height of the ``inner`` numbered
+        peaks next to it is flagged (0: none).
+    inner : int
+        Numbered peaks the end peak is compared with; a line with fewer numbered peaks
+        besides the end one is not judged on its height.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, one per peak (``number``'s length).
+    """
+    out = np.zeros(number.shape[0], dtype=np.bool_)
+    m = order.shape[0]
+    start = 0
+    while start < m:
+        stop = start
+        while stop + 1 < m and line[stop + 1] == line[start]:
+            stop += 1
+        # the line's numbered peaks, in column order, as positions in ``order``
+        kept = np.empty(stop - start + 1, dtype=np.int64)
+        k = 0
+        for j in range(start, stop + 1):
+            if number[order[j]] >= 0:
+                kept[k] = j
+                k += 1
+        for side in range(2):
+            if k == 0:
+                break
+            end = kept[0] if side == 0 else kept[k - 1]
+            beyond = end - start if side == 0 else stop - end
+            if margin > 0 and beyond >= min_refused:
+                for t in range(min(margin, k)):
+                    out[order[kept[t] if side == 0 else kept[k - 1 - t]]] = True
+            if dim_ratio > 0 and k > inner:
+                total = 0.0
+                for t in range(1, inner + 1):
+                    total += height[order[kept[t] if side == 0 else kept[k - 1 - t]]]
+                if height[order[end]] < dim_ratio * total / inner:
+                    out[order[end]] = True
+        start = stop + 1
     return out

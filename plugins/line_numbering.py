@@ -31,7 +31,6 @@ from rasterserver.raster import Raster
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import Stage, StageContext
 
-from .bracketed_peaks import fill_brackets
 from .code_evidence import (
     EXPLAINS_TOO_LITTLE,
     CodeFit,
@@ -51,7 +50,13 @@ from .numbering_checks import (
     plausible_distance,
 )
 from .numbering_params import CodeWindowParams
-from .numbering_refusals import refusal, refuse_contradicted_pairs, refuse_peaks, summarise
+from .numbering_refusals import (
+    refusal,
+    refuse_contradicted_pairs,
+    refuse_peaks,
+    settle_last,
+    summarise,
+)
 
 __all__ = [
     "CodeWindowNumbering",
@@ -522,11 +527,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Version 9: the shorter line of a pair contradicting the code is kept where the code
     confirms it with its other neighbours over more columns than it contradicts it
     (``pair_agreement``; :func:`.numbering_refusals.refuse_contradicted_pairs`).
+    Version 10: doubtful line ends are refused (:func:`.peak_checks.line_ends`), a line
+    running off the trunk or an arm onto a cloth that shows the next line at the same row.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "9"
+    version: ClassVar[str] = "10"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -599,12 +606,9 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_run=params.min_run,
             spacing=spacing,
         )
-        if params.bracket_run > 0:
-            # the spacing of the numbers before the refusals: the geometry they measured
-            number, note = fill_brackets(
-                data.col, data.row, number, spacing, params.bracket_run, params.bracket_tolerance
-            )
-            notes += [note] if note else []
+        # the spacing of the numbers before the refusals: the geometry they measured
+        number, last = settle_last(data.col, data.row, lid, data.height, number, spacing, params)
+        notes += last
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(
             data,

@@ -112,6 +112,25 @@ class CodeWindowParams(StageParams):
         description="Refuse runs of fewer numbered peaks of a line cut off by its refused "
         "peaks (0: keep them).",
     )
+    end_margin: int = Field(
+        3,
+        ge=0,
+        description="Refuse the first this many numbered peaks of a line beyond "
+        "end_refused or more of its unnumbered peaks (0: keep them; version 9: 0).",
+    )
+    end_refused: int = Field(
+        6,
+        ge=1,
+        description="Unnumbered peaks of a line beyond its numbered ones that make the "
+        "end_margin peaks next to them doubtful.",
+    )
+    end_dim: float = Field(
+        0.3,
+        ge=0,
+        lt=1,
+        description="Refuse a line's end peak lower than this share of the mean height of "
+        "its next six numbered peaks (0: keep it; version 9: 0).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

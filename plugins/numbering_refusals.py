@@ -13,17 +13,27 @@ import numpy as np
 from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
+from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering
 from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
+from .numbering_params import CodeWindowParams
 from .peak_checks import (
     beside_doubtful,
     column_islands,
     isolated_peaks,
+    line_ends,
     line_jumps,
     stranded_runs,
 )
 
-__all__ = ["refusal", "refuse_contradicted_pairs", "refuse_peaks", "summarise"]
+__all__ = [
+    "refusal",
+    "refuse_contradicted_pairs",
+    "refuse_ends",
+    "refuse_peaks",
+    "settle_last",
+    "summarise",
+]
 
 
 def refusal(count: int, reason: str) -> ComponentNumbering:
@@ -267,3 +277,95 @@ def refuse_peaks(
             "peaks",
         )
     return number, notes
+
+
+def refuse_ends(
+    line_id: np.ndarray,
+    number: np.ndarray,
+    height: np.ndarray,
+    *,
+    end_refused: int = 6,
+    end_margin: int = 0,
+    end_dim: float = 0.0,
+) -> tuple[np.ndarray, str]:
+    """The doubtful ends of the lines' numbered peaks refused (:func:`.peak_checks.line_ends`),
+    and the note for the numbering's reason.
+
+    Judged last, after the bracketed peaks are numbered: a peak that is the end of its
+    line's numbered peaks only then is judged as one, and the column count of the brackets
+    does not number again a peak whose surface is in doubt.
+
+    Parameters
+    ----------
+    line_id, number : numpy.ndarray
+        Line and absolute number (-1: unnumbered) of every peak, sorted by ``(col, row)``.
+    height : numpy.ndarray
+        Height of every peak.
+    end_refused, end_margin : int
+        Beyond ``end_refused`` or more unnumbered peaks of a line, its first ``end_margin``
+        numbered peaks are refused (0: none).
+    end_dim : float
+        A line's end peak lower than this share of its next six numbered peaks' mean
+        height is refused (0: none).
+
+    Returns
+    -------
+    number : numpy.ndarray
+        ``(N,)`` int32, the refused peaks set to -1.
+    note : str
+        "N peak(s) ... left unnumbered", or "" when none was.
+    """
+    number = np.asarray(number, dtype=np.int32)
+    ends = line_ends(
+        line_id, number, height, min_refused=end_refused, margin=end_margin, dim_ratio=end_dim
+    )
+    if not np.any(ends):
+        return number, ""
+    return np.where(ends, -1, number).astype(np.int32), (
+        f"{int(ends.sum())} peak(s) at a line's end beyond its refused peaks or dimmer than "
+        "the line (the end may run onto another surface) left unnumbered"
+    )
+
+
+def settle_last(
+    col: np.ndarray,
+    row: np.ndarray,
+    line_id: np.ndarray,
+    height: np.ndarray,
+    number: np.ndarray,
+    spacing: np.ndarray | None,
+    params: CodeWindowParams,
+) -> tuple[np.ndarray, list[str]]:
+    """The last steps after the peak checks: bracketed peaks numbered
+    (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
+    (:func:`refuse_ends`); the notes of those that changed anything.
+
+    Parameters
+    ----------
+    col, row, line_id, height : numpy.ndarray
+        The peaks, sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number after the peak checks, -1 when unnumbered.
+    spacing : numpy.ndarray or None
+        Per-peak local line spacing of the numbers before the peak checks.
+    params : CodeWindowParams
+        ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
+        ``end_dim``.
+
+    Returns
+    -------
+    number : numpy.ndarray
+        ``(N,)`` int32.
+    notes : list of str
+    """
+    notes: list[str] = []
+    if params.bracket_run > 0:
+        number, note = fill_brackets(
+            col, row, number, spacing, params.bracket_run, params.bracket_tolerance
+        )
+        notes += [note] if note else []
+    number, note = refuse_ends(
+        line_id, number, height, end_refused=params.end_refused,
+        end_margin=params.end_margin, end_dim=params.end_dim,
+    )  # fmt: skip
+    return number, notes + ([note] if note else [])

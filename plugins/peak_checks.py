@@ -4,8 +4,9 @@ Line numbering decides numbers by component and by line; these checks then judge
 peaks where the image speaks against their line's number locally: a line that jumps onto
 its neighbour (:func:`line_jumps`), a peak nothing in its column confirms
 (:func:`isolated_peaks`), a peak directly beside a doubtful one with no gap between
-(:func:`beside_doubtful`), and what the others leave of a line between refused peaks
-(:func:`stranded_runs`). :func:`.numbering_refusals.refuse_peaks` runs them in order.
+(:func:`beside_doubtful`), what the others leave of a line between refused peaks
+(:func:`stranded_runs`) and a line's end run onto another surface (:func:`line_ends`).
+:func:`.numbering_refusals.refuse_peaks` runs them in order.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ __all__ = [
     "column_islands",
     "doubtful_share",
     "isolated_peaks",
+    "line_ends",
     "line_jumps",
     "stranded_runs",
 ]
@@ -321,3 +323,69 @@ def stranded_runs(line_id: np.ndarray, number: np.ndarray, min_run: int) -> np.n
 
     order = idx[by_line(lid[idx])]  # line by line, each in column order
     return stranded_flags(order.astype(np.int64), lid[order], number, int(min_run))
+
+
+def line_ends(
+    line_id: np.ndarray,
+    number: np.ndarray,
+    height: np.ndarray,
+    *,
+    min_refused: int = 6,
+    margin: int = 3,
+    dim_ratio: float = 0.3,
+    inner: int = 6,
+) -> np.ndarray:
+    """Numbered peaks at the ends of a line's numbered peaks that the end leaves in doubt.
+
+    Two kinds of end, both where a line runs off one surface onto another (on the clinic
+    tuning scenes: a line's end crossing a cloth's side edge or the edge of an arm, where
+    the next surface shows the next raster line at the same row):
+
+    - beyond at least ``min_refused`` refused (or otherwise unnumbered) peaks of the line,
+      its first ``margin`` numbered peaks: the checks that refused the end place the change
+      of surface to a few columns only, and nothing but the line's continuity carries the
+      number of the peaks next to it;
+    - the end peak, when lower than ``dim_ratio`` of the mean height of the ``inner``
+      numbered peaks next to it: a line dims gradually where its surface turns away, so a
+      sudden drop in its last column is a peak of another surface (or a pixel shared with
+      it).
+
+    Parameters
+    ----------
+    line_id : numpy.ndarray
+        Line of every peak (-1: none), peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    height : numpy.ndarray
+        Height of every peak.
+    min_refused, margin : int
+        Unnumbered peaks beyond an end that make its first ``margin`` numbered peaks
+        doubtful (``margin`` 0: none).
+    dim_ratio : float
+        Share of the inner peaks' mean height below which the end peak is doubtful (0:
+        none).
+    inner : int
+        Numbered peaks the end peak is compared with.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool, True for the refused peaks.
+    """
+    lid = line_id.astype(np.int64)
+    idx = np.flatnonzero(lid >= 0)
+    if idx.size == 0 or (margin <= 0 and dim_ratio <= 0):
+        return np.zeros(line_id.size, dtype=bool)
+    from .check_scans import end_flags  # compiled; the numba import costs ~0.3 s
+
+    order = idx[by_line(lid[idx])]  # line by line, each in column order
+    return end_flags(
+        order.astype(np.int64),
+        lid[order],
+        number,
+        np.asarray(height, dtype=np.float64),
+        int(min_refused),
+        int(margin),
+        float(dim_ratio),
+        int(inner),
+    )

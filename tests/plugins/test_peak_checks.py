@@ -182,3 +182,71 @@ def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
     empty = np.zeros(0, np.int32)
     assert stranded_runs(empty, empty, 6).size == 0
     assert not np.any(stranded_runs(np.full(3, -1, np.int32), np.full(3, 5, np.int32), 6))
+
+
+def _ends_reference(line, number, height, min_refused, margin, dim_ratio, inner=6):  # type: ignore[no-untyped-def]
+    """Line by line in plain Python: what :func:`line_ends` must flag."""
+    out = np.zeros(line.size, dtype=bool)
+    for k in set(line[line >= 0].tolist()):
+        peaks = np.flatnonzero(line == k)  # column order: the peaks are sorted by column
+        kept = peaks[number[peaks] >= 0]
+        if kept.size == 0:
+            continue
+        for ends, beyond in (
+            (kept, np.flatnonzero(peaks == kept[0])[0]),
+            (kept[::-1], peaks.size - 1 - np.flatnonzero(peaks == kept[-1])[0]),
+        ):
+            if margin > 0 and beyond >= min_refused:
+                out[ends[:margin]] = True
+            inner_mean = height[ends[1 : inner + 1]].mean() if kept.size > inner else 0.0
+            if dim_ratio > 0 and height[ends[0]] < dim_ratio * inner_mean:
+                out[ends[0]] = True
+    return out
+
+
+def test_line_ends_beyond_refused_peaks_and_dim_end_peaks_are_refused() -> None:
+    """Beyond six refused peaks, a line's first three numbered peaks go (the change of
+    surface the refusals mark is placed to a few columns only); a line's last peak at a
+    fifth of its line's height goes (a peak of the next surface, past an arm's edge); a
+    line refused over fewer peaks, or dimming gradually, keeps its ends."""
+    from rasterserver_plugins.peak_checks import line_ends
+
+    # line 0: 6 refused + 20 numbered; line 1: 5 refused + 20 numbered; line 2: 20
+    # numbered, the last at a fifth of the height; line 3: 20 numbered dimming gradually
+    n = 26 + 25 + 20 + 20
+    line = np.r_[np.zeros(26), np.ones(25), np.full(20, 2), np.full(20, 3)].astype(np.int32)
+    number = np.r_[[-1] * 6, [7] * 20, [-1] * 5, [8] * 20, [9] * 20, [10] * 20].astype(np.int32)
+    height = np.full(n, 50.0)
+    height[51 + 19] = 10.0
+    height[71:91] = np.linspace(50.0, 20.0, 20)
+    refused = line_ends(line, number, height, min_refused=6, margin=3, dim_ratio=0.3)
+    assert np.flatnonzero(refused).tolist() == [6, 7, 8, 70]
+    assert not np.any(line_ends(line, number, height, margin=0, dim_ratio=0.0))
+    # the margin at both ends, and every combination against the plain reference
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        m = 300
+        line = np.sort(rng.integers(-1, 12, m)).astype(np.int32)
+        line = line[rng.permutation(m)]
+        number = np.where(rng.random(m) < 0.7, 5, -1).astype(np.int32)
+        height = rng.uniform(1.0, 60.0, m)
+        for args in ((6, 3, 0.3), (1, 1, 0.0), (3, 5, 0.9), (2, 0, 0.5)):
+            assert np.array_equal(
+                line_ends(line, number, height, min_refused=args[0], margin=args[1],
+                          dim_ratio=args[2]),
+                _ends_reference(line, number, height, *args),
+            )  # fmt: skip
+
+
+def test_line_ends_of_degenerate_inputs() -> None:
+    from rasterserver_plugins.peak_checks import line_ends
+
+    empty = np.zeros(0, np.int32)
+    assert line_ends(empty, empty, np.zeros(0)).size == 0
+    none = np.full(4, -1, np.int32)
+    assert not np.any(line_ends(none, np.full(4, 3, np.int32), np.ones(4)))
+    unnumbered = np.zeros(9, np.int32)
+    assert not np.any(line_ends(unnumbered, np.full(9, -1, np.int32), np.ones(9)))
+    # a line shorter than the end's comparison keeps its dim end
+    short = np.zeros(5, np.int32)
+    assert not np.any(line_ends(short, short + 2, np.r_[1.0, [50.0] * 4], margin=0))
