@@ -315,14 +315,21 @@ def stranded_runs(line_id: np.ndarray, number: np.ndarray, min_run: int) -> np.n
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    lid = line_id.astype(np.int64)
-    idx = np.flatnonzero(lid >= 0)
-    if idx.size == 0:
+    order, line = _line_by_line(line_id)
+    if order.size == 0:
         return np.zeros(line_id.size, dtype=bool)
     from .check_scans import stranded_flags  # compiled; the numba import costs ~0.3 s
 
-    order = idx[by_line(lid[idx])]  # line by line, each in column order
-    return stranded_flags(order.astype(np.int64), lid[order], number, int(min_run))
+    return stranded_flags(order, line, number, int(min_run))
+
+
+def _line_by_line(line_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """int64 indices of the peaks of a line, line by line, each line in column order (the
+    peaks' order), and the line of each."""
+    lid = line_id.astype(np.int64)
+    idx = np.flatnonzero(lid >= 0)
+    order = idx[by_line(lid[idx])].astype(np.int64)
+    return order, lid[order]
 
 
 def line_ends(
@@ -372,16 +379,14 @@ def line_ends(
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    lid = line_id.astype(np.int64)
-    idx = np.flatnonzero(lid >= 0)
-    if idx.size == 0 or (margin <= 0 and dim_ratio <= 0):
+    order, line = _line_by_line(line_id)
+    if order.size == 0 or (margin <= 0 and dim_ratio <= 0):
         return np.zeros(line_id.size, dtype=bool)
     from .check_scans import end_flags  # compiled; the numba import costs ~0.3 s
 
-    order = idx[by_line(lid[idx])]  # line by line, each in column order
     return end_flags(
-        order.astype(np.int64),
-        lid[order],
+        order,
+        line,
         number,
         np.asarray(height, dtype=np.float64),
         int(min_refused),
