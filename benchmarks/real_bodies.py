@@ -445,9 +445,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
-    done = set()
-    if args.out.exists():
-        done = {json.loads(x)["seed"] for x in args.out.read_text().splitlines() if x.strip()}
+    from _resume import chain_stamp, done_seeds  # beside this script
+
+    stamp = chain_stamp(json.loads(args.params) if args.params else None)
+    done = done_seeds(args.out, stamp)
     todo = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
     print(f"{len(done)} scenes done, {len(todo)} to go", flush=True)
     start = time.time()
@@ -461,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out.open("a") as fh,
     ):
         for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):
-            fh.write(json.dumps(res) + "\n")
+            fh.write(json.dumps({**res, "stamp": stamp}) + "\n")
             fh.flush()
             if i % 20 == 0 or res.get("wrong_peaks") or res.get("error"):
                 rate = (time.time() - start) / i

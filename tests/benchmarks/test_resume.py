@@ -1,0 +1,36 @@
+"""A scene-by-scene benchmark run resumes only with the stages it was started with."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+
+def _resume() -> ModuleType:
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "_resume.py"
+    spec = importlib.util.spec_from_file_location("benchmarks_resume_for_tests", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_rows_of_the_same_stages_are_skipped_others_refused(tmp_path: Path) -> None:
+    resume = _resume()
+    stamp = resume.chain_stamp(None)
+    assert stamp["params"] == {} and stamp["plugins"]["numbers"].startswith("numbers.code-window")
+    other = resume.chain_stamp({"numbers": {"end_dim": 0}})
+    out = tmp_path / "run.jsonl"
+    assert resume.done_seeds(out, stamp) == set()  # a new run
+    out.write_text("".join(json.dumps({"seed": s, "stamp": stamp}) + "\n" for s in (3, 4)) + "\n")
+    assert resume.done_seeds(out, stamp) == {3, 4}
+    with pytest.raises(SystemExit, match="other stages"):
+        resume.done_seeds(out, other)
+    # a row written before rows carried their stages: which ones is unknown
+    out.write_text(json.dumps({"seed": 5}) + "\n")
+    with pytest.raises(SystemExit, match="give another --out"):
+        resume.done_seeds(out, stamp)
