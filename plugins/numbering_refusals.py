@@ -2,7 +2,8 @@
 
 A component refused as a whole carries its reason in its :class:`ComponentNumbering`;
 lines refused inside numbered components are counted in entries of component -1
-(:func:`refusal`); peaks refused one by one (:func:`refuse_peaks`) add notes. The stage's
+(:func:`refusal`); peaks refused one by one (:func:`refuse_peaks`, and last, after the
+bracketed peaks, the doubtful line ends: :func:`settle_last`) add notes. The stage's
 ``reason`` joins them all (:func:`summarise`), and the overlay shows it.
 """
 
