@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import uvicorn
@@ -17,10 +18,42 @@ from rasterserver.config import Settings, sqlite_url
 from rasterserver.services import auth
 
 
+def _uvicorn(app: Any) -> tuple[str, uvicorn.Server, threading.Thread]:
+    """Serve ``app`` with uvicorn on a free loopback port in a thread; its URL, once up."""
+    port = free_port()
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
+                            access_log=False, lifespan="on")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    return f"http://127.0.0.1:{port}", server, thread
+
+
 @pytest.fixture
-def start_server() -> Iterator:
-    """Start a server for given settings; stopped at the end of the test."""
+def serve_app() -> Iterator[Callable[[Any], str]]:
+    """Serve any ASGI app on loopback (``serve_app(app)`` gives its URL); stopped at the end
+    of the test."""
     running: list[tuple[uvicorn.Server, threading.Thread]] = []
+
+    def start(app: Any) -> str:
+        url, server, thread = _uvicorn(app)
+        running.append((server, thread))
+        return url
+
+    yield start
+    for server, thread in running:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+@pytest.fixture
+def start_server(serve_app: Callable[[Any], str]) -> Callable[..., LiveServer]:
+    """Start a server for given settings; stopped at the end of the test."""
 
     def start(settings: Settings, api: ApiSettings | None = None) -> LiveServer:
         with Archive.create(settings) as archive:
@@ -31,25 +64,10 @@ def start_server() -> Iterator:
                 tokens[role] = auth.create_token(archive, f"{role}-1")
             archive.add_patient(PATIENT_ID, name=PATIENT_NAME)
             archive.add_station("clinic-1")
-        port = free_port()
         app = create_app(settings, api or ApiSettings(max_upload_bytes=8 * 1024 * 1024))
-        config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                                access_log=False, lifespan="on")
-        server = uvicorn.Server(config)
-        thread = threading.Thread(target=server.run, daemon=True)
-        thread.start()
-        deadline = time.monotonic() + 30
-        while not server.started:
-            if time.monotonic() > deadline or not thread.is_alive():
-                raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
-        running.append((server, thread))
-        return LiveServer(f"http://127.0.0.1:{port}", settings, tokens)
+        return LiveServer(serve_app(app), settings, tokens)
 
-    yield start
-    for server, thread in running:
-        server.should_exit = True
-        thread.join(timeout=30)
+    return start
 
 
 @pytest.fixture
