@@ -24,6 +24,7 @@ __all__ = [
     "CodeFit",
     "ComponentNumbering",
     "code_fit",
+    "code_objection",
     "level_differences",
     "level_pairs",
     "level_statistics",
@@ -274,6 +275,38 @@ def code_fit(
     else:
         reason = ""
     return CodeFit(cost, terms, best, margin, reason)
+
+
+def code_objection(fit: CodeFit, off: int, n_off: int, max_cost_rate: float) -> str:
+    """Why a component's own code speaks against the placement ``off`` its neighbours imply.
+
+    Parameters
+    ----------
+    fit : CodeFit
+        The component's code fit.
+    off : int
+        The placement (index of its level 0 on the code).
+    n_off : int
+        Number of placements on the code.
+    max_cost_rate : float
+        Largest cost per measured difference of an acceptable placement.
+
+    Returns
+    -------
+    str
+        Empty when the code does not object: the placement lies on the code and costs at
+        most one misread difference more than the best, and within the rate.
+    """
+    if not 0 <= off < n_off:
+        return f"its neighbours imply a placement off the code ({off})"
+    if fit.cost.size and fit.terms > 0:
+        excess = float(fit.cost[off] - fit.cost.min())
+        if excess > 1.0 or fit.cost[off] > max_cost_rate * fit.terms + 1.0:
+            return (
+                "its code contradicts the number its neighbours imply "
+                f"(excess cost {excess:.1f})"
+            )
+    return ""
 
 
 def reliability(

@@ -36,6 +36,7 @@ from .code_evidence import (
     CodeFit,
     ComponentNumbering,
     code_fit,
+    code_objection,
     level_differences,
     level_statistics,
     locally_contradicted,
@@ -43,6 +44,7 @@ from .code_evidence import (
     reliability,
 )
 from .code_tiles import CodeBands
+from .component_groups import component_groups, group_placement
 from .numbering_checks import (
     by_line,
     contact_votes,
@@ -91,6 +93,7 @@ def number_lines(
     tile_gain: float = 2.5,
     loose_cost_rate: float = 0.4,
     doubtful_lines: np.ndarray | None = None,
+    group_ties: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray, list[ComponentNumbering]]:
     """Absolute number and observed kind of every line, component by component.
 
@@ -164,6 +167,11 @@ def number_lines(
         order (level windows); the peaks beside them are judged next
         (:func:`.numbering_refusals.refuse_peaks`).
 
+    group_ties : float
+        Components the code does not place and that cannot inherit alone are grouped by
+        agreeing contacts over this many columns and inherit together
+        (:mod:`.component_groups`); 0: no groups.
+
     Returns
     -------
     line_number : numpy.ndarray
@@ -213,7 +221,8 @@ def number_lines(
     lid_all = data.line_id.astype(np.int64)
     peak_comp = np.where(lid_all >= 0, comps[np.maximum(lid_all, 0)], -1)
     has = np.flatnonzero((peak_comp >= 0) & valid[np.maximum(lid_all, 0)])
-    width = np.zeros(n_comp, dtype=np.int64)
+    first_col = np.zeros(n_comp, dtype=np.int64)
+    last_col = np.full(n_comp, -1, dtype=np.int64)
     if has.size:
         # peaks are sorted by column: grouped by component (a stable sort), each group's
         # first and last peak are its first and last column
@@ -222,7 +231,9 @@ def number_lines(
         start = np.flatnonzero(np.r_[True, gc[1:] != gc[:-1]])
         end = np.r_[start[1:], gc.size] - 1
         cols = data.col.astype(np.int64)
-        width[gc[start]] = cols[grouped[end]] - cols[grouped[start]] + 1
+        first_col[gc[start]] = cols[grouped[start]]
+        last_col[gc[start]] = cols[grouped[end]]
+    width = last_col - first_col + 1
     for c in range(n_comp):
         mine = valid & (comps == c)
         if not np.any(mine):
@@ -333,64 +344,90 @@ def number_lines(
         how_of[c] = "" if why else how
         decided.add(c)
 
-    for _ in range(6):
-        changed = False
-        for c in order:
-            if c in decided:
-                continue
-            fit = fits[c]
-            implied = tally(c)
-            total = float(sum(implied.values()))
-            n_off = code.size - n_levels_of[c] + 1
-            if not fit.reason:
-                off = fit.best
-                against = total - implied.get(off, 0.0)
-                if against >= min_conflict and against >= max_conflict * total:
-                    worst = max(implied, key=lambda o: implied[o])
-                    reason[c] = (
-                        f"code says offset {off}, but it touches numbered lines that imply "
-                        f"{worst} ({against:.0f} of {total:.0f} contact columns disagree: "
-                        f"a depth step of {abs(worst - off)} line spacing(s) or a wrong order)"
-                    )
-                    decided.add(c)
+    def rounds() -> None:
+        """Components numbered by their code or by their numbered neighbours."""
+        for _ in range(6):
+            changed = False
+            for c in order:
+                if c in decided:
+                    continue
+                fit = fits[c]
+                implied = tally(c)
+                total = float(sum(implied.values()))
+                n_off = code.size - n_levels_of[c] + 1
+                if not fit.reason:
+                    off = fit.best
+                    against = total - implied.get(off, 0.0)
+                    if against >= min_conflict and against >= max_conflict * total:
+                        worst = max(implied, key=lambda o: implied[o])
+                        reason[c] = (
+                            f"code says offset {off}, but it touches numbered lines that imply "
+                            f"{worst} ({against:.0f} of {total:.0f} contact columns disagree: "
+                            f"a depth step of {abs(worst - off)} line spacing(s) or a wrong order)"
+                        )
+                        decided.add(c)
+                        changed = True
+                        continue
+                    settle(c, off, "code")
                     changed = True
                     continue
-                settle(c, off, "code")
-                changed = True
-                continue
-            # the code alone does not decide: inherit from touching numbered components
-            if total < min_votes:
-                continue
-            if total < min_contact_share * width[c]:
-                # a few contact columns along a wide component: a corner of it touches a
-                # numbered surface, possibly across a depth step (a waistband); too little
-                reason[c] = (
-                    f"{fit.reason}; touches numbered lines over {total:.0f} columns only, "
-                    f"{width[c]} wide"
-                )
-                continue
-            off = max(implied, key=lambda o: implied[o])
-            if implied[off] < (1.0 - max_conflict) * total or not 0 <= off < n_off:
-                reason[c] = (
-                    f"{fit.reason}; touching numbered lines disagree on its number "
-                    f"({implied[off]:.0f} of {total:.0f} contact columns agree)"
-                )
-                continue
-            if fit.cost.size and fit.terms > 0:
+                # the code alone does not decide: inherit from touching numbered components
+                if total < min_votes:
+                    continue
+                if total < min_contact_share * width[c]:
+                    # a few contact columns along a wide component: a corner of it touches a
+                    # numbered surface, possibly across a depth step (a waistband); too little
+                    reason[c] = (
+                        f"{fit.reason}; touches numbered lines over {total:.0f} columns only, "
+                        f"{width[c]} wide"
+                    )
+                    continue
+                off = max(implied, key=lambda o: implied[o])
+                if implied[off] < (1.0 - max_conflict) * total or not 0 <= off < n_off:
+                    reason[c] = (
+                        f"{fit.reason}; touching numbered lines disagree on its number "
+                        f"({implied[off]:.0f} of {total:.0f} contact columns agree)"
+                    )
+                    continue
                 # its own code must not speak against the inherited placement
-                excess = float(fit.cost[off] - fit.cost.min())
-                if excess > 1.0 or fit.cost[off] > max_cost_rate * fit.terms + 1.0:
-                    reason[c] = (
-                        f"{fit.reason}; its code contradicts the number its neighbours imply "
-                        f"(excess cost {excess:.1f})"
-                    )
+                objection = code_objection(fit, off, n_off, max_cost_rate)
+                if objection:
+                    reason[c] = f"{fit.reason}; {objection}"
                     decided.add(c)
                     changed = True
                     continue
-            settle(c, off, "linked")
-            changed = True
-        if not changed:
+                settle(c, off, "linked")
+                changed = True
+            if not changed:
+                break
+
+    def settle_groups() -> bool:
+        """Groups of components the code does not place, numbered together (whether any
+        component was numbered)."""
+        members = {c for c in fits if c not in decided and offset[c] < 0}
+        placed = False
+        for group in component_groups(
+            members, votes, max_conflict=max_conflict, min_weight=group_ties
+        ):
+            off0, why = group_placement(
+                group, votes, partners, offset, first_col, last_col, min_votes=min_votes,
+                min_contact_share=min_contact_share, max_conflict=max_conflict,
+            )  # fmt: skip
+            for c, rel in group.relative.items():
+                off = -1 if off0 is None else off0 + rel
+                n_off = code.size - n_levels_of[c] + 1
+                why_not = why or code_objection(fits[c], off, n_off, max_cost_rate)
+                reason[c] = f"{fits[c].reason}; {why_not}"
+                if not why_not:
+                    settle(c, off, "group")
+                    placed = True
+        return placed
+
+    rounds()
+    for _ in range(3 if group_ties > 0 else 0):
+        if not settle_groups():
             break
+        rounds()
 
     results: list[ComponentNumbering] = []
     local_refused = 0
@@ -485,55 +522,15 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     cannot decide inherit their numbers through short gaps from numbered ones they touch.
     Everything else is left unnumbered with the reason.
 
-    Version 2: geometric checks, linking, reliability weights, area ratio from the raster.
-    Version 3: the column order check also judges numbered peaks two or three spacings apart
-    (a line continued across a depth step of a whole spacing).
-    Version 4: every pair of numbered column neighbours numbered as consecutive raster
-    lines must show the intensity ratio the code gives those numbers
-    (:func:`.numbering_checks.pair_contradictions`); otherwise the shorter line of the pair
-    is left unnumbered (a piece placed a level off inside a component, as across a
-    waistband). A component inherits a number only through contacts over 8 columns and
-    a fifth of its width (``min_votes``, ``min_contact_share``). Peaks where their line
-    jumps by 0.3 of a spacing between neighbouring columns are refused
-    (:func:`.peak_checks.line_jumps`).
-    Version 5: the code is read again in tiles of every numbered component (64 columns by
-    twice the code window in levels, :mod:`.code_tiles`); a line lying mostly in tiles whose
-    own code contradicts the component's placement is left unnumbered (a block of lines
-    ordered a level off below a waistband, which the component's code fit and the pair
-    check miss), and no component inherits a number through it; a whole component whose
-    best placement is unique by far but leaves up to 40 % unexplained is placed (the
-    bands refuse its block placed off). Column order: numbers k apart must lie about k of
-    the single gaps beside them in their column apart; a numbered peak with no numbered
-    peak directly above or below it (numbered by its line's continuity alone) is refused.
-    Version 6: numbered peaks directly beside a block the bands refused, a line whose own
-    code contradicts its order or a peak out of column order, with no gap between (under
-    1.25 spacings: the image does not show where the hidden line went), are refused
-    (:func:`.peak_checks.beside_doubtful`), and so are runs of fewer than six
-    numbered peaks that refused peaks cut off from the rest of their line
-    (:func:`.peak_checks.stranded_runs`): the line ends crossing a cloth's side edge.
-    Version 7: every line left unnumbered is doubtful for the peaks beside it (not only
-    those the code refused), and a peak directly beside a doubtful one is refused only
-    where, in the square of two line spacings around it, doubtful peaks number at least
-    half the numbered ones (:func:`.peak_checks.doubtful_share`): a line's end carried
-    onto a refused block lies among its peaks, a line beside a lone refused line has its
-    own numbered neighbours (fewer wrong peaks and more coverage than version 6). Runs
-    of one or two numbered lines standing alone in their column, 2.5 spacings or more
-    from any other numbered peak, are refused (:func:`.peak_checks.column_islands`):
-    numbered by their lines' order across gaps that hide an unknown count of lines.
-    Version 8: last, runs of up to eight unnumbered peaks between numbered peaks ``n``
-    and ``n + m + 1`` of their column, every gap one line spacing, are numbered
-    ``n + 1 .. n + m`` (:func:`.bracketed_peaks.fill_brackets`): line fragments in
-    hair and peaks refused for their line's doing, whose column settles the number.
-    Version 9: the shorter line of a pair contradicting the code is kept where the code
-    confirms it with its other neighbours over more columns than it contradicts it
-    (``pair_agreement``; :func:`.numbering_refusals.refuse_contradicted_pairs`).
-    Version 10: doubtful line ends are refused (:func:`.peak_checks.line_ends`), a line
-    running off the trunk or an arm onto a cloth that shows the next line at the same row.
+    Versions (``docs/numbering-versions.md``): 2 geometric checks and linking; 3-7 the
+    column order, code bands and the peak-by-peak checks; 8 bracketed peaks; 9 pairs
+    confirmed on their other side; 10 doubtful line ends; 11 groups of small components
+    that inherit a number together (:mod:`.component_groups`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "10"
+    version: ClassVar[str] = "11"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -575,6 +572,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,
             doubtful_lines=doubtful_lines,
+            group_ties=params.group_ties,
         )
         if params.doubtful == "unnumbered":
             # any line left unnumbered, whatever refused it: the share of them around a

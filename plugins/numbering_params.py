@@ -59,6 +59,14 @@ class CodeWindowParams(StageParams):
         description="Least contact columns, as a share of a component's width, to inherit.",
     )
 
+    group_ties: float = Field(
+        3.0,
+        ge=0,
+        description="Least contact columns that tie two small components into a group "
+        "numbered together from its contacts with numbered lines (line pieces under hair); "
+        "0: no groups (version 10).",
+    )
+
     pair_agreement: float = Field(
         0.4,
         ge=0.0,
