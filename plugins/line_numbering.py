@@ -416,9 +416,11 @@ def number_lines(
             for c, rel in group.relative.items():
                 off = -1 if off0 is None else off0 + rel
                 n_off = code.size - n_levels_of[c] + 1
-                why_not = why or code_objection(fits[c], off, n_off, max_cost_rate)
-                reason[c] = f"{fits[c].reason}; {why_not}"
-                if not why_not:
+                if why:  # each piece keeps its reason: counted together, not listed
+                    continue
+                objection = code_objection(fits[c], off, n_off, max_cost_rate)
+                reason[c] = f"{fits[c].reason}; {objection}"
+                if not objection:
                     settle(c, off, "group")
                     placed = True
         return placed

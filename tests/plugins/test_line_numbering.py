@@ -575,3 +575,13 @@ def test_a_clinic_scene_numbers_the_line_pieces_under_hair_as_a_group() -> None:
     assert before["wrong_peaks"] == 0 and after["wrong_peaks"] == 0
     assert after["back_covered"] >= before["back_covered"] + 0.03 * before["back_crossings"]
     assert after["back_covered"] >= 0.97 * after["back_crossings"]
+    # the pieces no group placed are counted together in the reason, not listed one by one
+    from rasterserver.simulator.body import clinic_station
+
+    station = clinic_station(7193, frame.code)
+    context = StageContext(calibration=station, raster=station.raster_definition)
+    peaks = run_stage(FirstMomentPeaks, Image(frame.image))
+    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+    reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
+    assert "component(s) with too few lines to read the code" in reason
+    assert "grouped" not in reason and len(reason) < 3000
