@@ -181,7 +181,8 @@ class ComponentNumbering:
         Why it was refused; empty when numbered.
     how : str
         How it was numbered: ``"code"`` (its own code), ``"linked"`` (inherited from the
-        numbered components it touches); empty when refused.
+        numbered components it touches), ``"group"`` (inherited with the small components
+        it is tied to, :mod:`.component_groups`); empty when refused.
     """
 
     component: int
