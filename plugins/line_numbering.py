@@ -102,7 +102,8 @@ def number_lines(
     neighbours at one line spacing, lines continued across short gaps), and, with a
     calibration, puts it at a plausible distance. A component the code alone does not
     decide inherits its number from numbered components it touches when their contacts
-    agree (and its own code does not contradict them). Components are taken largest first.
+    agree (and its own code does not contradict them); pieces too small to inherit alone
+    inherit as a group (``group_ties``). Components are taken largest first.
 
     Parameters
     ----------
@@ -409,15 +410,14 @@ def number_lines(
         for group in component_groups(
             members, votes, max_conflict=max_conflict, min_weight=group_ties
         ):
-            off0, why = group_placement(
+            off0, _ = group_placement(
                 group, votes, partners, offset, first_col, last_col, min_votes=min_votes,
                 min_contact_share=min_contact_share, max_conflict=max_conflict,
             )  # fmt: skip
+            if off0 is None:  # each piece keeps its reason: counted together, not listed
+                continue
             for c, rel in group.relative.items():
-                off = -1 if off0 is None else off0 + rel
-                n_off = code.size - n_levels_of[c] + 1
-                if why:  # each piece keeps its reason: counted together, not listed
-                    continue
+                off, n_off = off0 + rel, code.size - n_levels_of[c] + 1
                 objection = code_objection(fits[c], off, n_off, max_cost_rate)
                 reason[c] = f"{fits[c].reason}; {objection}"
                 if not objection:
