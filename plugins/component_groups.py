@@ -8,8 +8,9 @@ for it to inherit a number alone (``min_votes``). Together they touch it over ma
 columns, and they touch each other at one line spacing or by continuing each other's
 lines. Components whose mutual contacts agree on their relative placement are grouped
 (their contacts, like any, may be a level off across a hidden depth step: a pair whose
-contacts disagree among themselves does not group, and a group whose contacts disagree
-around a cycle is refused); the group inherits a number from its contacts with numbered
+contacts disagree among themselves does not tie, and a group is refused when the contacts
+between its members, all of them, disagree with its relative placements by more than a
+fifth); the group inherits a number from its contacts with numbered
 components under the tests a single component meets (enough contact columns, a share of
 its width, agreement), and then each member under its own (its code must not speak
 against its number; the distance test).
@@ -33,10 +34,10 @@ class ComponentGroup:
     relative : dict
         ``component -> offset - offset of the group's first component``.
     disagreeing : float
-        Contact weight inside the group that contradicts the relative offsets (a cycle
-        that does not close).
+        Contact weight between members that contradicts the relative offsets (a cycle
+        that does not close, a pair whose contacts disagree).
     agreeing : float
-        Contact weight inside the group that agrees with them.
+        Contact weight between members that agrees with them.
     """
 
     def __init__(self) -> None:
@@ -91,32 +92,35 @@ def component_groups(
         if found is not None and found[1] >= min_weight:
             ties[a].append((b, found[0], found[1]))
     groups: list[ComponentGroup] = []
-    seen: set[int] = set()
+    group_of: dict[int, ComponentGroup] = {}
     for start in sorted(ties):
-        if start in seen:
+        if start in group_of:
             continue
         group = ComponentGroup()
         group.relative[start] = 0
+        group_of[start] = group
         queue = deque([start])
-        seen.add(start)
         while queue:
             a = queue.popleft()
-            for b, delta, weight in sorted(ties[a]):
-                if b in group.relative:
-                    # each tie is met twice (both directions): count it once
-                    if a < b:
-                        closes = group.relative[b] == group.relative[a] + delta
-                        if closes:
-                            group.agreeing += weight
-                        else:
-                            group.disagreeing += weight
-                    continue
-                group.relative[b] = group.relative[a] + delta
-                group.agreeing += weight if a < b else 0.0
-                seen.add(b)
-                queue.append(b)
+            for b, delta, _ in sorted(ties[a]):
+                if b not in group.relative:
+                    group.relative[b] = group.relative[a] + delta
+                    group_of[b] = group
+                    queue.append(b)
         if len(group.relative) > 1:
             groups.append(group)
+    # Every contact between two members is judged against the relative offsets, whatever
+    # its weight and whether its pair tied: a weak or split pair is evidence too.
+    for (a, b), weights in votes.items():
+        group = group_of.get(a)
+        if a >= b or group is None or group_of.get(b) is not group:
+            continue
+        step = group.relative[b] - group.relative[a]
+        for delta, weight in weights.items():
+            if delta == step:
+                group.agreeing += float(weight)
+            else:
+                group.disagreeing += float(weight)
     return groups
 
 

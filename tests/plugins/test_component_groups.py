@@ -52,6 +52,20 @@ def test_a_cycle_that_does_not_close_is_refused() -> None:
     assert off is None and "disagree on their order" in why
 
 
+def test_contacts_of_pairs_that_did_not_tie_are_judged_too() -> None:
+    # 1-3 is split between two deltas (no tie), but 1 and 3 join through 2: its contacts
+    # speak against the group's placement of 3 (two lines below 1) with 4 of 6 columns
+    votes = _votes({(1, 2): {1: 5.0}, (2, 3): {1: 5.0}, (1, 3): {2: 2.0, 1: 4.0}})
+    (group,) = component_groups({1, 2, 3}, votes)
+    assert group.relative == {1: 0, 2: 1, 3: 2}
+    assert (group.agreeing, group.disagreeing) == (12.0, 4.0)
+    off, why = group_placement(
+        group, votes, _partners(votes), {1: -1, 2: -1, 3: -1}, np.zeros(4, np.int64),
+        np.full(4, 9, np.int64), min_votes=8.0, min_contact_share=0.2, max_conflict=0.2,
+    )  # fmt: skip
+    assert off is None and "disagree on their order" in why
+
+
 def test_a_group_inherits_what_no_member_could_alone() -> None:
     # three pieces each touching numbered component 0 over 4 columns (under 8 alone)
     votes = _votes({(0, 1): {2: 4.0}, (0, 2): {3: 4.0}, (0, 3): {1: 4.0},
