@@ -112,15 +112,15 @@ def component_groups(
     # Every contact between two members is judged against the relative offsets, whatever
     # its weight and whether its pair tied: a weak or split pair is evidence too.
     for (a, b), weights in votes.items():
-        group = group_of.get(a)
-        if a >= b or group is None or group_of.get(b) is not group:
+        mine = group_of.get(a)
+        if a >= b or mine is None or group_of.get(b) is not mine:
             continue
-        step = group.relative[b] - group.relative[a]
+        step = mine.relative[b] - mine.relative[a]
         for delta, weight in weights.items():
             if delta == step:
-                group.agreeing += float(weight)
+                mine.agreeing += float(weight)
             else:
-                group.disagreeing += float(weight)
+                mine.disagreeing += float(weight)
     return groups
 
 
