@@ -1,19 +1,18 @@
 """Groups of small components that inherit a number together.
 
 A line broken into many short pieces (lines under hair hanging over the back, whose dark
-strands cut every line into dashes with steps of the peak area that the line search reads
-as changes of surface) gives many components of a few lines and columns each. None of them
-can read the code, and each touches the numbered trunk over a few columns only: too little
-for it to inherit a number alone (``min_votes``). Together they touch it over many
-columns, and they touch each other at one line spacing or by continuing each other's
-lines. Components whose mutual contacts agree on their relative placement are grouped
-(their contacts, like any, may be a level off across a hidden depth step: a pair whose
-contacts disagree among themselves does not tie, and a group is refused when the contacts
-between its members, all of them, disagree with its relative placements by more than a
-fifth); the group inherits a number from its contacts with numbered
-components under the tests a single component meets (enough contact columns, a share of
-its width, agreement), and then each member under its own (its code must not speak
-against its number; the distance test).
+strands cut every line into dashes with steps of the peak area that the line search reads as
+changes of surface) gives many components of a few lines and columns each. None of them can
+read the code, and each touches the numbered trunk over a few columns only: too little for
+it to inherit a number alone (``min_votes``). Together they touch it over many columns, and
+they touch each other at one line spacing or by continuing each other's lines. Components
+whose mutual contacts agree on their relative placement are grouped (their contacts, like
+any, may be a level off across a hidden depth step: a pair whose contacts disagree among
+themselves does not tie, and a group is refused when the contacts between its members, all
+of them, disagree with its relative placements by more than a fifth); the group inherits a
+number from its contacts with numbered components under the tests a single component meets
+(enough contact columns, a share of its width, agreement), and then each member under its
+own (its code must not speak against its number; the distance test).
 """
 
 from __future__ import annotations
@@ -62,7 +61,7 @@ def component_groups(
     votes: Mapping[tuple[int, int], Mapping[int, float]],
     *,
     max_conflict: float = 0.2,
-    min_weight: float = 2.0,
+    min_weight: float = 3.0,
 ) -> list[ComponentGroup]:
     """Groups of ``members`` tied by contacts that agree on their relative offsets.
 
