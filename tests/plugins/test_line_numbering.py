@@ -480,9 +480,10 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
 @pytest.mark.slow
 def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
     """Clinic scenes 7325, 7401, 7037 and 7428 of ``benchmarks/real_bodies.py`` (window-7
-    m-sequence, arms close, waistband): with version 6's block-edge check (only the code's refusals
-    doubtful, refused wherever they touch) peaks at the cloth's edge carry their line's
-    number onto the cloth's next line; version 7 refuses them and numbers more of the back.
+    m-sequence, arms close, waistband): with version 6's block-edge check (only the code's
+    refusals doubtful, refused wherever they touch) peaks at the cloth's edge carry their
+    line's number onto the cloth's next line; version 7 refuses them and numbers more of
+    the back.
     The rendering's last bits differ between processors, and with them which line ends land
     on the next line: version 6 errs in 7325 on AMD EPYC, in 7401 on an Intel Xeon before
     the peaks' version 4; since then in 7037 and 7428 (4 and 6 peaks) on an Intel Xeon."""
@@ -502,8 +503,7 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
         truth = np.where(rendering.line_number[rows, ordered.col] == truth, truth, -1)
 
         # the later versions' steps off: brackets (8), line ends (10), groups (11)
-        v7: dict[str, object] = {"bracket_run": 0, "end_margin": 0, "end_dim": 0.0}
-        v7["group_ties"] = 0
+        v7 = {"bracket_run": 0, "end_margin": 0, "end_dim": 0.0, "group_ties": 0}
         v6 = {"doubtful": "code", "block_share": 0.0, "island_peaks": 0, **v7}
         counts = []
         for params in (v6, v7):
