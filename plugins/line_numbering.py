@@ -526,13 +526,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     Versions (``docs/numbering-versions.md``): 2 geometric checks and linking; 3-7 the
     column order, code bands and the peak-by-peak checks; 8 bracketed peaks; 9 pairs
-    confirmed on their other side; 10 doubtful line ends; 11 groups of small components
-    that inherit a number together (:mod:`.component_groups`).
+    confirmed on their other side; 10 doubtful line ends; 11 small components grouped to
+    inherit a number (:mod:`.component_groups`); 12 ends leaving the frame (:mod:`.frame_edges`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "11"
+    version: ClassVar[str] = "12"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -607,7 +607,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             spacing=spacing,
         )
         # the spacing of the numbers before the refusals: the geometry they measured
-        number, last = settle_last(data.col, data.row, lid, data.height, number, spacing, params)
+        number, last = settle_last(data, number, spacing, params)
         notes += last
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(

@@ -139,6 +139,25 @@ class CodeWindowParams(StageParams):
         description="Refuse a line's end peak lower than this share of the mean height of "
         "its next six numbered peaks (0: keep it; version 9: 0).",
     )
+    edge_run: int = Field(
+        6,
+        ge=0,
+        description="Refuse up to this many peaks at a line's end where it leaves the "
+        "frame's top or bottom edge, outermost in their columns within edge_reach line "
+        "spacings of the edge (0: keep them; version 11: 0).",
+    )
+    edge_reach: float = Field(
+        1.5,
+        gt=0,
+        description="How near the frame's edge, in line spacings, a column's outermost "
+        "numbered peak is left unconfirmed on that side (a line beyond it would be cut).",
+    )
+    edge_company: int = Field(
+        3,
+        ge=0,
+        description="Refuse a line's end at the frame's edge only where this many unnumbered "
+        "peaks lie within two line spacings of it (0: wherever it is).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

@@ -16,6 +16,7 @@ from rasterserver.records_lines import OrderedLines
 
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering
+from .frame_edges import edge_ends
 from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
 from .numbering_params import CodeWindowParams
 from .peak_checks import (
@@ -329,29 +330,27 @@ def refuse_ends(
 
 
 def settle_last(
-    col: np.ndarray,
-    row: np.ndarray,
-    line_id: np.ndarray,
-    height: np.ndarray,
+    data: OrderedLines,
     number: np.ndarray,
     spacing: np.ndarray | None,
     params: CodeWindowParams,
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
     (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
-    (:func:`refuse_ends`); the notes of those that changed anything.
+    (:func:`refuse_ends`) and the ends leaving the frame (:func:`.frame_edges.edge_ends`);
+    the notes of those that changed anything.
 
     Parameters
     ----------
-    col, row, line_id, height : numpy.ndarray
-        The peaks, sorted by ``(col, row)``.
+    data : OrderedLines
+        The peaks (sorted by ``(col, row)``), their lines and the frame's shape.
     number : numpy.ndarray
         Per-peak absolute number after the peak checks, -1 when unnumbered.
     spacing : numpy.ndarray or None
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
-        ``end_dim``.
+        ``end_dim``, ``edge_run``, ``edge_reach``.
 
     Returns
     -------
@@ -360,6 +359,7 @@ def settle_last(
     notes : list of str
     """
     notes: list[str] = []
+    col, row, line_id, height = data.col, data.row, data.line_id, data.height
     if params.bracket_run > 0:
         number, note = fill_brackets(
             col, row, number, spacing, params.bracket_run, params.bracket_tolerance
@@ -369,4 +369,17 @@ def settle_last(
         line_id, number, height, end_refused=params.end_refused,
         end_margin=params.end_margin, end_dim=params.end_dim,
     )  # fmt: skip
-    return number, notes + ([note] if note else [])
+    notes += [note] if note else []
+    if params.edge_run > 0:
+        rows = int(data.image_shape[0])
+        edge = edge_ends(
+            col, row, line_id, number, spacing, rows,
+            max_run=params.edge_run, reach=params.edge_reach, company=params.edge_company,
+        )  # fmt: skip
+        if np.any(edge):
+            number = np.where(edge, -1, number).astype(np.int32)
+            notes.append(
+                f"{int(edge.sum())} peak(s) at a line's end leaving the frame's top or bottom "
+                "edge (the column cannot show a line hidden beyond them) left unnumbered"
+            )
+    return number, notes
