@@ -95,10 +95,11 @@ def edge_ends(
     if spacing is None or max_run <= 0 or col.size == 0:
         return refused
     flag = _outermost(col, row, number, int(n_rows), spacing, reach)
-    lid = np.where(number >= 0, line_id, -1).astype(np.int64)
-    idx = np.flatnonzero(lid >= 0)
     if not np.any(flag):
         return refused
+    lid = np.where(number >= 0, line_id, -1).astype(np.int64)
+    # only the lines with a peak at the edge: a few of the frame's hundreds
+    idx = np.flatnonzero((lid >= 0) & np.isin(lid, np.unique(lid[flag])))
     order = idx[by_line(lid[idx])]  # numbered peaks, line by line, in column order
     lines = lid[order]
     starts = np.flatnonzero(np.r_[True, lines[1:] != lines[:-1]])
