@@ -598,3 +598,25 @@ def test_a_clinic_scene_numbers_the_line_pieces_under_hair_as_a_group() -> None:
     reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
     assert "component(s) with too few lines to read the code" in reason
     assert "grouped" not in reason and len(reason) < 3000
+
+
+@pytest.mark.slow
+def test_clinic_scenes_where_version_11_errs_at_the_frames_edge_are_refused_by_version_12() -> None:
+    """Clinic scenes 7166 and 7250 (light:heavy 1:2, waistband) and 7404 (default code):
+    back lines run down into the frame's bottom edge and, in their last columns, onto the
+    cloth below the waistband, which shows the next raster line at the same row; the
+    frame's edge cuts the cloth to pieces too short to read. Version 11 numbered those ends
+    wrongly (on an Intel Xeon: 5, 6 and 9 peaks); version 12 refuses them and keeps the
+    back."""
+    bench = _real_bodies()
+    erring = 0
+    for seed in (7166, 7250, 7404):
+        frame = bench.render_scene(seed)
+        bench._init(None, {"numbers": {"edge_run": 0}})
+        before = bench.score_frame(frame)
+        bench._init(None, None)
+        after = bench.score_frame(frame)
+        erring += before["wrong_peaks"] > 0
+        assert after["wrong_peaks"] == 0
+        assert after["back_covered"] >= before["back_covered"] - 0.005 * before["back_crossings"]
+    assert erring >= 1
