@@ -10,10 +10,12 @@ edge cuts off is too small to read its own code (on the clinic tuning scenes, 20
 wrongly numbered peaks lay there, in the last ten rows of the frame). Such ends are
 refused: the peaks of a line's end, contiguous from the end, that are the outermost
 numbered peak of their column toward the edge and lie within ``reach`` line spacings of
-it, where ``company`` unnumbered peaks lie within ``near`` spacings of the end (a surface
-beside it that was not read). On a whole back the lines leave the frame with every surface
-beside them numbered, and keep their ends (a simulated back's truth lines: 81 peaks refused
-without that condition, 12 with it).
+it, where ``company`` unnumbered peaks lie beyond the end, toward the frame's inside and
+within ``near`` spacings of it (a surface the end runs onto that was not read). On a whole
+back most lines leave the frame with the surface beyond them numbered and keep their ends
+(a simulated back's truth lines: 81 peaks refused without that condition, 12 with it); at
+a back's lower corners, where the flank's lines are unnumbered, they lose them (0.06 point
+of the coverage of backs without heads).
 """
 
 from __future__ import annotations
@@ -81,8 +83,9 @@ def edge_ends(
         How near the edge, in local line spacings, the outermost peak of a column lies to
         be unconfirmed on that side.
     company : int
-        Unnumbered peaks within ``near`` line spacings (rows and columns) of the end peak
-        that make the end doubtful (0: every end at the edge is).
+        Unnumbered peaks beyond the end peak (in the columns past it) and toward the
+        frame's inside, within ``near`` line spacings of it, that make the end doubtful
+        (0: every end at the edge is).
     near : float
         The reach of that neighbourhood, in local line spacings.
 

@@ -156,7 +156,8 @@ class CodeWindowParams(StageParams):
         3,
         ge=0,
         description="Refuse a line's end at the frame's edge only where this many unnumbered "
-        "peaks lie within two line spacings of it (0: wherever it is).",
+        "peaks lie beyond it, toward the frame's inside, within two line spacings (0: "
+        "wherever it is).",
     )
     bracket_run: int = Field(
         8,
