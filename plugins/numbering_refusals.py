@@ -350,7 +350,7 @@ def settle_last(
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
-        ``end_dim``, ``edge_run``, ``edge_reach``.
+        ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``.
 
     Returns
     -------
