@@ -428,6 +428,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/bodies-tune.jsonl"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
     ap.add_argument(
+        "--code",
+        choices=CODES,
+        default=None,
+        help="only the scenes of the range seen through this diapositive code (seed %% 4)",
+    )
+    ap.add_argument(
         "--params",
         default=None,
         help='stage parameters for tuning, JSON: {"peaks": {...}, "lines": {...}, ...}',
@@ -449,7 +455,11 @@ def main(argv: list[str] | None = None) -> int:
 
     stamp = chain_stamp(json.loads(args.params) if args.params else None)
     done = done_seeds(args.out, stamp)
-    todo = [s for s in range(args.first_seed, args.first_seed + args.scenes) if s not in done]
+    todo = [
+        s
+        for s in range(args.first_seed, args.first_seed + args.scenes)
+        if s not in done and (args.code is None or CODES[s % len(CODES)] == args.code)
+    ]
     print(f"{len(done)} scenes done, {len(todo)} to go", flush=True)
     start = time.time()
     with (
