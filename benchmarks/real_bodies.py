@@ -32,6 +32,9 @@ Usage::
     python benchmarks/real_bodies.py --first-seed 0 --scenes 200 \
         --out benchmarks/out/bodies-tune.jsonl
     python benchmarks/real_bodies.py --summary benchmarks/out/bodies-tune.jsonl
+
+``--code mseq7`` keeps only the range's scenes seen through one diapositive code (a tuning
+set of one raster).
 """
 
 from __future__ import annotations
