@@ -34,7 +34,9 @@ Usage::
     python benchmarks/real_bodies.py --summary benchmarks/out/bodies-tune.jsonl
 
 ``--code mseq7`` keeps only the range's scenes seen through one diapositive code (a tuning
-set of one raster).
+set of one raster); ``--raster mseq8-35to65`` sees every scene of the range through that
+built-in raster instead (the raster held out from tuning,
+:data:`rasterserver.raster.HELD_OUT_RASTERS`).
 """
 
 from __future__ import annotations
@@ -159,13 +161,14 @@ class Frame:
         return cls(**meta, **arrays)
 
 
-def render_scene(seed: int) -> Frame:
-    """Render scene ``seed`` (body, station and code from the seed) with its truth."""
+def render_scene(seed: int, raster: str | None = None) -> Frame:
+    """Render scene ``seed`` (body, station and code from the seed; ``raster``, a built-in
+    raster's name, instead of the seed's code) with its truth."""
     from rasterserver.simulator.body import clinic_station, make_body, random_body
     from rasterserver.simulator.render import render
 
     backs = _sibling("numbering_backs")
-    code = CODES[seed % len(CODES)]
+    code = raster or CODES[seed % len(CODES)]
     params = random_body(seed)
     station = clinic_station(seed, code)
     t0 = time.perf_counter()
@@ -311,6 +314,8 @@ def score_frame(frame: Frame) -> dict[str, Any]:
 
 
 _CACHE: Path | None = None
+# a built-in raster every scene is seen through instead of the seed's code (``--raster``)
+_RASTER: str | None = None
 # per-stage parameters for tuning runs (``--params``): {"peaks": {...}, "numbers": {...}}
 _PARAMS: dict[str, dict[str, Any]] = {}
 
@@ -318,20 +323,25 @@ _PARAMS: dict[str, dict[str, Any]] = {}
 def run_scene(seed: int) -> dict[str, Any]:
     """Render scene ``seed`` (or read it from the frame cache), run stages 1-4, score."""
     if _CACHE is None:
-        return score_frame(render_scene(seed))
-    path = _CACHE / f"scene-{seed}.npz"
+        return score_frame(render_scene(seed, _RASTER))
+    path = _CACHE / (f"scene-{seed}-{_RASTER}.npz" if _RASTER else f"scene-{seed}.npz")
     if path.exists():
         frame = Frame.load(path)
     else:
-        frame = render_scene(seed)
+        frame = render_scene(seed, _RASTER)
         frame.save(path)
     return score_frame(frame)
 
 
-def _init(cache: Path | None, params: dict[str, dict[str, Any]] | None = None) -> None:
-    global _CACHE, _PARAMS
+def _init(
+    cache: Path | None,
+    params: dict[str, dict[str, Any]] | None = None,
+    raster: str | None = None,
+) -> None:
+    global _CACHE, _PARAMS, _RASTER
     _CACHE = cache
     _PARAMS = params or {}
+    _RASTER = raster
 
 
 def _safe(seed: int) -> dict[str, Any]:
@@ -356,7 +366,7 @@ def summary(path: Path) -> dict[str, Any]:
         return float(sum(r[key] for r in sel))
 
     per_code = {}
-    for code in CODES:
+    for code in sorted({r["code"] for r in ok}, key=lambda c: (c not in CODES, c)):
         sel = [r for r in ok if r["code"] == code]
         if sel:
             per_code[code] = {
@@ -422,6 +432,12 @@ def summary(path: Path) -> dict[str, Any]:
     }
 
 
+def _raster_names() -> tuple[str, ...]:
+    from rasterserver.raster import CLINIC_RASTERS, HELD_OUT_RASTERS
+
+    return ("default", *CLINIC_RASTERS, *HELD_OUT_RASTERS)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
@@ -437,6 +453,13 @@ def main(argv: list[str] | None = None) -> int:
         help="only the scenes of the range seen through this diapositive code (seed %% 4)",
     )
     ap.add_argument(
+        "--raster",
+        choices=sorted(_raster_names()),
+        default=None,
+        help="see every scene through this built-in raster instead of the seed's code "
+        "(a raster held out from tuning: mseq8-35to65)",
+    )
+    ap.add_argument(
         "--params",
         default=None,
         help='stage parameters for tuning, JSON: {"peaks": {...}, "lines": {...}, ...}',
@@ -448,6 +471,8 @@ def main(argv: list[str] | None = None) -> int:
         help="folder of rendered frames: read when present, written when not (for tuning)",
     )
     args = ap.parse_args(argv)
+    if args.raster is not None and args.code is not None:
+        ap.error("--raster and --code exclude each other (--raster replaces every seed's code)")
     if args.summary is not None:
         print(json.dumps(summary(args.summary), indent=2))
         return 0
@@ -469,7 +494,11 @@ def main(argv: list[str] | None = None) -> int:
         mp.get_context("spawn").Pool(
             args.workers,
             initializer=_init,
-            initargs=(args.cache, json.loads(args.params) if args.params else None),
+            initargs=(
+                args.cache,
+                json.loads(args.params) if args.params else None,
+                args.raster,
+            ),
             maxtasksperchild=40,
         ) as pool,
         args.out.open("a") as fh,
