@@ -88,3 +88,26 @@ def test_custom_raster_and_validation() -> None:
         raster_from_document({"format": "nope"})
     with pytest.raises(KeyError):
         get_raster("nope")
+
+
+def test_the_held_out_raster_differs_from_every_tuning_one() -> None:
+    """The raster held out from the numbering's tuning: another window, line count, spacing
+    and light:heavy ratio than the clinic rasters, and a code whose windows may differ in one
+    line only (every window of eight lines still unique)."""
+    from rasterserver.raster import CLINIC_RASTERS, HELD_OUT_RASTERS, m_sequence
+
+    assert HELD_OUT_RASTERS == ("mseq8-35to65",)
+    r = get_raster("mseq8-35to65")
+    assert get_raster("mseq8-35to65") is r
+    assert r.n_lines == 136 and r.window == 8 and r.min_distance == 1
+    assert r.spacing == pytest.approx(7.2)
+    np.testing.assert_array_equal(r.code, m_sequence(8)[:136])
+    words = {tuple(r.code[i : i + 8]) for i in range(r.n_lines - 7)}
+    assert len(words) == r.n_lines - 7
+    ratio = r.widths[r.code == 1][0] / r.widths[r.code == 0][0]
+    assert ratio == pytest.approx(1.3 / 0.7)
+    for name in ("default", *CLINIC_RASTERS):
+        other = get_raster(name)
+        assert name not in HELD_OUT_RASTERS
+        assert (other.n_lines, other.window) != (r.n_lines, r.window)
+        assert other.widths.max() / other.widths.min() != pytest.approx(ratio)

@@ -297,10 +297,10 @@ def test_touching_component_with_contradicting_code_is_refused() -> None:
     assert np.all(result.line_number[n_lines:] == -1)
 
 
-@pytest.mark.parametrize("name", ["mseq7", "w8-1to2", "w9-45to55"])
+@pytest.mark.parametrize("name", ["mseq7", "w8-1to2", "w9-45to55", "mseq8-35to65"])
 def test_clinic_codes_number_truth_lines(name: str) -> None:
-    """Truth lines of a flat wall under each clinic raster: numbered from the raster's own
-    width ratio, and never wrongly."""
+    """Truth lines of a flat wall under each clinic raster (and the one held out from
+    tuning): numbered from the raster's own width ratio, and never wrongly."""
     from rasterserver.raster import get_raster
 
     raster = get_raster(name)

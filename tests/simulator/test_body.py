@@ -68,6 +68,12 @@ def test_scene_without_head_or_clothing() -> None:
     assert [o.name for o in scene.objects] == ["trunk", "left-arm", "right-arm"]
 
 
+def test_clinic_station_takes_the_held_out_raster() -> None:
+    st = clinic_station(3, "mseq8-35to65")
+    assert st.raster_definition.name == "mseq8-35to65"
+    assert st.raster_definition.n_lines == 136
+
+
 def test_clinic_station_sees_a_tall_field() -> None:
     st = clinic_station(3, "mseq7")
     assert st.raster_definition.name == "mseq7"
