@@ -482,6 +482,9 @@ def main(argv: list[str] | None = None) -> int:
     from _resume import chain_stamp, done_seeds  # beside this script
 
     stamp = chain_stamp(json.loads(args.params) if args.params else None)
+    if args.raster is not None:
+        # rows seen through another raster must not be summarised with this run's
+        stamp = {**stamp, "raster": args.raster}
     done = done_seeds(args.out, stamp)
     todo = [
         s

@@ -40,6 +40,11 @@ def test_a_code_keeps_only_its_scenes_and_a_raster_replaces_the_code(tmp_path: P
     assert done.returncode == 0, done.stderr[-2000:]
     rows = [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
     assert [(r["seed"], r["code"]) for r in rows] == [(1, "mseq7")]
+    # the same file, resumed through another raster: refused, not mixed
+    done = _run("--first-seed", "0", "--scenes", "4", "--raster", "mseq8-35to65", "--out", str(out))
+    assert done.returncode != 0
+    assert "other stages" in done.stderr
+    assert len(out.read_text().splitlines()) == 1
     out = tmp_path / "raster.jsonl"
     done = _run("--first-seed", "2", "--scenes", "2", "--raster", "mseq8-35to65",
                 "--workers", "1", "--out", str(out))  # fmt: skip
