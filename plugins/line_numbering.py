@@ -532,7 +532,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "12"
+    version: ClassVar[str] = "13"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

@@ -159,6 +159,31 @@ class CodeWindowParams(StageParams):
         "peaks lie beyond it, toward the frame's inside, within two line spacings (0: "
         "wherever it is).",
     )
+    surround_share: float = Field(
+        0.4,
+        ge=0,
+        lt=1,
+        description="Refuse the peaks near a long line's end where unnumbered peaks are at "
+        "least this share of all the peaks within two line spacings (a line carried onto "
+        "a refused surface; 0: keep them; version 12: 0).",
+    )
+    surround_reach: int = Field(
+        8,
+        ge=0,
+        description="The numbered peaks at each end of a line judged by surround_share.",
+    )
+    surround_length: int = Field(
+        80,
+        ge=0,
+        description="Least numbered peaks of a line whose ends surround_share judges (dashes "
+        "in hair end at strands, not at a surface's edge).",
+    )
+    surround_passes: int = Field(
+        3,
+        ge=1,
+        description="Times surround_share judges the ends, each among the peaks the pass "
+        "before left (a piece on a refused surface erodes, a line's end on the skin stays).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

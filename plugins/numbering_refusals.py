@@ -16,6 +16,7 @@ from rasterserver.records_lines import OrderedLines
 
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering
+from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
 from .numbering_params import CodeWindowParams
@@ -337,8 +338,10 @@ def settle_last(
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
     (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
-    (:func:`refuse_ends`) and the ends leaving the frame (:func:`.frame_edges.edge_ends`);
-    the notes of those that changed anything.
+    (:func:`refuse_ends`), the ends leaving the frame (:func:`.frame_edges.edge_ends`) and
+    the long lines' ends among unnumbered peaks
+    (:func:`.end_surroundings.ends_among_unnumbered`); the notes of those that changed
+    anything.
 
     Parameters
     ----------
@@ -350,7 +353,8 @@ def settle_last(
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
-        ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``.
+        ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
+        ``surround_reach``, ``surround_length``, ``surround_passes``.
 
     Returns
     -------
@@ -381,5 +385,17 @@ def settle_last(
             notes.append(
                 f"{int(edge.sum())} peak(s) at a line's end leaving the frame's top or bottom "
                 "edge (the column cannot show a line hidden beyond them) left unnumbered"
+            )
+    if params.surround_share > 0:
+        among = ends_among_unnumbered(
+            col, row, line_id, number, spacing, reach=params.surround_reach,
+            share=params.surround_share, min_length=params.surround_length,
+            passes=params.surround_passes,
+        )  # fmt: skip
+        if np.any(among):
+            number = np.where(among, -1, number).astype(np.int32)
+            notes.append(
+                f"{int(among.sum())} peak(s) near a long line's end lying among unnumbered "
+                "peaks (the line may run onto a refused surface) left unnumbered"
             )
     return number, notes
