@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .numbering_checks import by_line
+from .numbering_checks import line_runs
 from .peak_checks import doubtful_share
 
 __all__ = ["ends_among_unnumbered"]
@@ -103,10 +103,7 @@ def _one_pass(
     idx = np.flatnonzero(lid >= 0)
     if idx.size == 0:
         return refused
-    order = idx[by_line(lid[idx])]  # numbered peaks, line by line, in column order
-    lines = lid[order]
-    starts = np.flatnonzero(np.r_[True, lines[1:] != lines[:-1]])
-    stops = np.r_[starts[1:], order.size]
+    order, starts, stops = line_runs(lid, idx)  # numbered peaks, line by line
     # each numbered peak's distance (in numbered peaks) from its line's nearer end
     rank = np.arange(order.size) - np.repeat(starts, stops - starts)
     length = np.repeat(stops - starts, stops - starts)

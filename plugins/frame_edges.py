@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .numbering_checks import by_line
+from .numbering_checks import line_runs
 
 __all__ = ["edge_ends"]
 
@@ -103,10 +103,7 @@ def edge_ends(
     lid = np.where(number >= 0, line_id, -1).astype(np.int64)
     # only the lines with a peak at the edge: a few of the frame's hundreds
     idx = np.flatnonzero((lid >= 0) & np.isin(lid, np.unique(lid[flag])))
-    order = idx[by_line(lid[idx])]  # numbered peaks, line by line, in column order
-    lines = lid[order]
-    starts = np.flatnonzero(np.r_[True, lines[1:] != lines[:-1]])
-    stops = np.r_[starts[1:], order.size]
+    order, starts, stops = line_runs(lid, idx)  # numbered peaks, line by line
     f = flag[order]
     for a, b in zip(starts, stops, strict=True):
         if not (f[a] or f[b - 1]):

@@ -35,6 +35,7 @@ __all__ = [
     "by_line",
     "column_order_conflicts",
     "contact_votes",
+    "line_runs",
     "local_spacing",
     "pair_contradictions",
     "plausible_distance",
@@ -350,3 +351,26 @@ def by_line(lid: np.ndarray) -> np.ndarray:
     if lid.size and int(lid.max()) < 65536 and int(lid.min()) >= 0:
         return np.argsort(lid.astype(np.uint16), kind="stable")
     return np.argsort(lid, kind="stable")
+
+
+def line_runs(lid: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Peaks ``idx`` line by line, in column order, and where each line starts and stops.
+
+    Parameters
+    ----------
+    lid : numpy.ndarray
+        int64 line of every peak (peaks sorted by column); non-negative at ``idx``.
+    idx : numpy.ndarray
+        Indices of the peaks taken.
+
+    Returns
+    -------
+    order : numpy.ndarray
+        ``idx`` ordered by line, each line's peaks in column order.
+    starts, stops : numpy.ndarray
+        Each line's first position in ``order`` and the position after its last.
+    """
+    order = idx[by_line(lid[idx])]
+    lines = lid[order]
+    starts = np.flatnonzero(np.r_[True, lines[1:] != lines[:-1]]) if order.size else order[:0]
+    return order, starts, np.r_[starts[1:], order.size][: starts.size]

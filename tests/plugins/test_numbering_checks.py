@@ -123,3 +123,14 @@ def test_column_order_against_the_gaps_beside_it() -> None:
     # a line missing in between (two gaps wide) is not refused
     row_ok = np.array([100.0, 108.0, 116.0, 128.0, 134.0])
     assert not np.any(column_order_conflicts(col, row_ok, number, spacing=wide))
+
+
+def test_line_runs_orders_the_taken_peaks_line_by_line() -> None:
+    from rasterserver_plugins.numbering_checks import line_runs
+
+    lid = np.array([3, 1, 3, 1, 7, 3], dtype=np.int64)  # peaks in column order
+    order, starts, stops = line_runs(lid, np.array([0, 1, 2, 3, 5]))
+    assert order.tolist() == [1, 3, 0, 2, 5]
+    assert starts.tolist() == [0, 2] and stops.tolist() == [2, 5]
+    empty = line_runs(lid, np.zeros(0, dtype=np.int64))
+    assert [a.size for a in empty] == [0, 0, 0]
