@@ -524,10 +524,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     cannot decide inherit their numbers through short gaps from numbered ones they touch.
     Everything else is left unnumbered with the reason.
 
-    Versions (``docs/numbering-versions.md``): 2 geometric checks and linking; 3-7 the
-    column order, code bands and the peak-by-peak checks; 8 bracketed peaks; 9 pairs
-    confirmed on their other side; 10 doubtful line ends; 11 small components grouped to
-    inherit a number (:mod:`.component_groups`); 12 ends leaving the frame (:mod:`.frame_edges`).
+    Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
+    bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
+    (:mod:`.component_groups`); 12 ends leaving the frame (:mod:`.frame_edges`); 13 long
+    lines' ends among unnumbered peaks (:mod:`.end_surroundings`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
