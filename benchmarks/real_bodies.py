@@ -433,9 +433,9 @@ def summary(path: Path) -> dict[str, Any]:
 
 
 def _raster_names() -> tuple[str, ...]:
-    from rasterserver.raster import CLINIC_RASTERS, HELD_OUT_RASTERS
+    from rasterserver.raster import CLINIC_RASTERS, HELD_OUT_RASTERS, TUNING_RASTERS
 
-    return ("default", *CLINIC_RASTERS, *HELD_OUT_RASTERS)
+    return ("default", *CLINIC_RASTERS, *HELD_OUT_RASTERS, *TUNING_RASTERS)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -457,7 +457,7 @@ def main(argv: list[str] | None = None) -> int:
         choices=sorted(_raster_names()),
         default=None,
         help="see every scene through this built-in raster instead of the seed's code "
-        "(a raster held out from tuning: mseq8-35to65)",
+        "(a raster held out from tuning: mseq8-35to65; its tuning twin: mseq8b-35to65)",
     )
     ap.add_argument(
         "--params",

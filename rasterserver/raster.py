@@ -515,12 +515,34 @@ def mseq8_raster() -> Raster:
     )
 
 
+@lru_cache(maxsize=1)
+def mseq8_twin_raster() -> Raster:
+    """Tuning twin of the held-out raster: the first 132 lines of another window-8
+    maximal-length sequence (taps 8, 6, 5, 3), 7.4 units apart, light:heavy 35:65.
+
+    The held-out raster's kind (window 8, minimum distance 1, heavy lines nearly twice as
+    wide, dense lines) with another code, line count and spacing: the numbering may be tuned
+    on scenes seen through it (``benchmarks/real_bodies.py --raster mseq8b-35to65``) without
+    looking at the held-out raster itself.
+    """
+    return make_raster(
+        132,
+        spacing=7.4,
+        light_width=0.7,
+        heavy_width=1.3,
+        code=m_sequence(8, taps=(8, 6, 5, 3))[:132],
+        window=8,
+        name="mseq8b-35to65",
+    )
+
+
 _BUILTIN = {
     "default": default_raster,
     "mseq7": mseq7_raster,
     "w8-1to2": w8_thin_raster,
     "w9-45to55": w9_faint_raster,
     "mseq8-35to65": mseq8_raster,
+    "mseq8b-35to65": mseq8_twin_raster,
 }
 
 #: Built-in clinic rasters (other codes, line counts and light:heavy ratios than the
@@ -528,11 +550,13 @@ _BUILTIN = {
 CLINIC_RASTERS: tuple[str, ...] = ("mseq7", "w8-1to2", "w9-45to55")
 #: Built-in rasters held out from the numbering's tuning (measured on, never looked at).
 HELD_OUT_RASTERS: tuple[str, ...] = ("mseq8-35to65",)
+#: Built-in rasters for tuning only, each the twin of a held-out one (its kind, not its code).
+TUNING_RASTERS: tuple[str, ...] = ("mseq8b-35to65",)
 
 
 def get_raster(name: str) -> Raster:
     """A built-in raster definition by name (``"default"``, ``"mseq7"``, ``"w8-1to2"``,
-    ``"w9-45to55"``, ``"mseq8-35to65"``)."""
+    ``"w9-45to55"``, ``"mseq8-35to65"``, ``"mseq8b-35to65"``)."""
     try:
         return _BUILTIN[name]()
     except KeyError:

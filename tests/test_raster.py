@@ -111,3 +111,23 @@ def test_the_held_out_raster_differs_from_every_tuning_one() -> None:
         assert name not in HELD_OUT_RASTERS
         assert (other.n_lines, other.window) != (r.n_lines, r.window)
         assert other.widths.max() / other.widths.min() != pytest.approx(ratio)
+
+
+def test_the_held_out_rasters_tuning_twin_shares_its_kind_not_its_code() -> None:
+    """The twin (for tuning) has the held-out raster's window, distance and light:heavy
+    ratio, but another code (another primitive polynomial), line count and spacing: no code
+    window of the held-out raster is learnt by tuning on it."""
+    from rasterserver.raster import HELD_OUT_RASTERS, TUNING_RASTERS, m_sequence
+
+    assert TUNING_RASTERS == ("mseq8b-35to65",)
+    twin, held = get_raster("mseq8b-35to65"), get_raster(HELD_OUT_RASTERS[0])
+    assert (twin.window, twin.min_distance) == (held.window, held.min_distance) == (8, 1)
+    assert twin.n_lines != held.n_lines and twin.spacing != pytest.approx(held.spacing)
+    np.testing.assert_array_equal(twin.code, m_sequence(8, taps=(8, 6, 5, 3))[:132])
+    words = [tuple(twin.code[i : i + 8]) for i in range(twin.n_lines - 7)]
+    assert len(set(words)) == len(words)  # every window unique
+    # no run of 16 lines of the held-out code occurs in the twin's (another sequence)
+    held_runs = {tuple(held.code[i : i + 16]) for i in range(held.n_lines - 15)}
+    assert not any(tuple(twin.code[i : i + 16]) in held_runs for i in range(twin.n_lines - 15))
+    ratio = lambda r: r.widths[r.code == 1][0] / r.widths[r.code == 0][0]  # noqa: E731
+    assert ratio(twin) == pytest.approx(ratio(held))
