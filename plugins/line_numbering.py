@@ -526,13 +526,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
-    (:mod:`.component_groups`); 12 ends leaving the frame (:mod:`.frame_edges`); 13 long
-    lines' ends among unnumbered peaks (:mod:`.end_surroundings`).
+    (:mod:`.component_groups`); 12 frame edges (:mod:`.frame_edges`); 13 long lines' ends
+    among unnumbered peaks (:mod:`.end_surroundings`); 14 :mod:`.skipped_lines`.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "13"
+    version: ClassVar[str] = "14"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

@@ -184,6 +184,25 @@ class CodeWindowParams(StageParams):
         description="Times surround_share judges the ends, each among the peaks the pass "
         "before left (a piece on a refused surface erodes, a line's end on the skin stays).",
     )
+    skip_ratio: float = Field(
+        1.9,
+        ge=0,
+        description="Last, refuse column neighbours numbered n and n + 1 lying this many "
+        "times the single gaps beside them apart (a line skipped between them, as on a dark "
+        "cloth that shows the heavy lines only; 0: keep them; version 13: 0).",
+    )
+    skip_line_peaks: int = Field(
+        3,
+        ge=0,
+        description="A line with this many peaks refused by skip_ratio is refused whole "
+        "(its number is one for all its columns; 0: never).",
+    )
+    skip_line_share: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="Least share of a line's numbered peaks that skip_line_peaks must make up.",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

@@ -28,6 +28,7 @@ from .peak_checks import (
     line_jumps,
     stranded_runs,
 )
+from .skipped_lines import skipped_lines
 
 __all__ = [
     "refusal",
@@ -340,7 +341,8 @@ def settle_last(
     (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
     (:func:`refuse_ends`), the ends leaving the frame (:func:`.frame_edges.edge_ends`) and
     the long lines' ends among unnumbered peaks
-    (:func:`.end_surroundings.ends_among_unnumbered`); the notes of those that changed
+    (:func:`.end_surroundings.ends_among_unnumbered`) and the consecutive numbers a skipped
+    line apart (:func:`.skipped_lines.skipped_lines`); the notes of those that changed
     anything.
 
     Parameters
@@ -354,7 +356,8 @@ def settle_last(
     params : CodeWindowParams
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
         ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
-        ``surround_reach``, ``surround_length``, ``surround_passes``.
+        ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
+        ``skip_line_peaks``, ``skip_line_share``.
 
     Returns
     -------
@@ -397,5 +400,17 @@ def settle_last(
             notes.append(
                 f"{int(among.sum())} peak(s) near a long line's end lying among unnumbered "
                 "peaks (the line may run onto a refused surface) left unnumbered"
+            )
+    if params.skip_ratio > 0:
+        skipped = skipped_lines(
+            col, row, line_id, number, ratio=params.skip_ratio,
+            min_peaks=params.skip_line_peaks, line_share=params.skip_line_share,
+        )  # fmt: skip
+        if np.any(skipped):
+            number = np.where(skipped, -1, number).astype(np.int32)
+            notes.append(
+                f"{int(skipped.sum())} peak(s) numbered consecutively but lying two line "
+                "spacings apart in their column, or on their lines (a line between them went "
+                "unfound and was not counted) left unnumbered"
             )
     return number, notes
