@@ -86,3 +86,28 @@ def test_degenerate_inputs_refuse_nothing() -> None:
     assert none.shape == (0,)
     unnumbered = np.full(col.size, -1, np.int32)
     assert not np.any(_refused(col, row, lid, unnumbered))
+
+
+def test_later_passes_judging_only_what_changed_refuse_what_full_passes_refuse() -> None:
+    """Passes two and three judge again only the end peaks whose line lost peaks or whose
+    square holds a peak refused since: the same refusals as judging every end each time."""
+    from rasterserver_plugins.end_surroundings import _one_pass
+
+    rng = np.random.default_rng(13)
+    for trial in range(20):
+        lines = []
+        for k in range(12):
+            c0 = int(rng.integers(0, 60))
+            c1 = c0 + int(rng.integers(20, 260))
+            lines.append((k, c0, c1, SPACING * k + rng.normal(0, 0.5), bool(rng.random() < 0.7)))
+        col, row, lid, number = _peaks(lines)
+        spacing = np.full(col.size, SPACING)
+        kw = dict(reach=6, share=0.3, window=2.0, min_length=40)
+        full = np.zeros(col.size, dtype=bool)
+        for _ in range(4):
+            more = _one_pass(col, row, lid, np.where(full, -1, number), spacing, **kw)
+            if not np.any(more):
+                break
+            full |= more
+        fast = ends_among_unnumbered(col, row, lid, number, spacing, passes=4, **kw)
+        assert np.array_equal(fast, full), trial
