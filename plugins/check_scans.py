@@ -19,7 +19,14 @@ import numpy as np
 
 from rasterserver.compiled import kernel
 
-__all__ = ["beside_flags", "doubtful_counts", "end_flags", "island_flags", "stranded_flags"]
+__all__ = [
+    "beside_flags",
+    "doubtful_counts",
+    "end_flags",
+    "island_flags",
+    "single_gap_medians",
+    "stranded_flags",
+]
 
 
 @kernel()
@@ -314,4 +321,46 @@ def end_flags(
                 if height[order[end]] < dim_ratio * total / inner:
                     out[order[end]] = True
         start = stop + 1
+    return out
+
+
+@kernel()
+def single_gap_medians(
+    col: np.ndarray, number: np.ndarray, gap: np.ndarray, side: int, reach: int, min_refs: int
+) -> np.ndarray:
+    """Per pair of consecutive numbers in a column, the median of the gaps of up to ``side``
+    such pairs on either side in its column (numbers within ``reach``); inf with fewer
+    than ``min_refs`` (:func:`.skipped_lines.skipped_line_gaps`).
+
+    Parameters
+    ----------
+    col, number, gap : numpy.ndarray
+        Per pair (in peak order): column, the upper peak's number, the row gap.
+    side, reach, min_refs : int
+        As :func:`.skipped_lines.skipped_line_gaps`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 per pair.
+    """
+    m = gap.shape[0]
+    out = np.full(m, np.inf)
+    refs = np.empty(2 * side)
+    for i in range(m):
+        count = 0
+        for d in range(-side, side + 1):
+            o = i + d
+            if d == 0 or o < 0 or o >= m or col[o] != col[i]:
+                continue
+            if abs(np.int64(number[o]) - np.int64(number[i])) <= reach:
+                # insertion into the sorted few (no array allocated per pair)
+                j = count
+                while j > 0 and refs[j - 1] > gap[o]:
+                    refs[j] = refs[j - 1]
+                    j -= 1
+                refs[j] = gap[o]
+                count += 1
+        if count >= max(min_refs, 1):
+            out[i] = 0.5 * (refs[(count - 1) // 2] + refs[count // 2])
     return out
