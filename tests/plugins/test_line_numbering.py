@@ -671,3 +671,18 @@ def test_a_clinic_scene_reports_the_ends_among_unnumbered_peaks() -> None:
     reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
     note = [n for n in reason.split("; ") if "lying among unnumbered peaks" in n]
     assert len(note) == 1 and int(note[0].split()[0]) > 0
+
+
+@pytest.mark.slow
+def test_a_clinic_scene_reports_the_peaks_a_skipped_line_apart() -> None:
+    """The numbering's reason counts the peaks version 14's step refuses, for the overlay."""
+    from rasterserver.simulator.body import clinic_station
+
+    frame = _real_bodies().render_scene(7099, "mseq8b-35to65")
+    station = clinic_station(7099, frame.code)
+    context = StageContext(calibration=station, raster=station.raster_definition)
+    peaks = run_stage(FirstMomentPeaks, Image(frame.image))
+    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+    reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
+    note = [n for n in reason.split("; ") if "two line spacings apart in their column" in n]
+    assert len(note) == 1 and int(note[0].split()[0]) > 0
