@@ -164,6 +164,15 @@ def summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[flo
     return confidence, "; ".join(parts)
 
 
+def _unnumber(number: np.ndarray, refused: np.ndarray, notes: list[str], why: str) -> np.ndarray:
+    """``number`` with the ``refused`` peaks unnumbered; appends the note "N peak(s) ``why``
+    left unnumbered" to ``notes`` when there are any."""
+    if not np.any(refused):
+        return number
+    notes.append(f"{int(refused.sum())} peak(s) {why} left unnumbered")
+    return np.where(refused, -1, number).astype(np.int32)
+
+
 def refuse_peaks(
     col: np.ndarray,
     row: np.ndarray,
@@ -229,11 +238,7 @@ def refuse_peaks(
     notes: list[str] = []
 
     def refuse(refused: np.ndarray, why: str) -> np.ndarray:
-        """``number`` with the ``refused`` peaks unnumbered; a note "N peak(s) ``why``"."""
-        if not np.any(refused):
-            return number
-        notes.append(f"{int(refused.sum())} peak(s) {why} left unnumbered")
-        return np.where(refused, -1, number).astype(np.int32)
+        return _unnumber(number, refused, notes, why)
 
     if spacing is None:
         spacing = local_spacing(col, row, number)
@@ -383,34 +388,28 @@ def settle_last(
             col, row, line_id, number, spacing, rows,
             max_run=params.edge_run, reach=params.edge_reach, company=params.edge_company,
         )  # fmt: skip
-        if np.any(edge):
-            number = np.where(edge, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(edge.sum())} peak(s) at a line's end leaving the frame's top or bottom "
-                "edge (the column cannot show a line hidden beyond them) left unnumbered"
-            )
+        number = _unnumber(
+            number, edge, notes, "at a line's end leaving the frame's top or bottom edge (the "
+            "column cannot show a line hidden beyond them)",
+        )  # fmt: skip
     if params.surround_share > 0:
         among = ends_among_unnumbered(
             col, row, line_id, number, spacing, reach=params.surround_reach,
             share=params.surround_share, min_length=params.surround_length,
             passes=params.surround_passes,
         )  # fmt: skip
-        if np.any(among):
-            number = np.where(among, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(among.sum())} peak(s) near a long line's end lying among unnumbered "
-                "peaks (the line may run onto a refused surface) left unnumbered"
-            )
+        number = _unnumber(
+            number, among, notes, "near a long line's end lying among unnumbered peaks (the "
+            "line may run onto a refused surface)",
+        )  # fmt: skip
     if params.skip_ratio > 0:
         skipped = skipped_lines(
             col, row, line_id, number, ratio=params.skip_ratio,
             min_peaks=params.skip_line_peaks, line_share=params.skip_line_share,
         )  # fmt: skip
-        if np.any(skipped):
-            number = np.where(skipped, -1, number).astype(np.int32)
-            notes.append(
-                f"{int(skipped.sum())} peak(s) numbered consecutively but lying two line "
-                "spacings apart in their column, or on their lines (a line between them went "
-                "unfound and was not counted) left unnumbered"
-            )
+        number = _unnumber(
+            number, skipped, notes, "numbered consecutively but lying two line spacings apart "
+            "in their column, or on their lines (a line between them went unfound and was not "
+            "counted)",
+        )  # fmt: skip
     return number, notes
