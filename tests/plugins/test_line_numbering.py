@@ -658,31 +658,29 @@ def test_a_clinic_scene_where_version_13_numbers_across_a_skipped_line_is_refuse
     )
 
 
-@pytest.mark.slow
-def test_a_clinic_scene_reports_the_ends_among_unnumbered_peaks() -> None:
-    """The numbering's reason counts the peaks the new step refuses, for the overlay."""
+def _notes_of_clinic_scene(seed: int, raster: str | None = None) -> list[str]:
+    """The notes of the numbering's reason on clinic scene ``seed`` (seen through
+    ``raster`` instead of the seed's code)."""
     from rasterserver.simulator.body import clinic_station
 
-    frame = _real_bodies().render_scene(7829)
-    station = clinic_station(7829, frame.code)
+    frame = _real_bodies().render_scene(seed, raster)
+    station = clinic_station(seed, frame.code)
     context = StageContext(calibration=station, raster=station.raster_definition)
     peaks = run_stage(FirstMomentPeaks, Image(frame.image))
     ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
-    reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
-    note = [n for n in reason.split("; ") if "lying among unnumbered peaks" in n]
+    return run_stage(CodeWindowNumbering, ordered, context=context).reason.split("; ")
+
+
+@pytest.mark.slow
+def test_a_clinic_scene_reports_the_ends_among_unnumbered_peaks() -> None:
+    """The numbering's reason counts the peaks the new step refuses, for the overlay."""
+    note = [n for n in _notes_of_clinic_scene(7829) if "lying among unnumbered peaks" in n]
     assert len(note) == 1 and int(note[0].split()[0]) > 0
 
 
 @pytest.mark.slow
 def test_a_clinic_scene_reports_the_peaks_a_skipped_line_apart() -> None:
     """The numbering's reason counts the peaks version 14's step refuses, for the overlay."""
-    from rasterserver.simulator.body import clinic_station
-
-    frame = _real_bodies().render_scene(7099, "mseq8b-35to65")
-    station = clinic_station(7099, frame.code)
-    context = StageContext(calibration=station, raster=station.raster_definition)
-    peaks = run_stage(FirstMomentPeaks, Image(frame.image))
-    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
-    reason = run_stage(CodeWindowNumbering, ordered, context=context).reason
-    note = [n for n in reason.split("; ") if "two line spacings apart in their column" in n]
+    notes = _notes_of_clinic_scene(7099, "mseq8b-35to65")
+    note = [n for n in notes if "two line spacings apart in their column" in n]
     assert len(note) == 1 and int(note[0].split()[0]) > 0
