@@ -526,13 +526,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
-    (:mod:`.component_groups`); 12 frame edges (:mod:`.frame_edges`); 13 long lines' ends
-    among unnumbered peaks (:mod:`.end_surroundings`); 14 :mod:`.skipped_lines`.
+    (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
+    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "14"
+    version: ClassVar[str] = "15"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -607,7 +607,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             spacing=spacing,
         )
         # the spacing of the numbers before the refusals: the geometry they measured
-        number, last = settle_last(data, number, spacing, params)
+        number, last = settle_last(data, number, spacing, params, raster)
         notes += last
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(

@@ -203,6 +203,31 @@ class CodeWindowParams(StageParams):
         le=1,
         description="Least share of a line's numbered peaks that skip_line_peaks must make up.",
     )
+    detached_peaks: int = Field(
+        100,
+        ge=0,
+        description="Last, refuse the numbered pieces of at most this many peaks that no "
+        "standing contact joins to the frame's largest numbered block (their number rested "
+        "on contacts refused since, or across a depth or brightness step, as below a "
+        "waistband; 0: keep them; version 14: 0).",
+    )
+    detached_gap_low: float = Field(
+        0.6,
+        gt=0,
+        description="Least gap of column neighbours numbered n and n + 1, in medians of the "
+        "single gaps beside them, that joins them into one block (detached_peaks).",
+    )
+    detached_gap_high: float = Field(
+        1.6,
+        gt=0,
+        description="Largest such gap that joins them (detached_peaks).",
+    )
+    detached_brightness: float = Field(
+        1.0,
+        gt=0,
+        description="Largest departure of column neighbours' log area ratio from the code's "
+        "at their numbers that joins them (a material's edge changes it by more).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

@@ -16,6 +16,7 @@ from rasterserver.records_lines import OrderedLines
 
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering
+from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
@@ -341,14 +342,16 @@ def settle_last(
     number: np.ndarray,
     spacing: np.ndarray | None,
     params: CodeWindowParams,
+    raster: Raster,
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
     (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
     (:func:`refuse_ends`), the ends leaving the frame (:func:`.frame_edges.edge_ends`) and
     the long lines' ends among unnumbered peaks
-    (:func:`.end_surroundings.ends_among_unnumbered`) and the consecutive numbers a skipped
-    line apart (:func:`.skipped_lines.skipped_lines`); the notes of those that changed
-    anything.
+    (:func:`.end_surroundings.ends_among_unnumbered`), the consecutive numbers a skipped
+    line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
+    contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`); the
+    notes of those that changed anything.
 
     Parameters
     ----------
@@ -362,7 +365,10 @@ def settle_last(
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
         ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
-        ``skip_line_peaks``, ``skip_line_share``.
+        ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
+        ``detached_gap_high``, ``detached_brightness``.
+    raster : Raster
+        The diapositive's code.
 
     Returns
     -------
@@ -411,5 +417,17 @@ def settle_last(
             number, skipped, notes, "numbered consecutively but lying two line spacings apart "
             "in their column, or on their lines (a line between them went unfound and was not "
             "counted)",
+        )  # fmt: skip
+    if params.detached_peaks > 0:
+        detached = detached_pieces(
+            col, row, line_id, number, data.area, raster, max_peaks=params.detached_peaks,
+            gap_low=params.detached_gap_low, gap_high=params.detached_gap_high,
+            brightness=params.detached_brightness,
+        )  # fmt: skip
+        number = _unnumber(
+            number, detached, notes, f"in pieces of at most {params.detached_peaks} numbered "
+            "peaks that no contact at one line spacing with the code's brightness joins to the "
+            "frame's main numbered block (their number rested on contacts refused since, or "
+            "across a depth or brightness step, as below a waistband)",
         )  # fmt: skip
     return number, notes

@@ -20,7 +20,54 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["skipped_line_gaps", "skipped_lines"]
+__all__ = ["consecutive_pairs", "skipped_line_gaps", "skipped_lines"]
+
+
+def consecutive_pairs(
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    *,
+    side: int = 3,
+    reach: int = 8,
+    min_refs: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Column neighbours numbered ``n`` and ``n + 1``, their gaps and the gaps beside them.
+
+    Parameters
+    ----------
+    col, row : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    side, reach, min_refs : int
+        As :func:`skipped_line_gaps`.
+
+    Returns
+    -------
+    upper, lower : numpy.ndarray
+        int64 peak indices of every pair (consecutive numbered peaks of a column).
+    gap : numpy.ndarray
+        float64 row gap of every pair.
+    median : numpy.ndarray
+        float64 median of the gaps of up to ``side`` pairs on either side in the column
+        (numbers within ``reach``); inf with fewer than ``min_refs``.
+    """
+    number = np.asarray(number)
+    idx = np.flatnonzero(number >= 0)
+    a, b = idx[:-1], idx[1:]
+    keep = (col[a] == col[b]) & (number[b].astype(np.int64) - number[a] == 1)
+    a, b = a[keep], b[keep]
+    gap = (row[b] - row[a]).astype(np.float64)
+    if a.size == 0 or side < 1:
+        return a, b, gap, np.full(a.size, np.inf)
+    from .check_scans import single_gap_medians  # compiled; the numba import costs ~0.3 s
+
+    median = single_gap_medians(
+        np.asarray(col[a], dtype=np.int64), np.asarray(number[a], dtype=np.int64), gap,
+        side, reach, min_refs,
+    )  # fmt: skip
+    return a, b, gap, median
 
 
 def skipped_line_gaps(
@@ -56,22 +103,9 @@ def skipped_line_gaps(
         ``(N,)`` bool, True for both peaks of every refused pair.
     """
     out = np.zeros(col.size, dtype=bool)
-    idx = np.flatnonzero(np.asarray(number) >= 0)
-    if idx.size < 2 or side < 1:
-        return out
-    a, b = idx[:-1], idx[1:]
-    keep = (col[a] == col[b]) & (number[b].astype(np.int64) - number[a] == 1)
-    a, b = a[keep], b[keep]
-    m = a.size
-    if m <= min_refs:
-        return out
-    gap = (row[b] - row[a]).astype(np.float64)
-    from .check_scans import single_gap_medians  # compiled; the numba import costs ~0.3 s
-
-    median = single_gap_medians(
-        np.asarray(col[a], dtype=np.int64), np.asarray(number[a], dtype=np.int64), gap,
-        side, reach, min_refs,
-    )  # fmt: skip
+    a, b, gap, median = consecutive_pairs(
+        col, row, number, side=side, reach=reach, min_refs=min_refs
+    )
     judged = np.isfinite(median)
     skipped = judged & (gap >= ratio * median)
     out[a[skipped]] = True
