@@ -17,6 +17,7 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
@@ -47,8 +48,14 @@ def _timed(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-def main() -> None:
-    count = int(sys.argv[1]) if len(sys.argv) > 1 else 250
+def main(argv: list[str] | None = None) -> None:
+    """Command line entry point."""
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument(
+        "count", type=int, nargs="?", default=250,
+        help="acquisitions in the cached archive of reprocess.py (build it first)",
+    )  # fmt: skip
+    count = ap.parse_args(argv).count
     settings = settings_for(Path("/tmp/rasterserver-reprocess") / f"n{count}")
     reset(settings)
     engines.work = _timed("work", engines.work)  # type: ignore[assignment]

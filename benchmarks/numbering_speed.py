@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--first-seed", type=int, default=8201)
     ap.add_argument("--frames", type=int, default=60)
-    ap.add_argument("--code", default=None, help="only seeds seen through this code (seed % 4)")
+    ap.add_argument("--code", default=None, help="only seeds seen through this code (seed %% 4)")
     ap.add_argument("--raster", default=None, help="see every scene through this raster")
     ap.add_argument("--cache", type=Path, default=None, help="folder of rendered frames")
     ap.add_argument("--repeat", type=int, default=3)
