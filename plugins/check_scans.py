@@ -21,6 +21,7 @@ from rasterserver.compiled import kernel
 
 __all__ = [
     "beside_flags",
+    "block_roots",
     "doubtful_counts",
     "end_flags",
     "island_flags",
@@ -363,4 +364,67 @@ def single_gap_medians(
                 count += 1
         if count >= max(min_refs, 1):
             out[i] = 0.5 * (refs[(count - 1) // 2] + refs[count // 2])
+    return out
+
+
+@kernel()
+def _root(parent: np.ndarray, i: int) -> int:
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]  # path halving keeps the trees flat
+        i = parent[i]
+    return i
+
+
+@kernel()
+def block_roots(
+    col: np.ndarray,
+    line_id: np.ndarray,
+    number: np.ndarray,
+    upper: np.ndarray,
+    lower: np.ndarray,
+    col_gap: int,
+    n_lines: int,
+) -> np.ndarray:
+    """Per numbered peak, a representative peak of its block (-1 unnumbered): the joined
+    column pairs ``upper[k]``-``lower[k]`` and consecutive numbered peaks of one line and
+    number at most ``col_gap`` columns apart, as one union-find pass
+    (:func:`.detached_pieces.numbered_blocks`).
+
+    Parameters
+    ----------
+    col, line_id, number : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    upper, lower : numpy.ndarray
+        int64 peak indices of the joined column pairs.
+    col_gap, n_lines : int
+        Largest column step along a line; number of lines.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 per peak.
+    """
+    n = col.shape[0]
+    parent = np.arange(n)
+    for k in range(upper.shape[0]):
+        a = _root(parent, upper[k])
+        b = _root(parent, lower[k])
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    last = np.full(n_lines, -1, dtype=np.int64)
+    for i in range(n):
+        line = line_id[i]
+        if number[i] < 0 or line < 0:
+            continue
+        j = last[line]
+        if j >= 0 and number[j] == number[i] and col[i] - col[j] <= col_gap:
+            a = _root(parent, i)
+            b = _root(parent, j)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+        last[line] = i
+    out = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        if number[i] >= 0:
+            out[i] = _root(parent, i)
     return out

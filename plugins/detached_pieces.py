@@ -25,8 +25,6 @@ contact left with the block that was decided.
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from rasterserver.raster import Raster
 
@@ -71,36 +69,32 @@ def numbered_blocks(
     Returns
     -------
     numpy.ndarray
-        ``(N,)`` int64 block label, -1 for unnumbered peaks.
+        ``(N,)`` int64 block label (a peak of the block), -1 for unnumbered peaks.
     """
     number = np.asarray(number)
-    n = number.size
-    labels = np.full(n, -1, dtype=np.int64)
-    numbered = np.flatnonzero(number >= 0)
-    if numbered.size == 0:
+    labels = np.full(number.size, -1, dtype=np.int64)
+    if not np.any(number >= 0):
         return labels
     a, b, gap, median = consecutive_pairs(col, row, number)
     log_width = np.log(np.asarray(raster.widths, dtype=np.float64))
-    # numbers outside the raster cannot occur in a numbering of it; clipping keeps the
-    # lookup total for foreign input
-    at = np.clip(np.searchsorted(raster.numbers, number), 0, log_width.size - 1)
-    expected = log_width[at[b]] - log_width[at[a]]
+    # the raster's index of every number (numbers outside it, impossible in a numbering of
+    # it, read as its last line's: the lookup stays total for foreign input)
+    index = np.full(int(max(raster.numbers.max(), number.max())) + 1, log_width.size - 1)
+    index[raster.numbers] = np.arange(log_width.size)
+    expected = log_width[index[number[b]]] - log_width[index[number[a]]]
     departure = np.abs(np.log(area[b] / area[a]) - expected)
     ratio = gap / median  # median inf where not judged: ratio 0
     joined = (departure <= brightness) & (
         ~np.isfinite(median) | ((ratio >= gap_low) & (ratio <= gap_high))
     )
-    lid = np.asarray(line_id)
-    along = numbered[np.lexsort((col[numbered], lid[numbered]))]
-    p, q = along[:-1], along[1:]
-    same = (lid[p] == lid[q]) & (lid[p] >= 0) & (number[p] == number[q])
-    same &= col[q] - col[p] <= col_gap
-    src = np.concatenate([a[joined], p[same]])
-    dst = np.concatenate([b[joined], q[same]])
-    graph = coo_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(n, n))
-    _, block = connected_components(graph, directed=False)
-    labels[numbered] = block[numbered]
-    return labels
+    from .check_scans import block_roots  # compiled; the numba import costs ~0.3 s
+
+    lid = np.asarray(line_id, dtype=np.int64)
+    n_lines = int(lid.max()) + 1 if lid.size else 0
+    return block_roots(
+        np.asarray(col, dtype=np.int64), lid, np.asarray(number, dtype=np.int64),
+        a[joined].astype(np.int64), b[joined].astype(np.int64), col_gap, max(n_lines, 1),
+    )  # fmt: skip
 
 
 def detached_pieces(
@@ -143,8 +137,8 @@ def detached_pieces(
     inside = labels >= 0
     if not np.any(inside):
         return refused
-    sizes = np.bincount(labels[inside])
-    small = sizes <= max_peaks
+    sizes = np.bincount(labels[inside], minlength=labels.size)
+    small = (sizes > 0) & (sizes <= max_peaks)
     small[int(np.argmax(sizes))] = False
     refused[inside] = small[labels[inside]]
     return refused
