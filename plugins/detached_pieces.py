@@ -82,7 +82,8 @@ def numbered_blocks(
     index = np.full(int(max(raster.numbers.max(), number.max())) + 1, log_width.size - 1)
     index[raster.numbers] = np.arange(log_width.size)
     expected = log_width[index[number[b]]] - log_width[index[number[a]]]
-    departure = np.abs(np.log(area[b] / area[a]) - expected)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a zero area joins nothing
+        departure = np.abs(np.log(area[b] / area[a]) - expected)
     ratio = gap / median  # median inf where not judged: ratio 0
     joined = (departure <= brightness) & (
         ~np.isfinite(median) | ((ratio >= gap_low) & (ratio <= gap_high))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from rasterserver.stage import StageParams
 
@@ -241,3 +241,14 @@ class CodeWindowParams(StageParams):
         description="Largest departure of a bracketed run's gaps from one line spacing "
         "(share of the spacing).",
     )
+
+    @model_validator(mode="after")
+    def _gaps_ordered(self) -> CodeWindowParams:
+        # an empty range would join no column pair and detach every piece off the lines
+        if self.detached_gap_low >= self.detached_gap_high:
+            raise ValueError(
+                f"detached_gap_low ({self.detached_gap_low}) must be less than "
+                f"detached_gap_high ({self.detached_gap_high})"
+            )
+        return self
+

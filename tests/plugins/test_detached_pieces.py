@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from rasterserver_plugins.detached_pieces import detached_pieces, numbered_blocks
+from rasterserver_plugins.numbering_params import CodeWindowParams
 from rasterserver_plugins.skipped_lines import consecutive_pairs
 
 from rasterserver.raster import default_raster
@@ -103,6 +105,15 @@ def test_degenerate_inputs() -> None:
     # one block only: the largest is kept whatever its size
     assert not np.any(detached_pieces(col[:30], row[:30], lid[:30], number[:30], area[:30],
                                       RASTER))  # fmt: skip
+
+
+def test_a_zero_area_joins_nothing_and_an_empty_gap_range_is_refused() -> None:
+    col, row, lid, number, area = _peaks(BACK)
+    area[col == 5] = 0.0  # column 5's pairs cannot be judged by their brightness
+    labels = numbered_blocks(col, row, lid, number, area, RASTER)
+    assert np.unique(labels).size == 1  # the lines still join column 5 to the rest
+    with pytest.raises(ValidationError, match="detached_gap_low"):
+        CodeWindowParams(detached_gap_low=1.6, detached_gap_high=1.2)
 
 
 def test_consecutive_pairs_report_the_gaps_beside_them() -> None:
