@@ -15,7 +15,7 @@ from rasterserver.records import Image
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import StageContext, run_stage
 
-#: The steps of versions 13 and 14 switched off: part of every emulation of an earlier
+#: The steps of versions 13-15 switched off: part of every emulation of an earlier
 #: version (each would otherwise refuse what the earlier one erred on).
 STEPS_13_15_OFF = {"surround_share": 0.0, "skip_ratio": 0.0, "detached_peaks": 0}
 
