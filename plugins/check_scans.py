@@ -19,6 +19,8 @@ import numpy as np
 
 from rasterserver.compiled import kernel
 
+from .line_levels import union_root
+
 __all__ = [
     "beside_flags",
     "block_roots",
@@ -368,14 +370,6 @@ def single_gap_medians(
 
 
 @kernel()
-def _root(parent: np.ndarray, i: int) -> int:
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]  # path halving keeps the trees flat
-        i = parent[i]
-    return i
-
-
-@kernel()
 def block_roots(
     col: np.ndarray,
     line_id: np.ndarray,
@@ -407,8 +401,8 @@ def block_roots(
     n = col.shape[0]
     parent = np.arange(n)
     for k in range(upper.shape[0]):
-        a = _root(parent, upper[k])
-        b = _root(parent, lower[k])
+        a = union_root(parent, upper[k])
+        b = union_root(parent, lower[k])
         if a != b:
             parent[max(a, b)] = min(a, b)
     last = np.full(n_lines, -1, dtype=np.int64)
@@ -418,13 +412,13 @@ def block_roots(
             continue
         j = last[line]
         if j >= 0 and number[j] == number[i] and col[i] - col[j] <= col_gap:
-            a = _root(parent, i)
-            b = _root(parent, j)
+            a = union_root(parent, i)
+            b = union_root(parent, j)
             if a != b:
                 parent[max(a, b)] = min(a, b)
         last[line] = i
     out = np.full(n, -1, dtype=np.int64)
     for i in range(n):
         if number[i] >= 0:
-            out[i] = _root(parent, i)
+            out[i] = union_root(parent, i)
     return out

@@ -51,10 +51,23 @@ def _side_max(a: np.ndarray, first: np.ndarray, at: int, step: int, window: int)
 
 
 @kernel()
-def _root(parent: np.ndarray, x: int) -> int:
-    """Union-find root of ``x`` (-1 stays -1)."""
+def union_root(parent: np.ndarray, x: int) -> int:
+    """Union-find root of ``x`` (-1 stays -1), halving the path walked (the roots stay).
+
+    Parameters
+    ----------
+    parent : numpy.ndarray
+        int64 parent of every element (a root is its own); shortened in place.
+    x : int
+        The element.
+
+    Returns
+    -------
+    int
+    """
     if x >= 0:
         while parent[x] != x:
+            parent[x] = parent[parent[x]]
             x = parent[x]
     return x
 
@@ -141,8 +154,8 @@ def level_labels(
             # the previous levels', whichever run is labelled first
             left = label[max(s - 1, 0)] if linked[s] else -1
             right = label[e + 1] if e + 1 < n and linked[e + 1] else -1
-            left = _root(parent, left)
-            right = _root(parent, right)
+            left = union_root(parent, left)
+            right = union_root(parent, right)
             if left >= 0 and right >= 0 and left != right:
                 cut = s  # the first of the run's weakest positions
                 for p in range(s + 1, e + 1):
@@ -177,12 +190,12 @@ def level_labels(
         # the joins after all runs are judged: a run's lines are its neighbours' roots at
         # the level's start
         for j in range(n_joins):
-            x = _root(parent, join_x[j])
-            y = _root(parent, join_y[j])
+            x = union_root(parent, join_x[j])
+            y = union_root(parent, join_y[j])
             if x != y:
                 parent[max(x, y)] = min(x, y)
     out = np.full(n, -1, dtype=np.int64)
     for k in range(n):
         if label[k] >= 0:
-            out[perm[k]] = _root(parent, label[k])
+            out[perm[k]] = union_root(parent, label[k])
     return out
