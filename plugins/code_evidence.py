@@ -19,10 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rasterserver.errors import InputError
+from rasterserver.raster import Raster
+
 __all__ = [
     "EXPLAINS_TOO_LITTLE",
     "CodeFit",
     "ComponentNumbering",
+    "area_ratio_of",
     "code_fit",
     "code_objection",
     "level_differences",
@@ -37,6 +41,39 @@ __all__ = [
 # the start of the reason of a component whose best placement leaves too much unexplained
 # (the numbering may still place it when that placement is unique by far)
 EXPLAINS_TOO_LITTLE = "best code placement explains too little"
+
+
+def area_ratio_of(raster: Raster, area_ratio: float | None = None) -> float:
+    """The peak-area ratio of a heavy to a light line the numbering expects.
+
+    Parameters
+    ----------
+    raster : Raster
+        The diapositive's code.
+    area_ratio : float, optional
+        The ratio set by the user; by default the ratio of the raster's median heavy to
+        median light line width (1.5 for a raster of one kind only).
+
+    Returns
+    -------
+    float
+        The ratio, above 1.
+
+    Raises
+    ------
+    InputError
+        When the ratio is not above 1 (the kinds could not be told apart).
+    """
+    if area_ratio is None:
+        code = raster.code
+        heavy = raster.widths[code == 1]
+        light = raster.widths[code == 0]
+        area_ratio = (
+            float(np.median(heavy) / np.median(light)) if heavy.size and light.size else 1.5
+        )
+    if area_ratio <= 1.0:
+        raise InputError(f"the heavy/light area ratio must exceed 1, got {area_ratio:g}")
+    return float(area_ratio)
 
 
 def level_differences(

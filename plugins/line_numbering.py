@@ -35,6 +35,7 @@ from .code_evidence import (
     EXPLAINS_TOO_LITTLE,
     CodeFit,
     ComponentNumbering,
+    area_ratio_of,
     code_fit,
     code_objection,
     level_differences,
@@ -53,6 +54,7 @@ from .numbering_checks import (
 )
 from .numbering_params import CodeWindowParams
 from .numbering_refusals import (
+    edge_doubts,
     refusal,
     refuse_contradicted_pairs,
     refuse_peaks,
@@ -191,15 +193,7 @@ def number_lines(
     if not np.any(valid):
         return line_number, kind, []
     code = raster.code
-    if area_ratio is None:
-        heavy = raster.widths[code == 1]
-        light = raster.widths[code == 0]
-        area_ratio = (
-            float(np.median(heavy) / np.median(light)) if heavy.size and light.size else 1.5
-        )
-    if area_ratio <= 1.0:
-        raise InputError(f"the heavy/light area ratio must exceed 1, got {area_ratio:g}")
-    lam = float(np.log(area_ratio))
+    lam = float(np.log(area_ratio_of(raster, area_ratio)))
     if min_margin is None:
         min_margin = 2.0 if raster.min_distance >= 2 else 4.0
     need = min_lines
@@ -527,12 +521,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
-    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`.
+    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16 faint codes
+    (:func:`.numbering_refusals.edge_doubts`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "15"
+    version: ClassVar[str] = "16"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -552,7 +547,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
                 f"not {type(raster).__name__}"
             )
         station = context.calibration if hasattr(context.calibration, "triangulate") else None
-        doubtful_lines = np.zeros(data.line_order.shape[0], dtype=bool)
+        code_refused = np.zeros(data.line_order.shape[0], dtype=bool)
         line_number, kind, results = number_lines(
             data,
             raster,
@@ -573,13 +568,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,
-            doubtful_lines=doubtful_lines,
+            doubtful_lines=code_refused,
             group_ties=params.group_ties,
         )
-        if params.doubtful == "unnumbered":
-            # any line left unnumbered, whatever refused it: the share of them around a
-            # peak (block_share) tells a block from a lone refused line
-            doubtful_lines |= line_number < 0
+        doubtful_lines, block_share = edge_doubts(code_refused, line_number, params, raster)
         lid = data.line_id
         comps = data.line_component
         n_comp = int(comps.max()) + 1 if comps.size and comps.max() >= 0 else 0
@@ -599,9 +591,9 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             lid,
             number,
             column_check=params.column_check,
-            doubtful_lines=doubtful_lines if params.block_edge_check else None,
+            doubtful_lines=doubtful_lines,
             block_gap=params.block_gap,
-            block_share=params.block_share,
+            block_share=block_share,
             island_peaks=params.island_peaks,
             min_run=params.min_run,
             spacing=spacing,

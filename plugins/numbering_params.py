@@ -108,6 +108,18 @@ class CodeWindowParams(StageParams):
         description="Doubtful lines for the block-edge check: those the code refused inside "
         "numbered components (version 6) or every line left unnumbered.",
     )
+    faint_ratio: float = Field(
+        1.35,
+        ge=1.0,
+        description="A code whose heavy:light area ratio is below this is faint: it reads "
+        "few small components, so only the lines it refused inside numbered components are "
+        "doubtful for the block-edge check, among faint_share (1: never; version 15).",
+    )
+    faint_share: float = Field(
+        0.2,
+        ge=0.0,
+        description="block_share for a faint code (see faint_ratio).",
+    )
     island_peaks: int = Field(
         3,
         ge=0,

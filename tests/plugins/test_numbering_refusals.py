@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
-from rasterserver_plugins.numbering_refusals import refuse_contradicted_pairs
+import pytest
+from rasterserver_plugins.code_evidence import area_ratio_of
+from rasterserver_plugins.numbering_params import CodeWindowParams
+from rasterserver_plugins.numbering_refusals import edge_doubts, refuse_contradicted_pairs
 
+from rasterserver.errors import InputError
 from rasterserver.raster import Raster, get_raster
 from rasterserver.records_lines import OrderedLines
 
@@ -91,3 +95,44 @@ def test_no_contradiction_refuses_nothing() -> None:
     none = np.full(numbers.shape, -1, np.int32)
     per_line = np.bincount(data.line_id, minlength=4)
     assert refuse_contradicted_pairs(data, raster, LAM, none, per_line, max_agreement=0.4) == 0
+
+
+def test_a_faint_code_doubts_only_the_codes_own_refusals() -> None:
+    """With the 45:55 code (area ratio 1.22, below ``faint_ratio``) a line left unnumbered
+    is no sign of trouble: only the lines the code refused are doubtful, among the faint
+    share; with a clear code every unnumbered line is."""
+    refused = np.array([False, True, False, False])
+    line_number = np.array([5, -1, -1, 7], dtype=np.int32)
+    params = CodeWindowParams()
+    doubt, share = edge_doubts(refused, line_number, params, get_raster("w9-45to55"))
+    assert doubt is not None and doubt.tolist() == [False, True, False, False]
+    assert share == params.faint_share == 0.2
+    doubt, share = edge_doubts(refused, line_number, params, get_raster("mseq7"))
+    assert doubt is not None and doubt.tolist() == [False, True, True, False]
+    assert share == params.block_share
+    # version 15: no code is faint
+    v15 = CodeWindowParams(faint_ratio=1.0)
+    doubt, share = edge_doubts(refused, line_number, v15, get_raster("w9-45to55"))
+    assert doubt is not None and doubt.tolist() == [False, True, True, False]
+    assert share == v15.block_share
+    # a ratio set by the user decides over the raster's widths
+    clear = CodeWindowParams(area_ratio=1.5)
+    assert edge_doubts(refused, line_number, clear, get_raster("w9-45to55"))[1] == 0.5
+
+
+def test_the_block_edge_check_switched_off_doubts_nothing() -> None:
+    refused = np.array([True, False])
+    params = CodeWindowParams(block_edge_check=False)
+    doubt, _ = edge_doubts(refused, np.array([-1, -1], dtype=np.int32), params, get_raster("mseq7"))
+    assert doubt is None
+    code = CodeWindowParams(doubtful="code")
+    doubt, _ = edge_doubts(refused, np.array([-1, -1], dtype=np.int32), code, get_raster("mseq7"))
+    assert doubt is not None and doubt.tolist() == [True, False]
+
+
+def test_the_area_ratio_comes_from_the_rasters_widths_unless_set() -> None:
+    assert area_ratio_of(get_raster("w8-1to2")) == pytest.approx(2.0)
+    assert area_ratio_of(get_raster("w9-45to55")) == pytest.approx(1.1 / 0.9)
+    assert area_ratio_of(get_raster("mseq7"), 1.8) == 1.8
+    with pytest.raises(InputError, match="must exceed 1"):
+        area_ratio_of(get_raster("mseq7"), 1.0)
