@@ -32,9 +32,19 @@ print("went on", interrupted())
 """
 
 
+def _sigint_at_default() -> None:
+    # as a terminal starts a command: a suite run in the background of a non-interactive
+    # shell has SIGINT ignored, the child would inherit it and rightly keep it ignored
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _python(code: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=_sigint_at_default,
     )
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +25,16 @@ def installed_command() -> str:
     if found is None:
         raise RuntimeError("the rasterserver console script is not installed")
     return found
+
+
+def sigint_as_from_a_terminal() -> None:
+    """``preexec_fn`` giving the child SIGINT at its default, as a terminal starts a command.
+
+    A suite started in the background of a non-interactive shell (``pytest &``) has SIGINT
+    ignored, and its children inherit that; a command then rightly keeps it ignored
+    (:func:`rasterserver.interrupts.install`), and a test of Ctrl-C would see nothing.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def run_installed(

@@ -19,7 +19,13 @@ import time
 from pathlib import Path
 
 import pytest
-from installed_cli import TRACEBACK, describe, installed_command, run_installed
+from installed_cli import (
+    TRACEBACK,
+    describe,
+    installed_command,
+    run_installed,
+    sigint_as_from_a_terminal,
+)
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "calibration"))
 from calibration_frames import rendered_dir
@@ -211,6 +217,7 @@ def test_exit_130_interrupted(processed: Processed) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=sigint_as_from_a_terminal,
     ) as proc:
         assert proc.stderr is not None
         first = proc.stderr.readline()  # "[1/5] rendering back ...": the work has begun
