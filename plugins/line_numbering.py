@@ -55,6 +55,7 @@ from .numbering_checks import (
 from .numbering_params import CodeWindowParams
 from .numbering_refusals import (
     edge_doubts,
+    pair_departure,
     refusal,
     refuse_contradicted_pairs,
     refuse_peaks,
@@ -89,6 +90,7 @@ def number_lines(
     max_depth: float = 600.0,
     pair_check: bool = True,
     pair_agreement: float = 0.4,
+    pair_departure: float = 0.75,
     min_contact_share: float = 0.2,
     tile_check: bool = True,
     tile_band: int = 64,
@@ -145,8 +147,9 @@ def number_lines(
     pair_check : bool
         Refuse the shorter line of numbered column neighbours whose intensity ratio
         contradicts the code at their numbers (:func:`.numbering_checks.pair_contradictions`).
-    pair_agreement : float
-        Spare such a line where the code confirms its other pair (``max_agreement`` of
+    pair_agreement, pair_departure : float
+        Spare such a line where the code confirms its other pair; the least departure from
+        the code, in log ratios, that contradicts (``max_agreement``, ``min_departure`` of
         :func:`.numbering_refusals.refuse_contradicted_pairs`).
     min_contact_share : float
         Least contact weight, as a share of a component's column extent, for it to inherit
@@ -165,11 +168,9 @@ def number_lines(
         when the placement is unique by far (a margin of four times ``min_margin`` and
         15 % of the differences); the bands then refuse the lines placed off.
     doubtful_lines : numpy.ndarray, optional
-        ``(L,)`` bool, filled in place: True for the lines of numbered components that the
-        code refused, as a block ordered off (code bands) or against their component's
-        order (level windows); the peaks beside them are judged next
-        (:func:`.numbering_refusals.refuse_peaks`).
-
+        ``(L,)`` bool, filled in place: the lines of numbered components the code refused
+        (a block ordered off, a line against its component's order); the peaks beside them
+        are judged next (:func:`.numbering_refusals.refuse_peaks`).
     group_ties : float
         Components the code does not place and that cannot inherit alone are grouped by
         agreeing contacts over this many columns and inherit together
@@ -492,7 +493,13 @@ def number_lines(
         )
     if pair_check:
         refused = refuse_contradicted_pairs(
-            data, raster, lam, line_number, peaks_per_line, max_agreement=pair_agreement
+            data,
+            raster,
+            lam,
+            line_number,
+            peaks_per_line,
+            max_agreement=pair_agreement,
+            min_departure=pair_departure,
         )
         if refused:
             results.append(
@@ -521,13 +528,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
-    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16 faint codes
-    (:func:`.numbering_refusals.edge_doubts`).
+    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
+    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.pair_departure`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "16"
+    version: ClassVar[str] = "17"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -565,6 +572,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             max_depth=params.max_depth,
             min_contact_share=params.min_contact_share,
             pair_agreement=params.pair_agreement,
+            pair_departure=pair_departure(params, raster),
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,

@@ -113,12 +113,20 @@ class CodeWindowParams(StageParams):
         ge=1.0,
         description="A code whose heavy:light area ratio is below this is faint: it reads "
         "few small components, so only the lines it refused inside numbered components are "
-        "doubtful for the block-edge check, among faint_share (1: never; version 15).",
+        "doubtful for the block-edge check, among faint_share, and a pair's ratio contradicts "
+        "it only faint_departure off (1: never; version 15).",
     )
     faint_share: float = Field(
         0.2,
         ge=0.0,
         description="block_share for a faint code (see faint_ratio).",
+    )
+    faint_departure: float = Field(
+        1.5,
+        gt=0.0,
+        description="Least departure (in the code's log ratios) of a pair's intensity ratio "
+        "from the code's that contradicts it, for a faint code (others: 0.75; version 16: "
+        "0.75).",
     )
     island_peaks: int = Field(
         3,

@@ -15,9 +15,9 @@ from rasterserver.records import Image
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import StageContext, run_stage
 
-#: The steps of versions 13-16 switched off: part of every emulation of an earlier
+#: The steps of versions 13-17 switched off: part of every emulation of an earlier
 #: version (each would otherwise refuse what the earlier one erred on).
-STEPS_13_16_OFF = {
+STEPS_13_17_OFF = {
     "surround_share": 0.0,
     "skip_ratio": 0.0,
     "detached_peaks": 0,
@@ -366,7 +366,7 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "16"
+    assert CodeWindowNumbering.version == "17"
     params = CodeWindowNumbering.Params()
     assert (params.end_margin, params.end_refused, params.end_dim) == (3, 6, 0.3)
     assert params.group_ties == 3.0
@@ -490,7 +490,7 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
     the peaks beside the refused block and the stranded line ends, and keeps the back."""
     bench = _real_bodies()
     frame = bench.render_scene(7285)
-    v5 = {"block_edge_check": False, "min_run": 0, "island_peaks": 0, **STEPS_13_16_OFF}
+    v5 = {"block_edge_check": False, "min_run": 0, "island_peaks": 0, **STEPS_13_17_OFF}
     bench._init(None, {"numbers": v5})
     before = bench.score_frame(frame)
     bench._init(None, None)
@@ -532,7 +532,7 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
         # the later versions' steps off: brackets (8), line ends (10), groups (11), frame
         # edges (12), ends among unnumbered peaks (13)
         v7 = {"bracket_run": 0, "end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0}
-        v7.update(STEPS_13_16_OFF)
+        v7.update(STEPS_13_17_OFF)
         v6 = {"doubtful": "code", "block_share": 0.0, "island_peaks": 0, **v7}
         wrong, right = [], []
         for params in (v6, v7):
@@ -559,7 +559,7 @@ def test_a_clinic_scene_numbers_more_of_its_back_with_bracketed_peaks() -> None:
     version 8 numbers those its columns settle, and numbers none wrongly."""
     bench = _real_bodies()
     frame = bench.render_scene(7044)
-    v7 = {"bracket_run": 0, "group_ties": 0, "edge_run": 0, **STEPS_13_16_OFF}
+    v7 = {"bracket_run": 0, "group_ties": 0, "edge_run": 0, **STEPS_13_17_OFF}
     bench._init(None, {"numbers": v7})
     before = bench.score_frame(frame)
     bench._init(None, None)
@@ -576,7 +576,7 @@ def test_clinic_scenes_where_version_9_errs_at_line_ends_are_refused_by_version_
     refused peaks). Version 9 numbered them wrongly (on AMD EPYC: 3 and 3 peaks); version
     10 refuses the dim end peaks and the three peaks beyond six refused ones, and keeps
     the back."""
-    v9 = {"end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0, **STEPS_13_16_OFF}
+    v9 = {"end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0, **STEPS_13_17_OFF}
     _assert_refused_where_earlier_erred((7409, 7167), v9, max_loss=0.01)
 
 
@@ -611,7 +611,7 @@ def test_a_clinic_scene_numbers_the_line_pieces_under_hair_as_a_group() -> None:
     the trunk, with no wrong peak."""
     bench = _real_bodies()
     frame = bench.render_scene(7193)
-    bench._init(None, {"numbers": {"group_ties": 0, "edge_run": 0, **STEPS_13_16_OFF}})
+    bench._init(None, {"numbers": {"group_ties": 0, "edge_run": 0, **STEPS_13_17_OFF}})
     before = bench.score_frame(frame)
     bench._init(None, None)
     after = bench.score_frame(frame)
@@ -638,7 +638,7 @@ def test_clinic_scenes_where_version_11_errs_at_the_frames_edge_are_refused_by_v
     frame's edge cuts the cloth to pieces too short to read. Version 11 numbered those ends
     wrongly (on an Intel Xeon: 5, 6 and 9 peaks); version 12 refuses them and keeps the
     back."""
-    v11 = {"edge_run": 0, **STEPS_13_16_OFF}
+    v11 = {"edge_run": 0, **STEPS_13_17_OFF}
     _assert_refused_where_earlier_erred((7166, 7250, 7404), v11, max_loss=0.005)
 
 
@@ -649,7 +649,7 @@ def test_clinic_scenes_where_version_12_errs_at_a_cloths_side_edge_are_refused_b
     carry their numbers onto the cloth's next lines, whose own lines are refused. Version 12
     numbered them wrongly (on AMD EPYC: 32 peaks over 4 lines, 7 peaks over 3); version 13
     refuses the long lines' ends lying among unnumbered peaks, and keeps the back."""
-    v12 = dict(STEPS_13_16_OFF)
+    v12 = dict(STEPS_13_17_OFF)
     _assert_refused_where_earlier_erred((7829, 9089), v12, max_loss=0.01)
 
 
@@ -686,23 +686,28 @@ def test_clinic_scenes_where_version_14_numbers_detached_pieces_are_refused_by_1
 
 @pytest.mark.slow
 def test_clinic_scenes_through_a_faint_code_number_more_of_their_backs() -> None:
-    """Clinic scenes 7707 and 8091 through the 45:55 code (its kinds differ by a log area
-    ratio of 0.2): small pieces of lines the code cannot read stay unnumbered, and version
-    15 refused the back's peaks beside them as if they were a refused block (on AMD EPYC
-    the back's coverage 89.4 and 93.8 %). Version 16 takes only the code's own refusals as
-    doubtful for a faint code and numbers 1-2 points more of the back, none wrongly."""
+    """Clinic scenes 7707 and 7879 through the 45:55 code (its kinds differ by a log area
+    ratio of 0.2): version 15 refused the back's peaks beside small pieces the code cannot
+    read, as if they were a refused block, and lines whose ratio with a neighbour departed
+    from the code's by 0.75 of a kind's difference, within the ratios' scatter. Version 16
+    takes only the code's own refusals as doubtful for a faint code, version 17 needs a
+    ratio of the other sign to refuse a pair. Version 17 numbers more of the back than
+    either, none wrongly (on AMD EPYC 7707: 89.4 -> 91.4 -> 94.2 % of its back; 7879
+    loses 0.2 point with version 16 and gains with 17)."""
     bench = _real_bodies()
     gains = []
-    for seed in (7707, 8091):
+    for seed in (7707, 7879):
         frame = bench.render_scene(seed)
         assert frame.code == "w9-45to55"
-        bench._init(None, {"numbers": {"faint_ratio": 1.0}})
-        before = bench.score_frame(frame)
-        bench._init(None, None)
-        after = bench.score_frame(frame)
-        assert after["wrong_peaks"] == 0
-        gains.append((after["back_covered"] - before["back_covered"]) / before["back_crossings"])
-    assert min(gains) > 0 and max(gains) > 0.01
+        covered = []
+        for params in ({"faint_ratio": 1.0}, {"faint_departure": 0.75}, None):
+            bench._init(None, {"numbers": params} if params else None)
+            scored = bench.score_frame(frame)
+            assert scored["wrong_peaks"] == 0
+            covered.append(scored["back_covered"] / scored["back_crossings"])
+        assert covered[2] > max(covered[:2])
+        gains.append(covered[2] - covered[0])
+    assert min(gains) > 0.01 and max(gains) > 0.03
 
 
 def _notes_of_clinic_scene(seed: int, raster: str | None = None) -> list[str]:

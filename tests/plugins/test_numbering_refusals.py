@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from rasterserver_plugins.code_evidence import area_ratio_of
 from rasterserver_plugins.numbering_params import CodeWindowParams
-from rasterserver_plugins.numbering_refusals import edge_doubts, refuse_contradicted_pairs
+from rasterserver_plugins.numbering_refusals import (
+    edge_doubts,
+    faint_code,
+    pair_departure,
+    refuse_contradicted_pairs,
+)
 
 from rasterserver.errors import InputError
 from rasterserver.raster import Raster, get_raster
@@ -16,11 +21,16 @@ LAM = float(np.log(2.0))  # w8-1to2: heavy lines twice as wide as light ones
 
 
 def _stack(
-    extents: list[tuple[int, int]], gains: list[float], raster: Raster, seed: int = 3
+    extents: list[tuple[int, int]],
+    gains: list[float],
+    raster: Raster,
+    seed: int = 3,
+    heavy: float = 200.0,
 ) -> tuple[OrderedLines, np.ndarray]:
     """Line ``i`` (raster line ``i``, row ``10 i``) over the columns ``extents[i]``, its
-    areas those of its kind times ``gains[i]`` (an albedo edge, a shadow) with 3 % noise;
-    one component, numbered right. Returns the lines and their numbers."""
+    areas those of its kind (light 100, ``heavy``) times ``gains[i]`` (an albedo edge, a
+    shadow) with 3 % noise; one component, numbered right. Returns the lines and their
+    numbers."""
     rng = np.random.default_rng(seed)
     cols, rows, lids, areas = [], [], [], []
     for i, ((c0, c1), gain) in enumerate(zip(extents, gains, strict=True)):
@@ -28,7 +38,7 @@ def _stack(
         cols.append(c)
         rows.append(np.full(c.size, 10.0 * i))
         lids.append(np.full(c.size, i))
-        kind_area = 200.0 if raster.code[i] else 100.0
+        kind_area = heavy if raster.code[i] else 100.0
         areas.append(gain * kind_area * (1.0 + 0.03 * rng.standard_normal(c.size)))
     col, row, lid, area = (np.concatenate(a) for a in (cols, rows, lids, areas))
     order = np.lexsort((row, col))
@@ -136,3 +146,39 @@ def test_the_area_ratio_comes_from_the_rasters_widths_unless_set() -> None:
     assert area_ratio_of(get_raster("mseq7"), 1.8) == 1.8
     with pytest.raises(InputError, match="must exceed 1"):
         area_ratio_of(get_raster("mseq7"), 1.0)
+
+
+def test_a_faint_code_needs_a_ratio_of_the_other_sign_to_refuse_a_pair() -> None:
+    """Through the 45:55 code (log ratio 0.2) a short line one kind's difference off its
+    neighbours (a shading or albedo step as large as the code's) is refused at a departure
+    of 0.75, kept at the faint code's 1.5; a line two differences off (the ratio's sign
+    flipped, as a piece placed a level off shows) is refused at either."""
+    raster = get_raster("w9-45to55")
+    lam = float(np.log(area_ratio_of(raster)))
+    extents = [(0, 60), (0, 30), (0, 60), (0, 60)]
+
+    def refused(step: float, min_departure: float) -> set[int]:
+        data, numbers = _stack(
+            extents, [1.0, np.exp(step * lam), 1.0, 1.0], raster, heavy=110 / 0.9
+        )
+        per_line = np.bincount(data.line_id, minlength=numbers.size)
+        refuse_contradicted_pairs(data, raster, lam, numbers, per_line, min_departure=min_departure)
+        return set(np.flatnonzero(numbers < 0).tolist())
+
+    assert refused(1.0, 0.75) == {1}
+    assert refused(1.0, 1.5) == set()
+    assert refused(2.2, 1.5) == {1}
+    assert refused(0.0, 0.75) == set()
+
+
+def test_the_pair_departure_is_the_faint_codes_only_for_a_faint_code() -> None:
+    params = CodeWindowParams()
+    assert faint_code(get_raster("w9-45to55"), params)
+    assert pair_departure(params, get_raster("w9-45to55")) == params.faint_departure == 1.5
+    for name in ("default", "mseq7", "w8-1to2", "mseq8-35to65"):
+        assert not faint_code(get_raster(name), params)
+        assert pair_departure(params, get_raster(name)) == 0.75
+    # version 16: the faint code's departure as the others'; version 15: no code is faint
+    v16 = CodeWindowParams(faint_departure=0.75)
+    assert pair_departure(v16, get_raster("w9-45to55")) == 0.75
+    assert not faint_code(get_raster("w9-45to55"), CodeWindowParams(faint_ratio=1.0))
