@@ -55,7 +55,7 @@ from .numbering_checks import (
 from .numbering_params import CodeWindowParams
 from .numbering_refusals import (
     edge_doubts,
-    pair_departure,
+    least_pair_departure,
     refusal,
     refuse_contradicted_pairs,
     refuse_peaks,
@@ -529,7 +529,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
     :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
-    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.pair_departure`).
+    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`).
     """
 
     name: ClassVar[str] = "numbers.code-window"
@@ -572,7 +572,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             max_depth=params.max_depth,
             min_contact_share=params.min_contact_share,
             pair_agreement=params.pair_agreement,
-            pair_departure=pair_departure(params, raster),
+            pair_departure=least_pair_departure(params, raster),
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,

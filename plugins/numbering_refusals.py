@@ -34,7 +34,7 @@ from .skipped_lines import skipped_lines
 __all__ = [
     "edge_doubts",
     "faint_code",
-    "pair_departure",
+    "least_pair_departure",
     "refusal",
     "refuse_contradicted_pairs",
     "refuse_ends",
@@ -319,7 +319,7 @@ def faint_code(raster: Raster, params: CodeWindowParams) -> bool:
     return area_ratio_of(raster, params.area_ratio) < params.faint_ratio
 
 
-def pair_departure(params: CodeWindowParams, raster: Raster) -> float:
+def least_pair_departure(params: CodeWindowParams, raster: Raster) -> float:
     """The least departure, in units of the code's log ratio, of a pair's intensity ratio
     from the code's that contradicts it (:func:`refuse_contradicted_pairs`).
 

@@ -9,7 +9,7 @@ from rasterserver_plugins.numbering_params import CodeWindowParams
 from rasterserver_plugins.numbering_refusals import (
     edge_doubts,
     faint_code,
-    pair_departure,
+    least_pair_departure,
     refuse_contradicted_pairs,
 )
 
@@ -174,11 +174,11 @@ def test_a_faint_code_needs_a_ratio_of_the_other_sign_to_refuse_a_pair() -> None
 def test_the_pair_departure_is_the_faint_codes_only_for_a_faint_code() -> None:
     params = CodeWindowParams()
     assert faint_code(get_raster("w9-45to55"), params)
-    assert pair_departure(params, get_raster("w9-45to55")) == params.faint_departure == 1.5
+    assert least_pair_departure(params, get_raster("w9-45to55")) == params.faint_departure == 1.5
     for name in ("default", "mseq7", "w8-1to2", "mseq8-35to65"):
         assert not faint_code(get_raster(name), params)
-        assert pair_departure(params, get_raster(name)) == 0.75
+        assert least_pair_departure(params, get_raster(name)) == 0.75
     # version 16: the faint code's departure as the others'; version 15: no code is faint
     v16 = CodeWindowParams(faint_departure=0.75)
-    assert pair_departure(v16, get_raster("w9-45to55")) == 0.75
+    assert least_pair_departure(v16, get_raster("w9-45to55")) == 0.75
     assert not faint_code(get_raster("w9-45to55"), CodeWindowParams(faint_ratio=1.0))
