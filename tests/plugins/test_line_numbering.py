@@ -692,7 +692,7 @@ def test_clinic_scenes_through_a_faint_code_number_more_of_their_backs() -> None
     from the code's by 0.75 of a kind's difference, within the ratios' scatter. Version 16
     takes only the code's own refusals as doubtful for a faint code, version 17 needs a
     ratio of the other sign to refuse a pair. Version 17 numbers more of the back than
-    either, none wrongly (on AMD EPYC 7707: 89.4 -> 91.4 -> 94.2 % of its back; 7879
+    either, and none wrongly (on AMD EPYC 7707: 89.4 -> 91.4 -> 94.2 % of its back; 7879
     loses 0.2 point with version 16 and gains with 17)."""
     bench = _real_bodies()
     gains = []
@@ -703,8 +703,9 @@ def test_clinic_scenes_through_a_faint_code_number_more_of_their_backs() -> None
         for params in ({"faint_ratio": 1.0}, {"faint_departure": 0.75}, None):
             bench._init(None, {"numbers": params} if params else None)
             scored = bench.score_frame(frame)
-            assert scored["wrong_peaks"] == 0
             covered.append(scored["back_covered"] / scored["back_crossings"])
+        # this version's (the frames differ by processor: the earlier ones' errors may too)
+        assert scored["wrong_peaks"] == 0
         assert covered[2] > max(covered[:2])
         gains.append(covered[2] - covered[0])
     assert min(gains) > 0.01 and max(gains) > 0.03
