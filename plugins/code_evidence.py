@@ -29,6 +29,7 @@ __all__ = [
     "area_ratio_of",
     "code_fit",
     "code_objection",
+    "contradicted_lines",
     "level_differences",
     "level_pairs",
     "level_statistics",
@@ -341,8 +342,7 @@ def code_objection(fit: CodeFit, off: int, n_off: int, max_cost_rate: float) -> 
         excess = float(fit.cost[off] - fit.cost.min())
         if excess > 1.0 or fit.cost[off] > max_cost_rate * fit.terms + 1.0:
             return (
-                "its code contradicts the number its neighbours imply "
-                f"(excess cost {excess:.1f})"
+                f"its code contradicts the number its neighbours imply (excess cost {excess:.1f})"
             )
     return ""
 
@@ -373,12 +373,14 @@ def locally_contradicted(
     tolerance: float,
     min_margin: float,
     max_cost_rate: float,
+    poor_factor: float = 2.0,
 ) -> np.ndarray:
     """Levels of a numbered component where a run of ``span`` levels contradicts the
     component's placement: it reads, on its own, uniquely and cleanly as another placement,
-    or the component's placement explains it far worse (over twice ``max_cost_rate``) than
-    another. Line sequence analysis then put those lines one or more levels off (a clothing
-    edge, a fold), and the component's single offset would number them wrongly."""
+    or (with ``poor_factor`` > 0) the component's placement explains it far worse (over
+    ``poor_factor`` times ``max_cost_rate``) than another. Line sequence analysis then put
+    those lines one or more levels off (a clothing edge, a fold), and the component's single
+    offset would number them wrongly."""
     n_levels = d.size + 1
     if n_levels < span + 2:
         return np.zeros(0, dtype=np.int64)
@@ -395,5 +397,51 @@ def locally_contradicted(
         float(tolerance),
         float(min_margin),
         float(max_cost_rate),
+        float(poor_factor),
     )
     return np.flatnonzero(bad)
+
+
+def contradicted_lines(
+    placed: dict[int, int],
+    diffs: dict[int, tuple[np.ndarray, np.ndarray]],
+    comps: np.ndarray,
+    levels: np.ndarray,
+    valid: np.ndarray,
+    code: np.ndarray,
+    span: int,
+    lam: float,
+    tolerance: float,
+    min_margin: float,
+    max_cost_rate: float,
+    poor_factor: float,
+) -> np.ndarray:
+    """Lines of numbered components in a run of levels that contradicts their placement.
+
+    Parameters
+    ----------
+    placed : dict
+        Component -> its placement (offset on the code), for the components judged.
+    diffs : dict
+        Component -> its level differences and their weights.
+    comps, levels : numpy.ndarray
+        ``(L,)`` component and level of every line.
+    valid : numpy.ndarray
+        ``(L,)`` bool, lines with a component and a level.
+    code, span, lam, tolerance, min_margin, max_cost_rate, poor_factor
+        As :func:`locally_contradicted`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(L,)`` bool, the lines to leave unnumbered.
+    """
+    bad = np.zeros(valid.shape[0], dtype=bool)
+    for c, off in placed.items():
+        d, w = diffs[c]
+        levels_bad = locally_contradicted(
+            d, w, code, off, span, lam, tolerance, min_margin, max_cost_rate, poor_factor
+        )
+        if levels_bad.size:
+            bad |= valid & (comps == c) & np.isin(levels, levels_bad)
+    return bad

@@ -32,6 +32,7 @@ def contradicted_levels(
     tolerance: float,
     min_margin: float,
     max_cost_rate: float,
+    poor_factor: float,
 ) -> np.ndarray:
     """Levels of a numbered component where a run of ``span`` levels contradicts its
     placement (:func:`.code_evidence.locally_contradicted`, which checks the sizes).
@@ -44,7 +45,7 @@ def contradicted_levels(
         float64 kinds of the raster's lines.
     offset : int
         The component's placement.
-    span, lam, tolerance, min_margin, max_cost_rate
+    span, lam, tolerance, min_margin, max_cost_rate, poor_factor
         As :func:`.code_evidence.locally_contradicted`.
 
     Returns
@@ -89,7 +90,7 @@ def contradicted_levels(
         # another placement reads cleanly and uniquely here, or the component's placement
         # explains this run of lines far worse than the component as a whole allows
         clean_elsewhere = cost[best] <= max_cost_rate * total and local_margin >= min_margin
-        poorly_explained = cost[here] > 2.0 * max_cost_rate * total
+        poorly_explained = poor_factor > 0 and cost[here] > poor_factor * max_cost_rate * total
         if excess >= min_margin and (clean_elsewhere or poorly_explained):
             bad[start : start + span] = True
     return bad

@@ -38,9 +38,9 @@ from .code_evidence import (
     area_ratio_of,
     code_fit,
     code_objection,
+    contradicted_lines,
     level_differences,
     level_statistics,
-    locally_contradicted,
     observed_kinds,
     reliability,
 )
@@ -81,6 +81,7 @@ def number_lines(
     min_lines: int | None = None,
     min_margin: float | None = None,
     max_cost_rate: float = 0.25,
+    poor_run_factor: float = 0.0,
     min_columns: int = 5,
     correlation: float = 4.0,
     min_votes: float = 8.0,
@@ -131,6 +132,10 @@ def number_lines(
         detected), 4 for a code where two windows may differ in one line only.
     max_cost_rate : float
         Largest cost of the best placement per measured difference.
+    poor_run_factor : float
+        Also refuse a run of a numbered component's levels that its placement explains over
+        this many times ``max_cost_rate`` worse than another (0: only runs another placement
+        reads cleanly; :func:`.code_evidence.locally_contradicted`).
     min_columns : int
         Columns of neighbourhood at which a difference gets full weight; fewer weigh less.
     correlation : float
@@ -209,7 +214,6 @@ def number_lines(
     n_levels_of: dict[int, int] = {}
     kinds_of: dict[int, np.ndarray] = {}
     diffs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    line_unnumbered = np.zeros(n_lines, dtype=bool)
     size = np.zeros(n_comp)
     peaks_per_line = np.bincount(data.line_id[data.line_id >= 0], minlength=n_lines)
     np.add.at(size, comps[valid], peaks_per_line[valid])
@@ -427,18 +431,12 @@ def number_lines(
         rounds()
 
     results: list[ComponentNumbering] = []
-    local_refused = 0
-    for c in sorted(fits):
-        if offset[c] < 0 or c not in diffs:
-            continue
-        d, w = diffs[c]
-        bad_levels = locally_contradicted(
-            d, w, code, offset[c], 2 * raster.window, lam, tolerance, min_margin, max_cost_rate
-        )
-        if bad_levels.size:
-            drop = valid & (comps == c) & np.isin(levels, bad_levels)
-            line_unnumbered[drop] = True
-            local_refused += int(drop.sum())
+    judged = {c: offset[c] for c in sorted(fits) if offset[c] >= 0 and c in diffs}
+    line_unnumbered = contradicted_lines(
+        judged, diffs, comps, levels, valid, code, 2 * raster.window, lam,
+        tolerance, min_margin, max_cost_rate, poor_run_factor,
+    )  # fmt: skip
+    local_refused = int(line_unnumbered.sum())
     for c in sorted(fits):
         fit = fits[c]
         mine = valid & (comps == c)
@@ -529,12 +527,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
     :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
-    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`).
+    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`);
+    18 runs refused only where another placement reads them (``poor_run_factor``).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "17"
+    version: ClassVar[str] = "18"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -563,6 +562,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_lines=params.min_lines,
             min_margin=params.min_margin,
             max_cost_rate=params.max_cost_rate,
+            poor_run_factor=params.poor_run_factor,
             min_columns=params.min_columns,
             correlation=params.correlation,
             min_votes=params.min_votes,

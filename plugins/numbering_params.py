@@ -36,6 +36,13 @@ class CodeWindowParams(StageParams):
     max_cost_rate: float = Field(
         0.25, ge=0, description="Largest share of differences the best may miss."
     )
+    poor_run_factor: float = Field(
+        0.0,
+        ge=0,
+        description="Also refuse a run of a component's levels its placement explains this "
+        "many times max_cost_rate worse than another (0: only runs another placement reads "
+        "cleanly; version 17: 2).",
+    )
     min_columns: int = Field(5, ge=1, description="Columns for a difference's full weight.")
     correlation: float = Field(
         4.0, ge=1, description="Columns over which the albedo texture is correlated."
@@ -271,4 +278,3 @@ class CodeWindowParams(StageParams):
                 f"detached_gap_high ({self.detached_gap_high})"
             )
         return self
-
