@@ -528,7 +528,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
     :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
     (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`);
-    18 runs refused only where another placement reads them (``poor_run_factor``).
+    18 runs refused only where another placement reads them, lone peaks judged last.
     """
 
     name: ClassVar[str] = "numbers.code-window"

@@ -91,6 +91,11 @@ class CodeWindowParams(StageParams):
         True,
         description="Refuse numbered peaks with no numbered peak above or below them.",
     )
+    final_isolated: bool = Field(
+        True,
+        description="With column_check, refuse them again last, after the steps that "
+        "refuse the peaks beside them (version 17: false).",
+    )
     tile_gain: float = Field(
         2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
     )

@@ -451,8 +451,10 @@ def settle_last(
     the long lines' ends among unnumbered peaks
     (:func:`.end_surroundings.ends_among_unnumbered`), the consecutive numbers a skipped
     line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
-    contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`); the
-    notes of those that changed anything.
+    contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`), and
+    last the peaks those steps left with no numbered column neighbour
+    (:func:`.peak_checks.isolated_peaks`, ``final_isolated``); the notes of those that
+    changed anything.
 
     Parameters
     ----------
@@ -467,7 +469,7 @@ def settle_last(
         ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
-        ``detached_gap_high``, ``detached_brightness``.
+        ``detached_gap_high``, ``detached_brightness``, ``column_check``, ``final_isolated``.
     raster : Raster
         The diapositive's code.
 
@@ -530,5 +532,12 @@ def settle_last(
             "peaks that no contact at one line spacing with the code's brightness joins to the "
             "frame's main numbered block (their number rested on contacts refused since, or "
             "across a depth or brightness step, as below a waistband)",
+        )  # fmt: skip
+    if params.column_check and params.final_isolated:
+        # the steps above refuse peaks a column's order rested on: what is left numbered
+        # by its line's continuity alone is judged as the peak checks judged it
+        number = _unnumber(
+            number, isolated_peaks(col, number), notes, "with no numbered peak above or "
+            "below them once the last steps refused their column neighbours",
         )  # fmt: skip
     return number, notes

@@ -11,6 +11,7 @@ from rasterserver_plugins.numbering_refusals import (
     faint_code,
     least_pair_departure,
     refuse_contradicted_pairs,
+    settle_last,
 )
 
 from rasterserver.errors import InputError
@@ -182,3 +183,25 @@ def test_the_pair_departure_is_the_faint_codes_only_for_a_faint_code() -> None:
     v16 = CodeWindowParams(faint_departure=0.75)
     assert least_pair_departure(v16, get_raster("w9-45to55")) == 0.75
     assert not faint_code(get_raster("w9-45to55"), CodeWindowParams(faint_ratio=1.0))
+
+
+def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None:
+    """After the last steps (all off here) a numbered peak whose column neighbours are
+    unnumbered is refused with ``final_isolated`` (version 18), kept without it or without
+    the column check."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30), (0, 30), (0, 30)], [1.0, 1.0, 1.0], raster)
+    number = numbers[data.line_id].copy()
+    lonely = np.flatnonzero((data.col == 12) & (data.line_id == 1))
+    number[(data.col == 12) & (data.line_id != 1)] = -1  # its column neighbours refused
+    off = {
+        "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
+        "skip_ratio": 0, "detached_peaks": 0,
+    }  # fmt: skip
+    spacing = np.full(data.n_peaks, 10.0)
+    got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
+    assert np.all(got[lonely] == -1) and np.sum(got != number) == lonely.size
+    assert any("no numbered peak above or below" in n for n in notes)
+    for switch in ({"final_isolated": False}, {"column_check": False}):
+        kept, notes = settle_last(data, number, spacing, CodeWindowParams(**off, **switch), raster)
+        assert np.array_equal(kept, number) and not notes
