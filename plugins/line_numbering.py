@@ -133,9 +133,9 @@ def number_lines(
     max_cost_rate : float
         Largest cost of the best placement per measured difference.
     poor_run_factor : float
-        Also refuse a run of a numbered component's levels that its placement explains over
-        this many times ``max_cost_rate`` worse than another (0: only runs another placement
-        reads cleanly; :func:`.code_evidence.locally_contradicted`).
+        Also refuse a run of a numbered component's levels whose placement costs over this
+        many times ``max_cost_rate`` per difference (0: only runs another placement reads
+        cleanly; :func:`.code_evidence.locally_contradicted`).
     min_columns : int
         Columns of neighbourhood at which a difference gets full weight; fewer weigh less.
     correlation : float

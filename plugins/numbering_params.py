@@ -39,9 +39,9 @@ class CodeWindowParams(StageParams):
     poor_run_factor: float = Field(
         0.0,
         ge=0,
-        description="Also refuse a run of a component's levels its placement explains this "
-        "many times max_cost_rate worse than another (0: only runs another placement reads "
-        "cleanly; version 17: 2).",
+        description="Also refuse a run of a component's levels whose placement costs over "
+        "this many times max_cost_rate per difference, a margin more than another's (0: only "
+        "runs another placement reads cleanly; version 17: 2).",
     )
     min_columns: int = Field(5, ge=1, description="Columns for a difference's full weight.")
     correlation: float = Field(
