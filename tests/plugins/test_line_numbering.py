@@ -15,18 +15,17 @@ from rasterserver.records import Image
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import StageContext, run_stage
 
-#: The steps of versions 13-17 switched off: part of every emulation of an earlier
+#: Version 17's parameters in version 18 (the step of 18 switched off).
+V17 = {"poor_run_factor": 2.0, "final_isolated": False}
+#: The steps of versions 13-18 switched off: part of every emulation of an earlier
 #: version (each would otherwise refuse what the earlier one erred on).
 STEPS_13_18_OFF = {
     "surround_share": 0.0,
     "skip_ratio": 0.0,
     "detached_peaks": 0,
     "faint_ratio": 1.0,
-    "poor_run_factor": 2.0,
-    "final_isolated": False,
+    **V17,
 }
-# version 17's parameters in version 18
-V17 = {"poor_run_factor": 2.0, "final_isolated": False}
 
 
 def _context() -> StageContext:
@@ -372,6 +371,7 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 def test_version_is_bumped() -> None:
     assert CodeWindowNumbering.version == "18"
     params = CodeWindowNumbering.Params()
+    assert (params.poor_run_factor, params.final_isolated) == (0.0, True)
     assert (params.end_margin, params.end_refused, params.end_dim) == (3, 6, 0.3)
     assert params.group_ties == 3.0
     assert (params.edge_run, params.edge_reach, params.edge_company) == (6, 1.5, 3)
