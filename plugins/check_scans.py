@@ -6,7 +6,8 @@ dozen whole-array passes over all peaks (shifted copies, cumulative sums, run st
 lengths, a sorted key searched for every candidate and column offset): ~1.2 ms of the
 numbering's ~6 on a medium back, for checks that look at a peak's neighbours only. Here
 each is one loop computing the same comparisons on the same float64 values; the decisions
-are the same.
+are the same. :func:`misread_flags` reads the code down and up the columns for
+:func:`.column_reading.misread_columns` (a loop from the start).
 
 Importing this module costs the numba import (~0.3 s): the peak checks import it on use.
 """
@@ -27,6 +28,7 @@ __all__ = [
     "doubtful_counts",
     "end_flags",
     "island_flags",
+    "misread_flags",
     "single_gap_medians",
     "stranded_flags",
 ]
@@ -422,3 +424,92 @@ def block_roots(
         if number[i] >= 0:
             out[i] = union_root(parent, i)
     return out
+
+
+@kernel()
+def _run_costs(
+    log_area: np.ndarray,
+    run: np.ndarray,
+    length: int,
+    first: int,
+    step: int,
+    table: np.ndarray,
+    shifts: int,
+) -> tuple[float, float]:
+    """The departure of a column run's log area ratios from the code's at its own numbers
+    (``first``, ``first + step``, ...) and the least at another shift (inf where none fits
+    inside the raster; NaN for the own numbers where they lie outside it)."""
+    own = math.nan
+    best = math.inf
+    for shift in range(-shifts, shifts + 1):
+        cost = 0.0
+        valid = True
+        for k in range(1, length):
+            a = first + shift + step * (k - 1)
+            b = first + shift + step * k
+            if a < 0 or b < 0 or a >= table.size or b >= table.size:
+                valid = False
+                break
+            expected = table[b] - table[a]
+            if expected != expected:
+                valid = False
+                break
+            cost += abs(log_area[run[k]] - log_area[run[k - 1]] - expected)
+        if not valid:
+            continue
+        if shift == 0:
+            own = cost
+        elif cost < best:
+            best = cost
+    return own, best
+
+
+@kernel()
+def misread_flags(
+    col: np.ndarray,
+    row: np.ndarray,
+    number: np.ndarray,
+    log_area: np.ndarray,
+    table: np.ndarray,
+    run_max: int,
+    least: int,
+    margin: float,
+    clean: float,
+    shifts: int,
+) -> np.ndarray:
+    """:func:`.column_reading.misread_columns` on int64 columns and numbers, float64 rows
+    and log areas, and the raster's log widths by number (NaN: no such line)."""
+    n = col.size
+    flags = np.zeros(n, dtype=np.bool_)
+    run = np.empty(run_max + 1, dtype=np.int64)
+    for i in range(n):
+        if number[i] < 0:
+            continue
+        for step in (1, -1):
+            j = i + step
+            other = i - step
+            if j < 0 or j >= n or col[j] != col[i] or number[j] >= 0:
+                continue
+            if other < 0 or other >= n or col[other] != col[i] or number[other] < 0:
+                continue
+            gap = abs(row[i] - row[other])
+            run[0] = i
+            length = 1
+            k = j
+            while length <= run_max and 0 <= k < n and col[k] == col[i] and number[k] < 0:
+                g = abs(row[k] - row[run[length - 1]])
+                if g < 0.7 * gap or g > 1.4 * gap:
+                    break
+                run[length] = k
+                length += 1
+                gap = g
+                k += step
+            ratios = length - 1
+            if ratios < least:
+                continue
+            own, best = _run_costs(log_area, run, length, number[i], step, table, shifts)
+            if own != own or best == math.inf:
+                continue
+            if best <= clean * ratios and best + margin * ratios <= own:
+                flags[i] = True
+    return flags

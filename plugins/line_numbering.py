@@ -528,12 +528,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
     :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
     (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`);
-    18 runs refused only where another placement reads them, lone peaks judged last.
+    18 runs refused where another placement reads them, lone peaks last; 19 :mod:`.column_reading`.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "18"
+    version: ClassVar[str] = "19"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

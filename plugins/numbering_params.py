@@ -260,6 +260,31 @@ class CodeWindowParams(StageParams):
         description="Largest departure of column neighbours' log area ratio from the code's "
         "at their numbers that joins them (a material's edge changes it by more).",
     )
+    reading_run: int = Field(
+        6,
+        ge=0,
+        description="Last, read a numbered peak's column on through up to this many "
+        "unnumbered peaks beyond it, one spacing apart, and refuse the peak where the code "
+        "read there places it a line or two off (a line's end run onto a cloth that shows "
+        "the next raster line at its row; 0: none; version 18: 0).",
+    )
+    reading_least: int = Field(
+        3,
+        ge=1,
+        description="Least brightness ratios of consecutive peaks that reading_run reads.",
+    )
+    reading_margin: float = Field(
+        0.3,
+        ge=0,
+        description="Least advantage, per ratio (natural log), of the best shifted reading "
+        "over the peak's own number (reading_run).",
+    )
+    reading_clean: float = Field(
+        0.2,
+        gt=0,
+        description="Largest departure, per ratio (natural log), of the shifted reading "
+        "from the code (reading_run).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

@@ -16,6 +16,7 @@ from rasterserver.records_lines import OrderedLines
 
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering, area_ratio_of
+from .column_reading import misread_columns
 from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
@@ -451,10 +452,11 @@ def settle_last(
     the long lines' ends among unnumbered peaks
     (:func:`.end_surroundings.ends_among_unnumbered`), the consecutive numbers a skipped
     line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
-    contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`), and
-    last the peaks those steps left with no numbered column neighbour
-    (:func:`.peak_checks.isolated_peaks`, ``final_isolated``); the notes of those that
-    changed anything.
+    contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`), the
+    peaks their column's code, read on through the unnumbered peaks beyond them, places a
+    line off (:func:`.column_reading.misread_columns`, ``reading_run``), and last the peaks
+    those steps left with no numbered column neighbour (:func:`.peak_checks.isolated_peaks`,
+    ``final_isolated``); the notes of those that changed anything.
 
     Parameters
     ----------
@@ -469,7 +471,8 @@ def settle_last(
         ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
-        ``detached_gap_high``, ``detached_brightness``, ``column_check``, ``final_isolated``.
+        ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
+        ``reading_margin``, ``reading_clean``, ``column_check``, ``final_isolated``.
     raster : Raster
         The diapositive's code.
 
@@ -532,6 +535,17 @@ def settle_last(
             "peaks that no contact at one line spacing with the code's brightness joins to the "
             "frame's main numbered block (their number rested on contacts refused since, or "
             "across a depth or brightness step, as below a waistband)",
+        )  # fmt: skip
+    if params.reading_run > 0:
+        misread = misread_columns(
+            col, row, number, data.area, raster, run=params.reading_run,
+            least=params.reading_least, margin=params.reading_margin,
+            clean=params.reading_clean,
+        )  # fmt: skip
+        number = _unnumber(
+            number, misread, notes, "whose column, read on through the unnumbered peaks "
+            "beyond them, shows the code a line off their number (a line's end run onto "
+            "another surface)",
         )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered
