@@ -8,9 +8,9 @@ orders a short piece of the cloth as the back's next line, and the row, the spac
 surface all agree with the wrong number. The cloth's own lines beyond it in the column are
 left unnumbered (the code refused their order), yet they still show the code: their peaks'
 brightness ratios, read down the column from the numbered peak, follow the raster one line
-further on than the peak's number (on the clinic tuning scenes: a line's end onto a cloth,
-the ratios of five peaks off by 0.4-1.2 in log at the peak's number and within 0.2 one
-line on).
+further on than the peak's number (on the clinic tuning scenes, a line's end onto a cloth:
+six ratios departing from the code's by 2.8-4.1 in all, in log, at the peak's number and
+by 0.5-1.2 one line on).
 
 A numbered peak ``n`` with a numbered column neighbour on one side and unnumbered peaks on
 the other is read with up to ``run`` of those (each one spacing on, within 0.7-1.4 of the

@@ -205,3 +205,29 @@ def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None
     for switch in ({"final_isolated": False}, {"column_check": False}):
         kept, notes = settle_last(data, number, spacing, CodeWindowParams(**off, **switch), raster)
         assert np.array_equal(kept, number) and not notes
+
+
+def test_a_peak_its_column_reads_a_line_off_is_refused_last() -> None:
+    """Line 3 carried on one low (a line's end run onto a cloth) above the unnumbered lines
+    4-9, whose brightness follows the code at their true numbers: refused with
+    ``reading_run`` (version 19), kept without it; the right lines above are kept."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30)] * 10, [1.0] * 10, raster)
+    number = numbers[data.line_id].copy()
+    number[data.line_id >= 4] = -1  # the cloth's lines, refused for their order
+    carried = data.line_id == 3
+    number[carried] -= 1
+    off = {
+        "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
+        "skip_ratio": 0, "detached_peaks": 0,
+    }  # fmt: skip
+    spacing = np.full(data.n_peaks, 10.0)
+    got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
+    assert np.all(got[carried] == -1) and np.array_equal(got[~carried], number[~carried])
+    assert any("read on through the unnumbered peaks" in n for n in notes)
+    kept, notes = settle_last(data, number, spacing, CodeWindowParams(**off, reading_run=0), raster)
+    assert np.array_equal(kept, number) and not notes
+    # numbered right, line 3 reads the code at its own number: kept
+    number[carried] += 1
+    right, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
+    assert np.array_equal(right, number) and not notes
