@@ -185,6 +185,14 @@ def test_the_pair_departure_is_the_faint_codes_only_for_a_faint_code() -> None:
     assert not faint_code(get_raster("w9-45to55"), CodeWindowParams(faint_ratio=1.0))
 
 
+#: The last steps before the lone peaks and the column reading, switched off (so that a
+#: test of those two sees only their own refusals).
+LAST_STEPS_OFF = {
+    "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
+    "skip_ratio": 0, "detached_peaks": 0,
+}  # fmt: skip
+
+
 def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None:
     """After the last steps (all off here) a numbered peak whose column neighbours are
     unnumbered is refused with ``final_isolated`` (version 18), kept without it or without
@@ -194,10 +202,7 @@ def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None
     number = numbers[data.line_id].copy()
     lonely = np.flatnonzero((data.col == 12) & (data.line_id == 1))
     number[(data.col == 12) & (data.line_id != 1)] = -1  # its column neighbours refused
-    off = {
-        "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
-        "skip_ratio": 0, "detached_peaks": 0,
-    }  # fmt: skip
+    off = LAST_STEPS_OFF
     spacing = np.full(data.n_peaks, 10.0)
     got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
     assert np.all(got[lonely] == -1) and np.sum(got != number) == lonely.size
@@ -217,10 +222,7 @@ def test_a_peak_its_column_reads_a_line_off_is_refused_last() -> None:
     number[data.line_id >= 4] = -1  # the cloth's lines, refused for their order
     carried = data.line_id == 3
     number[carried] -= 1
-    off = {
-        "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
-        "skip_ratio": 0, "detached_peaks": 0,
-    }  # fmt: skip
+    off = LAST_STEPS_OFF
     spacing = np.full(data.n_peaks, 10.0)
     got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
     assert np.all(got[carried] == -1) and np.array_equal(got[~carried], number[~carried])
