@@ -523,17 +523,17 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     cannot decide inherit their numbers through short gaps from numbered ones they touch.
     Everything else is left unnumbered with the reason.
 
-    Versions (``docs/numbering-versions.md``): 2 checks and linking; 3-7 column order, code
-    bands, peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 groups
-    (:mod:`.component_groups`); 12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14
-    :mod:`.skipped_lines`; 15 :mod:`.detached_pieces`; 16, 17 faint codes
-    (:func:`.numbering_refusals.edge_doubts`, :func:`.numbering_refusals.least_pair_departure`);
-    18 runs refused where another placement reads them, lone peaks last; 19 :mod:`.column_reading`.
+    Versions (``docs/numbering-versions.md``): 2 checks, linking; 3-7 column order, code bands,
+    peak checks; 8 brackets; 9 pairs confirmed; 10 doubtful line ends; 11 :mod:`.component_groups`;
+    12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14 :mod:`.skipped_lines`; 15
+    :mod:`.detached_pieces`; 16, 17 faint codes (:func:`.numbering_refusals.edge_doubts`,
+    :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
+    peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "19"
+    version: ClassVar[str] = "20"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

@@ -285,6 +285,27 @@ class CodeWindowParams(StageParams):
         description="Largest departure, per ratio (natural log), of the shifted reading "
         "from the code (reading_run).",
     )
+    block_least: int = Field(
+        15,
+        ge=0,
+        description="Before the line-end steps, refuse blocks of at least this many numbered "
+        "peaks, joined along their lines and columns and holding a line's end, whose column "
+        "neighbours' brightness ratios read the code a line or two off their numbers (a "
+        "cloth standing off by a line's depth, its lines numbered with the back's; 0: none; "
+        "version 19: 0).",
+    )
+    block_gain: float = Field(
+        0.3,
+        ge=0,
+        description="Least advantage, per ratio (natural log), of a shifted reading over a "
+        "peak's own numbers for it to join such a block (block_least).",
+    )
+    block_clean: float = Field(
+        0.15,
+        gt=0,
+        description="Largest departure, per ratio (natural log), of that shifted reading "
+        "from the code (block_least).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

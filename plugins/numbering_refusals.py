@@ -16,6 +16,7 @@ from rasterserver.records_lines import OrderedLines
 
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering, area_ratio_of
+from .column_blocks import contradicted_blocks
 from .column_reading import misread_columns
 from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
@@ -447,9 +448,11 @@ def settle_last(
     raster: Raster,
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
-    (:func:`.bracketed_peaks.fill_brackets`), then the doubtful line ends refused
-    (:func:`refuse_ends`), the ends leaving the frame (:func:`.frame_edges.edge_ends`) and
-    the long lines' ends among unnumbered peaks
+    (:func:`.bracketed_peaks.fill_brackets`), the blocks at a line's end that their own
+    columns' code reads a line off refused (:func:`.column_blocks.contradicted_blocks`,
+    ``block_least``; first, so that the steps on line ends judge the ends it leaves), then
+    the doubtful line ends (:func:`refuse_ends`), the ends leaving the frame
+    (:func:`.frame_edges.edge_ends`) and the long lines' ends among unnumbered peaks
     (:func:`.end_surroundings.ends_among_unnumbered`), the consecutive numbers a skipped
     line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
     contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`), the
@@ -472,7 +475,8 @@ def settle_last(
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
-        ``reading_margin``, ``reading_clean``, ``column_check``, ``final_isolated``.
+        ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
+        ``block_clean``, ``column_check``, ``final_isolated``.
     raster : Raster
         The diapositive's code.
 
@@ -489,6 +493,16 @@ def settle_last(
             col, row, number, spacing, params.bracket_run, params.bracket_tolerance
         )
         notes += [note] if note else []
+    if params.block_least > 0:
+        blocks = contradicted_blocks(
+            col, number, line_id, data.area, raster, least=params.block_least,
+            gain=params.block_gain, clean=params.block_clean,
+        )  # fmt: skip
+        number = _unnumber(
+            number, blocks, notes, f"in blocks of {params.block_least} or more, holding a "
+            "line's end, whose column neighbours' brightness reads the code a line or two off "
+            "their numbers (lines run on onto a cloth standing off by a line's depth)",
+        )  # fmt: skip
     number, note = refuse_ends(
         line_id, number, height, end_refused=params.end_refused,
         end_margin=params.end_margin, end_dim=params.end_dim,

@@ -15,13 +15,15 @@ from rasterserver.records import Image
 from rasterserver.records_lines import NumberedLines, OrderedLines
 from rasterserver.stage import StageContext, run_stage
 
-#: Version 18's parameters in version 19 (the step of 19 switched off).
-V18 = {"reading_run": 0}
-#: Version 17's parameters in version 19 (the steps of 18 and 19 switched off).
+#: Version 19's parameters in version 20 (the step of 20 switched off).
+V19 = {"block_least": 0}
+#: Version 18's parameters in version 20 (the steps of 19 and 20 switched off).
+V18 = {"reading_run": 0, **V19}
+#: Version 17's parameters in version 20 (the steps of 18-20 switched off).
 V17 = {"poor_run_factor": 2.0, "final_isolated": False, **V18}
-#: The steps of versions 13-19 switched off: part of every emulation of an earlier
+#: The steps of versions 13-20 switched off: part of every emulation of an earlier
 #: version (each would otherwise refuse what the earlier one erred on).
-STEPS_13_19_OFF = {
+STEPS_13_20_OFF = {
     "surround_share": 0.0,
     "skip_ratio": 0.0,
     "detached_peaks": 0,
@@ -371,8 +373,9 @@ def test_column_check_refuses_a_pair_two_spacings_apart_numbered_three_apart() -
 
 
 def test_version_is_bumped() -> None:
-    assert CodeWindowNumbering.version == "19"
+    assert CodeWindowNumbering.version == "20"
     params = CodeWindowNumbering.Params()
+    assert (params.block_least, params.block_gain, params.block_clean) == (15, 0.3, 0.15)
     assert (params.reading_run, params.reading_least) == (6, 3)
     assert (params.reading_margin, params.reading_clean) == (0.3, 0.2)
     assert (params.poor_run_factor, params.final_isolated) == (0.0, True)
@@ -498,7 +501,7 @@ def test_line_ends_crossing_a_cloth_side_edge_are_refused() -> None:
     the peaks beside the refused block and the stranded line ends, and keeps the back."""
     bench = _real_bodies()
     frame = bench.render_scene(7285)
-    v5 = {"block_edge_check": False, "min_run": 0, "island_peaks": 0, **STEPS_13_19_OFF}
+    v5 = {"block_edge_check": False, "min_run": 0, "island_peaks": 0, **STEPS_13_20_OFF}
     bench._init(None, {"numbers": v5})
     before = bench.score_frame(frame)
     bench._init(None, None)
@@ -540,7 +543,7 @@ def test_a_clinic_scene_where_version_6_errs_is_refused_by_version_7() -> None:
         # the later versions' steps off: brackets (8), line ends (10), groups (11), frame
         # edges (12), ends among unnumbered peaks (13)
         v7 = {"bracket_run": 0, "end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0}
-        v7.update(STEPS_13_19_OFF)
+        v7.update(STEPS_13_20_OFF)
         v6 = {"doubtful": "code", "block_share": 0.0, "island_peaks": 0, **v7}
         wrong, right = [], []
         for params in (v6, v7):
@@ -567,7 +570,7 @@ def test_a_clinic_scene_numbers_more_of_its_back_with_bracketed_peaks() -> None:
     version 8 numbers those its columns settle, and numbers none wrongly."""
     bench = _real_bodies()
     frame = bench.render_scene(7044)
-    v7 = {"bracket_run": 0, "group_ties": 0, "edge_run": 0, **STEPS_13_19_OFF}
+    v7 = {"bracket_run": 0, "group_ties": 0, "edge_run": 0, **STEPS_13_20_OFF}
     bench._init(None, {"numbers": v7})
     before = bench.score_frame(frame)
     bench._init(None, None)
@@ -584,7 +587,7 @@ def test_clinic_scenes_where_version_9_errs_at_line_ends_are_refused_by_version_
     refused peaks). Version 9 numbered them wrongly (on AMD EPYC: 3 and 3 peaks); version
     10 refuses the dim end peaks and the three peaks beyond six refused ones, and keeps
     the back."""
-    v9 = {"end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0, **STEPS_13_19_OFF}
+    v9 = {"end_margin": 0, "end_dim": 0.0, "group_ties": 0, "edge_run": 0, **STEPS_13_20_OFF}
     _assert_refused_where_earlier_erred((7409, 7167), v9, max_loss=0.01)
 
 
@@ -619,7 +622,7 @@ def test_a_clinic_scene_numbers_the_line_pieces_under_hair_as_a_group() -> None:
     the trunk, with no wrong peak."""
     bench = _real_bodies()
     frame = bench.render_scene(7193)
-    bench._init(None, {"numbers": {"group_ties": 0, "edge_run": 0, **STEPS_13_19_OFF}})
+    bench._init(None, {"numbers": {"group_ties": 0, "edge_run": 0, **STEPS_13_20_OFF}})
     before = bench.score_frame(frame)
     bench._init(None, None)
     after = bench.score_frame(frame)
@@ -646,7 +649,7 @@ def test_clinic_scenes_where_version_11_errs_at_the_frames_edge_are_refused_by_v
     frame's edge cuts the cloth to pieces too short to read. Version 11 numbered those ends
     wrongly (on an Intel Xeon: 5, 6 and 9 peaks); version 12 refuses them and keeps the
     back."""
-    v11 = {"edge_run": 0, **STEPS_13_19_OFF}
+    v11 = {"edge_run": 0, **STEPS_13_20_OFF}
     _assert_refused_where_earlier_erred((7166, 7250, 7404), v11, max_loss=0.005)
 
 
@@ -657,7 +660,7 @@ def test_clinic_scenes_where_version_12_errs_at_a_cloths_side_edge_are_refused_b
     carry their numbers onto the cloth's next lines, whose own lines are refused. Version 12
     numbered them wrongly (on AMD EPYC: 32 peaks over 4 lines, 7 peaks over 3); version 13
     refuses the long lines' ends lying among unnumbered peaks, and keeps the back."""
-    v12 = dict(STEPS_13_19_OFF)
+    v12 = dict(STEPS_13_20_OFF)
     _assert_refused_where_earlier_erred((7829, 9089), v12, max_loss=0.01)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from rasterserver_plugins.code_evidence import area_ratio_of
@@ -210,6 +212,29 @@ def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None
     for switch in ({"final_isolated": False}, {"column_check": False}):
         kept, notes = settle_last(data, number, spacing, CodeWindowParams(**off, **switch), raster)
         assert np.array_equal(kept, number) and not notes
+
+
+def test_a_block_its_columns_read_a_line_off_is_refused_last() -> None:
+    """Lines 6-11 over columns 20-39 lie on a cloth (albedo 0.7) showing the next raster
+    line at their rows, numbered with the back's lines (the lines run on onto it): the
+    block is refused with ``block_least`` (version 20), kept without it; the back is
+    kept."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 40)] * 12, [1.0] * 12, raster)
+    number = numbers[data.line_id].copy()
+    cloth = (data.col >= 20) & (data.line_id >= 6)
+    truth = np.where(cloth, data.line_id + 1, data.line_id)
+    area = np.where(raster.code[truth] == 1, 200.0, 100.0) * np.where(cloth, 0.7, 1.0)
+    data = dataclasses.replace(data, area=area.astype(np.float32))
+    off = {**LAST_STEPS_OFF, "reading_run": 0, "final_isolated": False}
+    spacing = np.full(data.n_peaks, 10.0)
+    got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
+    refused = got != number
+    assert np.any(refused) and not np.any(refused & ~cloth) and np.all(got[refused] == -1)
+    assert refused[cloth & (data.line_id >= 7)].mean() > 0.9
+    assert any("read the code" in n or "reads the code" in n for n in notes)
+    kept, notes = settle_last(data, number, spacing, CodeWindowParams(**off, block_least=0), raster)
+    assert np.array_equal(kept, number) and not notes
 
 
 def test_a_peak_its_column_reads_a_line_off_is_refused_last() -> None:

@@ -1,0 +1,154 @@
+"""Blocks of numbered peaks whose own columns read the code a line off their numbers.
+
+Where a waistband's cloth stands off the skin by about one line's depth, the back's lines run
+on smoothly onto it: the cloth shows raster line ``n + 1`` at the row where the skin would
+have shown line ``n``, and the line search carries the skin's number onto the cloth. Row,
+spacing and surface then all agree with the wrong number, and when the cloth's lines are
+numbered with them no unnumbered peak is left beyond to read
+(:mod:`.column_reading`). The code still tells: within the cloth, the brightness ratios of
+consecutive numbered peaks of a column (the shading and the cloth's albedo cancel in them)
+follow the raster a line or two off the numbers they carry, at every column of the piece
+and on every line of it.
+
+Each numbered peak is read with its numbered column neighbours (numbers one apart): the
+log area ratios against the raster's at the peaks' numbers and at the same numbers shifted
+by up to ``shifts`` lines either way. A peak supports a shift where the shifted reading
+departs from the code by at most ``clean`` per ratio and explains its ratios better than
+its own numbers by at least ``gain`` per ratio. Supporting peaks join into blocks along
+their lines and down their columns; a block of at least ``least`` peaks that holds a
+line's end (the first or last numbered peak of a line: a cloth is met where a line leaves
+the skin) is refused. Alone, one peak's reading is noise (a fold, a shadow's edge); a block
+across several lines and columns, all read off, is the code's own verdict.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from rasterserver.raster import Raster
+
+from .column_reading import log_width_by_number
+
+__all__ = ["contradicted_blocks"]
+
+
+def _shifted_costs(
+    number: np.ndarray, log_area: np.ndarray, pair: np.ndarray, table: np.ndarray, shift: int
+) -> np.ndarray:
+    """Per-peak summed departure of its column pairs' log ratios from the code's at its
+    numbers shifted by ``shift`` (inf where a shifted number leaves the raster)."""
+    n = number.size
+    upper, lower = number[:-1] + shift, number[1:] + shift
+    inside = (np.minimum(upper, lower) >= 0) & (np.maximum(upper, lower) < table.size)
+    expected = np.full(n - 1, np.nan)
+    ok = pair & inside
+    expected[ok] = table[lower[ok]] - table[upper[ok]]
+    with np.errstate(invalid="ignore"):  # -inf - -inf (zero areas): no reading, inf below
+        cost = np.abs((log_area[1:] - log_area[:-1]) - expected)
+    cost = np.where(pair, np.where(np.isnan(cost), np.inf, cost), 0.0)
+    out = np.zeros(n)
+    out[:-1] += cost  # the pair below the peak
+    out[1:] += cost  # the pair above it
+    return out
+
+
+def contradicted_blocks(
+    col: np.ndarray,
+    number: np.ndarray,
+    line_id: np.ndarray,
+    area: np.ndarray,
+    raster: Raster,
+    *,
+    least: int = 20,
+    gain: float = 0.3,
+    clean: float = 0.15,
+    shifts: int = 2,
+) -> np.ndarray:
+    """Numbered peaks in blocks, holding a line's end, that their columns' code reads a line
+    or two off.
+
+    Parameters
+    ----------
+    col : numpy.ndarray
+        Per-peak column; the peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+    line_id : numpy.ndarray
+        Per-peak line, -1 for none.
+    area : numpy.ndarray
+        Per-peak area (the brightness the code is read from).
+    raster : Raster
+        The diapositive's code.
+    least : int
+        Fewest peaks of a refused block (0: the check is off).
+    gain : float
+        Least advantage, per ratio (natural log), of a shifted reading over the peak's own
+        numbers for the peak to support it.
+    clean : float
+        Largest departure, per ratio, of the shifted reading from the code.
+    shifts : int
+        Largest shift, in lines, tried either way.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool, True for the refused peaks.
+    """
+    number = np.asarray(number, dtype=np.int64)
+    n = number.size
+    flags = np.zeros(n, dtype=bool)
+    if least <= 0 or n < 2 or not np.any(number >= 0):
+        return flags
+    col = np.asarray(col)
+    line_id = np.asarray(line_id)
+    with np.errstate(divide="ignore"):  # a zero area reads as -inf: no reading explains it
+        log_area = np.log(np.asarray(area, dtype=np.float64))
+    table = log_width_by_number(raster)
+    # column pairs (i, i + 1): numbered neighbours of one column, numbers one apart
+    pair = (
+        (col[:-1] == col[1:])
+        & (number[:-1] >= 0)
+        & (number[1:] >= 0)
+        & (np.abs(number[1:] - number[:-1]) == 1)
+    )
+    ratios = np.zeros(n, dtype=np.int64)
+    ratios[:-1] += pair
+    ratios[1:] += pair
+    read = ratios > 0
+    if not np.any(read):
+        return flags
+    own = _shifted_costs(number, log_area, pair, table, 0)
+    support = np.zeros(n, dtype=bool)
+    per = np.maximum(ratios, 1)
+    for shift in range(-shifts, shifts + 1):
+        if shift == 0:
+            continue
+        cost = _shifted_costs(number, log_area, pair, table, shift)
+        with np.errstate(invalid="ignore"):  # inf - inf: neither reading exists
+            better = (own - cost) >= gain * per
+        support |= read & (cost <= clean * per) & better
+    if np.count_nonzero(support) < least:
+        return flags
+    # along lines: consecutive numbered peaks of one line, by column
+    numbered = np.flatnonzero((number >= 0) & (line_id >= 0))
+    by_line = numbered[np.lexsort((col[numbered], line_id[numbered]))]
+    same = line_id[by_line[1:]] == line_id[by_line[:-1]]
+    a = np.concatenate([by_line[:-1][same], np.flatnonzero(pair)])
+    b = np.concatenate([by_line[1:][same], np.flatnonzero(pair) + 1])
+    keep = support[a] & support[b]
+    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label[support], minlength=label.max() + 1)
+    # a line's first and last numbered peaks
+    ends = np.zeros(n, dtype=bool)
+    if by_line.size:
+        start = np.r_[True, ~same]
+        ends[by_line[start]] = True
+        ends[by_line[np.r_[~same, True]]] = True
+    at_end = np.zeros(size.size, dtype=bool)
+    at_end[label[support & ends]] = True
+    chosen = (size >= least) & at_end
+    flags[support] = chosen[label[support]]
+    return flags

@@ -1,0 +1,103 @@
+"""Blocks of numbered peaks whose own columns read the code a line off: refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from rasterserver_plugins.column_blocks import contradicted_blocks
+from rasterserver_plugins.numbering_params import CodeWindowParams
+
+from rasterserver.raster import default_raster
+
+RASTER = default_raster()
+FIRST = 40  # the first line's number
+LINES = 16
+COLUMNS = 60
+
+
+def _scene(
+    cloth_columns: range = range(40, 60),
+    cloth_lines: range = range(8, 16),
+    numbered_right: bool = False,
+    seed: int = 5,
+) -> tuple[np.ndarray, ...]:
+    """Lines ``FIRST ..`` one spacing apart over ``COLUMNS`` columns; in ``cloth_columns``,
+    lines ``cloth_lines`` lie on a cloth (albedo 0.7) that shows the next raster line at
+    their rows, numbered with the back's line (``numbered_right``: with the cloth's).
+    Areas are the code's widths with 3 % noise. Returns col, number, line_id, area (sorted
+    by ``(col, row)``) and the truth."""
+    rng = np.random.default_rng(seed)
+    col = np.repeat(np.arange(COLUMNS), LINES)
+    line = np.tile(np.arange(LINES), COLUMNS)
+    cloth = np.isin(col, cloth_columns) & np.isin(line, cloth_lines)
+    truth = FIRST + line + cloth
+    width = np.array([RASTER.widths[RASTER.index_of(int(t))] for t in truth])
+    area = 100.0 * width * np.where(cloth, 0.7, 1.0) * (1.0 + 0.03 * rng.standard_normal(col.size))
+    number = truth if numbered_right else FIRST + line
+    return col, number.astype(np.int32), line.astype(np.int32), area, truth
+
+
+def test_a_cloth_block_numbered_a_line_off_is_refused() -> None:
+    col, number, line_id, area, truth = _scene()
+    refused = contradicted_blocks(col, number, line_id, area, RASTER)
+    wrong = number != truth
+    assert np.any(refused)
+    assert not np.any(refused & ~wrong)  # no peak of the back
+    # the cloth's inner lines, read within the cloth on both sides, all go
+    inner = wrong & np.isin(line_id, range(9, 15))
+    assert refused[inner].mean() > 0.9
+
+
+def test_the_same_block_numbered_right_is_kept() -> None:
+    col, number, line_id, area, _ = _scene(numbered_right=True)
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
+
+
+def test_a_block_smaller_than_least_is_kept() -> None:
+    """Two columns of six cloth lines: too few peaks to outweigh a fold's or a shadow's
+    noise."""
+    col, number, line_id, area, _ = _scene(cloth_columns=range(58, 60), cloth_lines=range(10, 16))
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
+    assert np.any(contradicted_blocks(col, number, line_id, area, RASTER, least=5))
+
+
+def test_a_block_holding_no_line_s_end_is_kept() -> None:
+    """The same reading in the lines' middle: the lines run on both sides of it, numbered
+    right (a patch of another albedo reads off only by chance); not refused."""
+    col, number, line_id, area, _ = _scene(cloth_columns=range(20, 40))
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
+
+
+def test_peaks_read_only_with_unnumbered_neighbours_are_not_read() -> None:
+    """Every other line unnumbered: no column pair of numbers one apart, nothing read."""
+    col, number, line_id, area, _ = _scene()
+    number = np.where(line_id % 2 == 1, -1, number).astype(np.int32)
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
+
+
+def test_degenerate_inputs() -> None:
+    col, number, line_id, area, _ = _scene()
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER, least=0))
+    empty = np.zeros(0)
+    assert contradicted_blocks(empty, empty, empty, empty, RASTER).shape == (0,)
+    none = np.full(number.size, -1)
+    assert not np.any(contradicted_blocks(col, none, line_id, area, RASTER))
+    # zero areas read as -inf: no shift explains them, nothing refused, no warning
+    zero = np.zeros(area.size)
+    with np.errstate(all="raise"):
+        assert not np.any(contradicted_blocks(col, number, line_id, zero, RASTER))
+    # numbers beyond the raster's last line: those shifts read nothing
+    beyond = number + RASTER.n_lines
+    assert not np.any(contradicted_blocks(col, beyond, line_id, area, RASTER))
+
+
+def test_parameters_are_validated() -> None:
+    with pytest.raises(ValidationError):
+        CodeWindowParams(block_least=-1)
+    with pytest.raises(ValidationError):
+        CodeWindowParams(block_clean=0)
+    with pytest.raises(ValidationError):
+        CodeWindowParams(block_gain=-0.1)
+    params = CodeWindowParams()
+    assert (params.block_least, params.block_gain, params.block_clean) == (15, 0.3, 0.15)
