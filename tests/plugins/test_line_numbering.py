@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from image_truth import back, rendering_raster, truth_lines, truth_of_peaks, wall
@@ -591,17 +593,39 @@ def test_clinic_scenes_where_version_9_errs_at_line_ends_are_refused_by_version_
     _assert_refused_where_earlier_erred((7409, 7167), v9, max_loss=0.01)
 
 
+#: Clinic scenes kept as rendered (``benchmarks/real_bodies.py --cache tests/data/scenes``,
+#: 2026-11-29, Intel Xeon with AVX-512). The renderer is deterministic on one machine, but
+#: its frames differ in their last bits between processors, and a rare error shown by a
+#: scene rendered on one (AMD EPYC, where the tests of versions 18 and 19 were first
+#: written) may not show on another: a test that must see an earlier version err reads
+#: the frame it was written on.
+SCENES = Path(__file__).resolve().parents[1] / "data" / "scenes"
+
+
+def _scene(bench, seed: int, raster: str | None, stored: bool):  # type: ignore[no-untyped-def]
+    """Clinic scene ``seed`` (through ``raster``): rendered, or read from ``SCENES``."""
+    if not stored:
+        return bench.render_scene(seed, raster)
+    name = f"scene-{seed}-{raster}.npz" if raster else f"scene-{seed}.npz"
+    return bench.Frame.load(SCENES / name)
+
+
 def _assert_refused_where_earlier_erred(
-    seeds: tuple[int, ...], earlier: dict, max_loss: float, raster: str | None = None
+    seeds: tuple[int, ...],
+    earlier: dict,
+    max_loss: float,
+    raster: str | None = None,
+    stored: bool = False,
 ) -> None:
     """The clinic scenes ``seeds`` (seen through ``raster``, a built-in raster's name,
-    instead of the seed's code) scored with the ``earlier`` version's numbering
-    parameters and with this one's: at least one erred before, none errs now, and none
-    loses more than ``max_loss`` of its back's crossings."""
+    instead of the seed's code; ``stored``: the frames kept in ``SCENES``) scored with the
+    ``earlier`` version's numbering parameters and with this one's: at least one erred
+    before, none errs now, and none loses more than ``max_loss`` of its back's
+    crossings."""
     bench = _real_bodies()
     erring = 0
     for seed in seeds:
-        frame = bench.render_scene(seed, raster)
+        frame = _scene(bench, seed, raster, stored)
         bench._init(None, {"numbers": earlier})
         before = bench.score_frame(frame)
         bench._init(None, None)
@@ -767,33 +791,55 @@ def test_clinic_scenes_report_the_peaks_the_last_steps_refuse(
 
 @pytest.mark.slow
 def test_clinic_scenes_where_a_line_end_loses_its_column_neighbours_are_refused_last() -> None:
-    """Clinic scene 7632 (the default code, waistband) and 34069 through the held-out raster
-    (window-8 m-sequence, 35:65): a line's last peak crosses onto the cloth's next line
-    with no step (the cloth stands off by one line's depth there). Its column neighbours
-    were numbered when the peak checks judged it, and the last steps (line ends, long
-    lines' ends among unnumbered peaks) refused them, leaving the peak numbered by its
-    line's continuity alone (on AMD EPYC: 1 peak each, one line off). Version 18 judges
-    such peaks again last (``final_isolated``), and keeps the backs."""
-    bench = _real_bodies()
-    erring = 0
-    for seed, raster in ((7632, None), (34069, "mseq8-35to65")):
-        frame = bench.render_scene(seed, raster)
-        bench._init(None, {"numbers": {"final_isolated": False, **V18}})
-        before = bench.score_frame(frame)
-        bench._init(None, None)
-        after = bench.score_frame(frame)
-        erring += before["wrong_peaks"] > 0
-        assert after["wrong_peaks"] == 0
-        assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
-    assert erring >= 1
+    """Clinic scene 7378 through the twin raster (window-8 m-sequence, 35:65; the frame
+    kept in ``SCENES``): line ends cross onto the cloth's next lines with no step (the
+    cloth stands off by one line's depth there). Their column neighbours were numbered when
+    the peak checks judged them, and the last steps (line ends, long lines' ends among
+    unnumbered peaks) refused them, leaving the peaks numbered by their lines' continuity
+    alone (version 17: 4 peaks one line off; on AMD EPYC the rendered scenes 7632 and 34069
+    showed the same). Version 18 judges such peaks again last (``final_isolated``), and
+    keeps the back."""
+    earlier = {"final_isolated": False, **V18}
+    _assert_refused_where_earlier_erred((7378,), earlier, 0.002, "mseq8b-35to65", stored=True)
 
 
 @pytest.mark.slow
 def test_clinic_scenes_where_a_line_end_runs_onto_a_cloth_read_a_line_off_are_refused() -> None:
-    """Clinic scenes 7805 (window-7 m-sequence) and 8154 (window 8, 1:2), waistband: a
-    line's end runs onto the cloth, whose surface shows the next raster line at its row
-    (on AMD EPYC: 1 and 3 peaks numbered one line low). The cloth's lines beyond them in
-    their columns were refused, yet their brightness ratios, read on down the column from
-    the end's peaks, follow the code one line further on than the peaks' numbers. Version
-    19 refuses such peaks (``reading_run``), and keeps the backs."""
-    _assert_refused_where_earlier_erred((7805, 8154), V18, max_loss=0.002)
+    """Clinic scenes 7038 and 7408 through the twin raster (window-8 m-sequence, 35:65; the
+    frames kept in ``SCENES``), waistband: lines' ends run onto the cloth, whose surface
+    shows the next raster line at their rows (version 18: 3 peaks each numbered a line
+    low; on AMD EPYC the rendered scenes 7805 and 8154 showed the same). The cloth's lines
+    beyond them in their columns were refused, yet their brightness ratios, read on down
+    the column from the ends' peaks, follow the code a line on. Version 19 refuses those
+    peaks (``reading_run``), and keeps the backs. What each scene keeps wrong is another
+    case: a short cloth piece whose column beyond is not read (7038: 3 peaks), an arm's
+    line ends crossing onto the cloth (7408: 2)."""
+    bench = _real_bodies()
+    for seed, left in ((7038, 3), (7408, 2)):
+        frame = _scene(bench, seed, "mseq8b-35to65", stored=True)
+        bench._init(None, {"numbers": V18})
+        before = bench.score_frame(frame)
+        bench._init(None, None)
+        after = bench.score_frame(frame)
+        assert after["wrong_peaks"] <= left and before["wrong_peaks"] >= after["wrong_peaks"] + 3
+        assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
+
+
+@pytest.mark.slow
+def test_a_clinic_scene_whose_lines_run_on_onto_a_cloth_is_refused_as_a_block() -> None:
+    """Clinic scene 7632 (the default code, waistband; the frame kept in ``SCENES``): at the
+    right flank the back's lines run on smoothly onto the cloth, which stands off by about
+    a line's depth and shows the next raster line at their rows; version 19 numbers 42
+    peaks there one line low, and no unnumbered peak is left beyond them to read. The
+    cloth's own column ratios read the code a line on: version 20 refuses the block
+    (``block_least``), and the line-end steps take what it leaves. One wrong peak is left,
+    a single line end on the other flank (another case); the back keeps all but 0.2 %."""
+    bench = _real_bodies()
+    frame = _scene(bench, 7632, None, stored=True)
+    bench._init(None, {"numbers": V19})
+    before = bench.score_frame(frame)
+    bench._init(None, None)
+    after = bench.score_frame(frame)
+    assert before["wrong_peaks"] >= 40 and before["wrong_objects"] == ["clothing"]
+    assert after["wrong_peaks"] <= 1
+    assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
