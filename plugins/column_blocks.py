@@ -15,9 +15,11 @@ log area ratios against the raster's at the peaks' numbers and at the same numbe
 by up to ``shifts`` lines either way. A peak supports a shift where the shifted reading
 departs from the code by at most ``clean`` per ratio and explains its ratios better than
 its own numbers by at least ``gain`` per ratio. Supporting peaks join into blocks along
-their lines and down their columns; a block of at least ``least`` peaks that holds a
-line's end (the first or last numbered peak of a line: a cloth is met where a line leaves
-the skin) is refused. Alone, one peak's reading is noise (a fold, a shadow's edge); a block
+their lines and down their columns; a block of at least ``least`` peaks that holds the
+ends (the first or last numbered peak) of at least ``ends_least`` lines is refused: a cloth
+is met where the lines leave the skin, while a dim patch of the back (a shoulder turning
+away under the raster's top lines) reads off across the middle of its lines and holds no
+more than a short line's end. Alone, one peak's reading is noise (a fold, a shadow's edge); a block
 across several lines and columns, all read off, is the code's own verdict.
 """
 
@@ -65,6 +67,7 @@ def contradicted_blocks(
     gain: float = 0.3,
     clean: float = 0.15,
     shifts: int = 2,
+    ends_least: int = 2,
 ) -> np.ndarray:
     """Numbered peaks in blocks, holding a line's end, that their columns' code reads a line
     or two off.
@@ -90,6 +93,8 @@ def contradicted_blocks(
         Largest departure, per ratio, of the shifted reading from the code.
     shifts : int
         Largest shift, in lines, tried either way.
+    ends_least : int
+        Fewest lines whose end (first or last numbered peak) a refused block holds.
 
     Returns
     -------
@@ -147,8 +152,10 @@ def contradicted_blocks(
         start = np.r_[True, ~same]
         ends[by_line[start]] = True
         ends[by_line[np.r_[~same, True]]] = True
-    at_end = np.zeros(size.size, dtype=bool)
-    at_end[label[support & ends]] = True
-    chosen = (size >= least) & at_end
+    # the lines whose ends each block holds, counted once per line and block
+    held = np.flatnonzero(support & ends)
+    pairs = np.unique(np.stack([label[held], line_id[held]]), axis=1)
+    line_ends = np.bincount(pairs[0], minlength=size.size) if held.size else np.zeros(size.size)
+    chosen = (size >= least) & (line_ends >= ends_least)
     flags[support] = chosen[label[support]]
     return flags

@@ -300,6 +300,12 @@ class CodeWindowParams(StageParams):
         description="Least advantage, per ratio (natural log), of a shifted reading over a "
         "peak's own numbers for it to join such a block (block_least).",
     )
+    block_ends: int = Field(
+        2,
+        ge=1,
+        description="Fewest lines whose end (first or last numbered peak) such a block "
+        "holds (block_least): a cloth is met where several lines leave the skin.",
+    )
     block_clean: float = Field(
         0.15,
         gt=0,

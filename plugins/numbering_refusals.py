@@ -476,7 +476,7 @@ def settle_last(
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
-        ``block_clean``, ``column_check``, ``final_isolated``.
+        ``block_clean``, ``block_ends``, ``column_check``, ``final_isolated``.
     raster : Raster
         The diapositive's code.
 
@@ -496,12 +496,13 @@ def settle_last(
     if params.block_least > 0:
         blocks = contradicted_blocks(
             col, number, line_id, data.area, raster, least=params.block_least,
-            gain=params.block_gain, clean=params.block_clean,
+            gain=params.block_gain, clean=params.block_clean, ends_least=params.block_ends,
         )  # fmt: skip
         number = _unnumber(
-            number, blocks, notes, f"in blocks of {params.block_least} or more, holding a "
-            "line's end, whose column neighbours' brightness reads the code a line or two off "
-            "their numbers (lines run on onto a cloth standing off by a line's depth)",
+            number, blocks, notes, f"in blocks of {params.block_least} or more, holding "
+            f"{params.block_ends} or more lines' ends, whose column neighbours' brightness "
+            "reads the code a line or two off their numbers (lines run on onto a cloth "
+            "standing off by a line's depth)",
         )  # fmt: skip
     number, note = refuse_ends(
         line_id, number, height, end_refused=params.end_refused,

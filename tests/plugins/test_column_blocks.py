@@ -69,6 +69,18 @@ def test_a_block_holding_no_line_s_end_is_kept() -> None:
     assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
 
 
+def test_a_block_holding_one_line_s_end_is_kept() -> None:
+    """The reading off across the lines' middle, where one short line ends inside it (a
+    dim patch of the back under the raster's top lines): one line's end is not a cloth the
+    lines run onto; kept, refused with ``ends_least`` 1."""
+    col, number, line_id, area, _ = _scene(cloth_columns=range(20, 40))
+    short = (line_id == 12) & (col >= 30)
+    keep = ~short
+    col, number, line_id, area = col[keep], number[keep], line_id[keep], area[keep]
+    assert not np.any(contradicted_blocks(col, number, line_id, area, RASTER))
+    assert np.any(contradicted_blocks(col, number, line_id, area, RASTER, ends_least=1))
+
+
 def test_peaks_read_only_with_unnumbered_neighbours_are_not_read() -> None:
     """Every other line unnumbered: no column pair of numbers one apart, nothing read."""
     col, number, line_id, area, _ = _scene()
@@ -99,5 +111,8 @@ def test_parameters_are_validated() -> None:
         CodeWindowParams(block_clean=0)
     with pytest.raises(ValidationError):
         CodeWindowParams(block_gain=-0.1)
+    with pytest.raises(ValidationError):
+        CodeWindowParams(block_ends=0)
     params = CodeWindowParams()
     assert (params.block_least, params.block_gain, params.block_clean) == (15, 0.3, 0.15)
+    assert params.block_ends == 2

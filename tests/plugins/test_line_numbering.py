@@ -378,6 +378,7 @@ def test_version_is_bumped() -> None:
     assert CodeWindowNumbering.version == "20"
     params = CodeWindowNumbering.Params()
     assert (params.block_least, params.block_gain, params.block_clean) == (15, 0.3, 0.15)
+    assert params.block_ends == 2
     assert (params.reading_run, params.reading_least) == (6, 3)
     assert (params.reading_margin, params.reading_clean) == (0.3, 0.2)
     assert (params.poor_run_factor, params.final_isolated) == (0.0, True)
