@@ -7,7 +7,8 @@ lengths, a sorted key searched for every candidate and column offset): ~1.2 ms o
 numbering's ~6 on a medium back, for checks that look at a peak's neighbours only. Here
 each is one loop computing the same comparisons on the same float64 values; the decisions
 are the same. :func:`misread_flags` reads the code down and up the columns for
-:func:`.column_reading.misread_columns` (a loop from the start).
+:func:`.column_reading.misread_columns` and :func:`block_support_flags` reads each peak's
+column pairs for :func:`.column_blocks.contradicted_blocks` (loops from the start).
 
 Importing this module costs the numba import (~0.3 s): the peak checks import it on use.
 """
@@ -25,6 +26,7 @@ from .line_levels import union_root
 __all__ = [
     "beside_flags",
     "block_roots",
+    "block_support_flags",
     "doubtful_counts",
     "end_flags",
     "island_flags",
@@ -513,3 +515,61 @@ def misread_flags(
             if best <= clean * ratios and best + margin * ratios <= own:
                 flags[i] = True
     return flags
+
+
+@kernel()
+def _pair_departure(
+    number: np.ndarray, step: np.ndarray, k: int, table: np.ndarray, shift: int
+) -> float:
+    """The departure of column pair ``(k, k + 1)``'s log area ratio ``step[k]`` from the
+    code's at their numbers shifted by ``shift`` (inf outside the raster or unreadable)."""
+    lo = number[k] + shift
+    hi = number[k + 1] + shift
+    if min(lo, hi) < 0 or max(lo, hi) >= table.size:
+        return math.inf
+    departure = step[k] - (table[hi] - table[lo])
+    if departure != departure:  # a NaN line width, or a zero area's -inf - -inf
+        return math.inf
+    return abs(departure)
+
+
+@kernel()
+def block_support_flags(
+    number: np.ndarray,
+    step: np.ndarray,
+    pair: np.ndarray,
+    table: np.ndarray,
+    gain: float,
+    clean: float,
+    shifts: int,
+) -> np.ndarray:
+    """The peaks whose column pairs a shifted reading explains for
+    :func:`.column_blocks.contradicted_blocks`: int64 numbers, float64 log area steps
+    (``step[k]``: peak ``k + 1`` against ``k``), bool pairs, the raster's log widths."""
+    n = number.size
+    support = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        above = i >= 1 and bool(pair[i - 1])
+        below = i < n - 1 and bool(pair[i])
+        if not (above or below):
+            continue
+        per = (1.0 if above else 0.0) + (1.0 if below else 0.0)
+        own = 0.0
+        if above:
+            own += _pair_departure(number, step, i - 1, table, 0)
+        if below:
+            own += _pair_departure(number, step, i, table, 0)
+        if not own >= gain * per:  # no shift can gain that much
+            continue
+        for shift in range(-shifts, shifts + 1):
+            if shift == 0:
+                continue
+            cost = 0.0
+            if above:
+                cost += _pair_departure(number, step, i - 1, table, shift)
+            if below:
+                cost += _pair_departure(number, step, i, table, shift)
+            if cost <= clean * per and own - cost >= gain * per:
+                support[i] = True
+                break
+    return support

@@ -36,26 +36,6 @@ from .column_reading import log_width_by_number
 __all__ = ["contradicted_blocks"]
 
 
-def _shifted_costs(
-    number: np.ndarray, log_area: np.ndarray, pair: np.ndarray, table: np.ndarray, shift: int
-) -> np.ndarray:
-    """Per-peak summed departure of its column pairs' log ratios from the code's at its
-    numbers shifted by ``shift`` (inf where a shifted number leaves the raster)."""
-    n = number.size
-    upper, lower = number[:-1] + shift, number[1:] + shift
-    inside = (np.minimum(upper, lower) >= 0) & (np.maximum(upper, lower) < table.size)
-    expected = np.full(n - 1, np.nan)
-    ok = pair & inside
-    expected[ok] = table[lower[ok]] - table[upper[ok]]
-    with np.errstate(invalid="ignore"):  # -inf - -inf (zero areas): no reading, inf below
-        cost = np.abs((log_area[1:] - log_area[:-1]) - expected)
-    cost = np.where(pair, np.where(np.isnan(cost), np.inf, cost), 0.0)
-    out = np.zeros(n)
-    out[:-1] += cost  # the pair below the peak
-    out[1:] += cost  # the pair above it
-    return out
-
-
 def contradicted_blocks(
     col: np.ndarray,
     number: np.ndarray,
@@ -118,44 +98,45 @@ def contradicted_blocks(
         & (number[1:] >= 0)
         & (np.abs(number[1:] - number[:-1]) == 1)
     )
-    ratios = np.zeros(n, dtype=np.int64)
-    ratios[:-1] += pair
-    ratios[1:] += pair
-    read = ratios > 0
-    if not np.any(read):
+    if not np.any(pair):
         return flags
-    own = _shifted_costs(number, log_area, pair, table, 0)
-    support = np.zeros(n, dtype=bool)
-    per = np.maximum(ratios, 1)
-    for shift in range(-shifts, shifts + 1):
-        if shift == 0:
-            continue
-        cost = _shifted_costs(number, log_area, pair, table, shift)
-        with np.errstate(invalid="ignore"):  # inf - inf: neither reading exists
-            better = (own - cost) >= gain * per
-        support |= read & (cost <= clean * per) & better
+    with np.errstate(invalid="ignore"):  # -inf - -inf (zero areas): read as no reading
+        step = log_area[1:] - log_area[:-1]
+    from .check_scans import block_support_flags  # compiled; the numba import costs ~0.3 s
+
+    support = block_support_flags(number, step, pair, table, float(gain), float(clean), int(shifts))
     if np.count_nonzero(support) < least:
         return flags
-    # along lines: consecutive numbered peaks of one line, by column
-    numbered = np.flatnonzero((number >= 0) & (line_id >= 0))
-    by_line = numbered[np.lexsort((col[numbered], line_id[numbered]))]
+    # along lines: consecutive numbered peaks of one line, by column (the peaks come
+    # sorted by column, and a stable sort by line keeps that order), of the lines that
+    # hold a supporting peak (a lookup by line: a frame has few such lines)
+    holds = np.zeros(int(line_id.max()) + 2, dtype=bool)
+    holds[line_id[support]] = True
+    holds[-1] = False  # line -1: none
+    members = np.flatnonzero((number >= 0) & holds[line_id])
+    by_line = members[np.argsort(line_id[members], kind="stable")]
     same = line_id[by_line[1:]] == line_id[by_line[:-1]]
-    a = np.concatenate([by_line[:-1][same], np.flatnonzero(pair)])
-    b = np.concatenate([by_line[1:][same], np.flatnonzero(pair) + 1])
+    below = np.flatnonzero(pair)
+    a = np.concatenate([by_line[:-1][same], below])
+    b = np.concatenate([by_line[1:][same], below + 1])
     keep = support[a] & support[b]
-    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(n, n))
+    # the blocks: components of the supporting peaks, indexed among themselves
+    nodes = np.flatnonzero(support)
+    local = np.full(n, -1, dtype=np.int64)
+    local[nodes] = np.arange(nodes.size)
+    graph = coo_matrix(
+        (np.ones(int(keep.sum())), (local[a[keep]], local[b[keep]])), shape=(nodes.size,) * 2
+    )
     _, label = connected_components(graph, directed=False)
-    size = np.bincount(label[support], minlength=label.max() + 1)
+    size = np.bincount(label)
     # a line's first and last numbered peaks
     ends = np.zeros(n, dtype=bool)
     if by_line.size:
-        start = np.r_[True, ~same]
-        ends[by_line[start]] = True
+        ends[by_line[np.r_[True, ~same]]] = True
         ends[by_line[np.r_[~same, True]]] = True
     # the lines whose ends each block holds, counted once per line and block
-    held = np.flatnonzero(support & ends)
-    pairs = np.unique(np.stack([label[held], line_id[held]]), axis=1)
-    line_ends = np.bincount(pairs[0], minlength=size.size) if held.size else np.zeros(size.size)
-    chosen = (size >= least) & (line_ends >= ends_least)
-    flags[support] = chosen[label[support]]
+    held = ends[nodes]
+    pairs = np.unique(np.stack([label[held], line_id[nodes[held]]]), axis=1)
+    line_ends = np.bincount(pairs[0], minlength=size.size)
+    flags[nodes] = ((size >= least) & (line_ends >= ends_least))[label]
     return flags
