@@ -116,3 +116,62 @@ def test_parameters_are_validated() -> None:
     params = CodeWindowParams()
     assert (params.block_least, params.block_gain, params.block_clean) == (15, 0.3, 0.15)
     assert params.block_ends == 2
+
+
+def _support_by_whole_arrays(number, step, pair, table, gain, clean, shifts):  # type: ignore[no-untyped-def]
+    """The supporting peaks as the first form of the step computed them: one pass over all
+    column pairs per shift."""
+    n = number.size
+
+    def costs(shift: int) -> np.ndarray:
+        lo, hi = number[:-1] + shift, number[1:] + shift
+        inside = (np.minimum(lo, hi) >= 0) & (np.maximum(lo, hi) < table.size)
+        expected = np.full(n - 1, np.nan)
+        ok = pair & inside
+        expected[ok] = table[hi[ok]] - table[lo[ok]]
+        with np.errstate(invalid="ignore"):
+            cost = np.abs(step - expected)
+        cost = np.where(pair, np.where(np.isnan(cost), np.inf, cost), 0.0)
+        out = np.zeros(n)
+        out[:-1] += cost
+        out[1:] += cost
+        return out
+
+    ratios = np.zeros(n)
+    ratios[:-1] += pair
+    ratios[1:] += pair
+    per = np.maximum(ratios, 1)
+    own = costs(0)
+    support = np.zeros(n, dtype=bool)
+    for shift in [s for s in range(-shifts, shifts + 1) if s]:
+        cost = costs(shift)
+        with np.errstate(invalid="ignore"):
+            support |= (ratios > 0) & (cost <= clean * per) & ((own - cost) >= gain * per)
+    return support
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_compiled_reading_decides_as_whole_array_passes(seed: int) -> None:
+    from rasterserver_plugins.check_scans import block_support_flags
+    from rasterserver_plugins.column_reading import log_width_by_number
+
+    rng = np.random.default_rng(seed)
+    col, number, _, area, _ = _scene(seed=seed)
+    number = np.where(rng.random(number.size) < 0.1, -1, number).astype(np.int64)
+    number = np.where(rng.random(number.size) < 0.02, number + 3, number)  # gaps in numbers
+    area = area * np.exp(rng.normal(0.0, 0.3, area.size))
+    area[rng.random(area.size) < 0.01] = 0.0
+    pair = (
+        (col[:-1] == col[1:])
+        & (number[:-1] >= 0)
+        & (number[1:] >= 0)
+        & (np.abs(number[1:] - number[:-1]) == 1)
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_area = np.log(area)
+        step = log_area[1:] - log_area[:-1]
+    table = log_width_by_number(RASTER)
+    for gain, clean, shifts in ((0.3, 0.15, 2), (0.1, 0.3, 1), (0.0, 0.5, 3)):
+        got = block_support_flags(number, step, pair, table, gain, clean, shifts)
+        expected = _support_by_whole_arrays(number, step, pair, table, gain, clean, shifts)
+        np.testing.assert_array_equal(got, expected)
