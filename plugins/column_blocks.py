@@ -43,14 +43,15 @@ def contradicted_blocks(
     area: np.ndarray,
     raster: Raster,
     *,
-    least: int = 20,
+    least: int = 15,
     gain: float = 0.3,
     clean: float = 0.15,
     shifts: int = 2,
     ends_least: int = 2,
 ) -> np.ndarray:
-    """Numbered peaks in blocks, holding a line's end, that their columns' code reads a line
-    or two off.
+    """Numbered peaks in blocks, holding lines' ends, that their columns' code reads a line
+    or two off (the column pairs read in one compiled loop,
+    :func:`.check_scans.block_support_flags`).
 
     Parameters
     ----------

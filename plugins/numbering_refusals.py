@@ -448,7 +448,7 @@ def settle_last(
     raster: Raster,
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
-    (:func:`.bracketed_peaks.fill_brackets`), the blocks at a line's end that their own
+    (:func:`.bracketed_peaks.fill_brackets`), the blocks at lines' ends that their own
     columns' code reads a line off refused (:func:`.column_blocks.contradicted_blocks`,
     ``block_least``; first, so that the steps on line ends judge the ends it leaves), then
     the doubtful line ends (:func:`refuse_ends`), the ends leaving the frame
