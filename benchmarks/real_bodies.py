@@ -203,6 +203,33 @@ def render_scene(seed: int, raster: str | None = None) -> Frame:
     )
 
 
+def peak_truth(frame: Frame, result: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Each peak's true line number (-1: none) and the object at its pixel.
+
+    The true number is the simulator's exact line centre within 1.5 px in the peak's column
+    (``numbering_backs._truth_numbers``); the per-pixel line number of the rendering at the
+    peak's pixel must agree, otherwise the peak is off its line's pixels and has no truth.
+    """
+    truth = _sibling("numbering_backs")._truth_numbers(result.col, result.row, frame.line_rows)
+    h = frame.line_number.shape[0]
+    r_pix = np.clip(np.rint(result.row).astype(np.int64), 0, h - 1)
+    pixel = frame.line_number[r_pix, result.col]
+    return np.where(pixel == truth, truth, -1), frame.object_index[r_pix, result.col]
+
+
+def covered_crossings(
+    frame: Frame, result: Any, truth: np.ndarray, idx: np.ndarray | None = None
+) -> np.ndarray:
+    """Per exact line crossing of ``frame``, whether a peak carries its correct number
+    (``idx``: each peak's crossing from :func:`_match`, computed when not given)."""
+    if idx is None:
+        idx, _ = _match(result.col, result.row, frame.line_rows)
+    good = (result.number >= 0) & (truth >= 0) & (idx >= 0) & (result.number == truth)
+    covered = np.zeros(len(frame.line_rows), dtype=bool)
+    covered[idx[good]] = True
+    return covered
+
+
 def score_frame(frame: Frame) -> dict[str, Any]:
     """Run stages 1-4 on ``frame`` and score them against its truth."""
     from rasterserver_plugins.line_numbering import CodeWindowNumbering
@@ -214,7 +241,6 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     from rasterserver.simulator.body import clinic_station
     from rasterserver.stage import StageContext, run_stage
 
-    backs = _sibling("numbering_backs")
     station = clinic_station(frame.seed, frame.code)
     ctx = StageContext(calibration=station, raster=station.raster_definition)
     image = frame.image
@@ -236,13 +262,7 @@ def score_frame(frame: Frame) -> dict[str, Any]:
 
     lr = frame.line_rows
     names = frame.names
-    truth = backs._truth_numbers(result.col, result.row, lr)
-    # the per-pixel truth must agree (a peak off its line's pixels has no truth)
-    h = frame.line_number.shape[0]
-    r_pix = np.clip(np.rint(result.row).astype(np.int64), 0, h - 1)
-    pixel = frame.line_number[r_pix, result.col]
-    truth = np.where(pixel == truth, truth, -1)
-    obj = frame.object_index[r_pix, result.col]
+    truth, obj = peak_truth(frame, result)
     on_line = truth >= 0
     numbered = result.number >= 0
     wrong = numbered & on_line & (result.number != truth)
@@ -256,10 +276,8 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     idx, err = _match(result.col, result.row, lr)
     trunk = names.index("trunk") if "trunk" in names else -99
     on_trunk = lr.object_index == trunk
-    good = numbered & on_line & (idx >= 0) & (result.number == truth)
     on_back = frame.lr_on_back
-    covered = np.zeros(len(lr), dtype=bool)
-    covered[idx[good]] = True
+    covered = covered_crossings(frame, result, truth, idx)
     headarm = np.isin(
         obj, [names.index(n) for n in ("head", "left-arm", "right-arm") if n in names]
     )
