@@ -62,6 +62,7 @@ STEPS: dict[str, tuple[str, dict[str, Any]]] = {
     "final-isolated": ("18", {"final_isolated": False}),
     "column-reading": ("19", {"reading_run": 0}),
     "column-blocks": ("20", {"block_least": 0}),
+    "one-sided-lines": ("21", {"one_sided_peaks": 0}),
 }
 
 

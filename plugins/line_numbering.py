@@ -528,12 +528,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14 :mod:`.skipped_lines`; 15
     :mod:`.detached_pieces`; 16, 17 faint codes (:func:`.numbering_refusals.edge_doubts`,
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
-    peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`.
+    peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`.
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "20"
+    version: ClassVar[str] = "21"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

@@ -312,6 +312,13 @@ class CodeWindowParams(StageParams):
         description="Largest departure, per ratio (natural log), of that shifted reading "
         "from the code (block_least).",
     )
+    one_sided_peaks: int = Field(
+        5,
+        ge=0,
+        description="Last, before the lone peaks, refuse lines of at most this many numbered "
+        "peaks none of which has numbered peaks directly above and below it (numbered by "
+        "one neighbour's contact across what may be a depth step; 0: none; version 20: 0).",
+    )
     bracket_run: int = Field(
         8,
         ge=0,

@@ -23,6 +23,7 @@ from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
 from .numbering_params import CodeWindowParams
+from .one_sided_lines import one_sided_lines
 from .peak_checks import (
     beside_doubtful,
     column_islands,
@@ -457,9 +458,11 @@ def settle_last(
     line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
     contact holds to the frame's main block (:func:`.detached_pieces.detached_pieces`), the
     peaks their column's code, read on through the unnumbered peaks beyond them, places a
-    line off (:func:`.column_reading.misread_columns`, ``reading_run``), and last the peaks
-    those steps left with no numbered column neighbour (:func:`.peak_checks.isolated_peaks`,
-    ``final_isolated``); the notes of those that changed anything.
+    line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
+    column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
+    ``one_sided_peaks``), and last the peaks those steps left with no numbered column
+    neighbour (:func:`.peak_checks.isolated_peaks`, ``final_isolated``); the notes of those
+    that changed anything.
 
     Parameters
     ----------
@@ -476,7 +479,8 @@ def settle_last(
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
-        ``block_clean``, ``block_ends``, ``column_check``, ``final_isolated``.
+        ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``column_check``,
+        ``final_isolated``.
     raster : Raster
         The diapositive's code.
 
@@ -561,6 +565,13 @@ def settle_last(
             number, misread, notes, "whose column, read on through the unnumbered peaks "
             "beyond them, shows the code a line off their number (a line's end run onto "
             "another surface)",
+        )  # fmt: skip
+    if params.one_sided_peaks > 0:
+        one_sided = one_sided_lines(col, line_id, number, max_peaks=params.one_sided_peaks)
+        number = _unnumber(
+            number, one_sided, notes, f"on lines of at most {params.one_sided_peaks} numbered "
+            "peaks with no numbered peak both above and below any of them (numbered by one "
+            "neighbour's contact, across what may be a depth step)",
         )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered

@@ -214,6 +214,24 @@ def test_a_peak_left_with_no_numbered_column_neighbour_is_refused_last() -> None
         assert np.array_equal(kept, number) and not notes
 
 
+def test_a_short_line_numbered_by_one_neighbour_is_refused_last() -> None:
+    """Line 3, four peaks below the back's line 2 over columns 10-13 and nothing numbered
+    below it, is refused with ``one_sided_peaks`` (version 21), kept without it; the
+    back's lines (30 peaks) are kept."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30), (0, 30), (0, 30), (10, 14)], [1.0] * 4, raster)
+    number = numbers[data.line_id].copy()
+    off = {**LAST_STEPS_OFF, "reading_run": 0, "block_least": 0, "final_isolated": False}
+    spacing = np.full(data.n_peaks, 10.0)
+    got, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
+    assert np.array_equal(got != number, data.line_id == 3) and np.all(got[data.line_id == 3] == -1)
+    assert any("one neighbour's contact" in n for n in notes)
+    kept, notes = settle_last(
+        data, number, spacing, CodeWindowParams(**off, one_sided_peaks=0), raster
+    )
+    assert np.array_equal(kept, number) and not notes
+
+
 def test_a_block_its_columns_read_a_line_off_is_refused_last() -> None:
     """Lines 6-11 over columns 20-39 lie on a cloth (albedo 0.7) showing the next raster
     line at their rows, numbered with the back's lines (the lines run on onto it): the
