@@ -67,6 +67,8 @@ STEPS: dict[str, tuple[str, dict[str, Any]]] = {
 
 
 def _real_bodies() -> Any:
+    if "real_bodies" in sys.modules:  # loaded once per process, not once per scene
+        return sys.modules["real_bodies"]
     spec = importlib.util.spec_from_file_location(
         "real_bodies", Path(__file__).with_name("real_bodies.py")
     )
