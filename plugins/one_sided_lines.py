@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .peak_checks import numbered_column_neighbours
+
 __all__ = ["one_sided_lines"]
 
 
@@ -50,10 +52,7 @@ def one_sided_lines(
     numbered = (number >= 0) & (lid >= 0)
     if max_peaks <= 0 or not np.any(numbered):
         return refused
-    same_prev = np.r_[False, col[1:] == col[:-1]]
-    same_next = np.r_[col[1:] == col[:-1], False]
-    above = same_prev & (np.r_[-1, number[:-1]] >= 0)
-    below = same_next & (np.r_[number[1:], -1] >= 0)
+    above, below = numbered_column_neighbours(col, number)
     n_lines = int(lid.max()) + 1
     peaks = np.bincount(lid[numbered], minlength=n_lines)
     confirmed = np.bincount(lid[numbered & above & below], minlength=n_lines)

@@ -22,6 +22,7 @@ __all__ = [
     "isolated_peaks",
     "line_ends",
     "line_jumps",
+    "numbered_column_neighbours",
     "stranded_runs",
 ]
 
@@ -233,11 +234,34 @@ def isolated_peaks(col: np.ndarray, number: np.ndarray) -> np.ndarray:
     """
     if col.size == 0:
         return np.zeros(0, dtype=bool)
+    above, below = numbered_column_neighbours(col, number)
+    return (number >= 0) & ~above & ~below
+
+
+def numbered_column_neighbours(col: np.ndarray, number: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per peak, whether the peak directly above it and the one directly below it in its
+    column (the previous and next peak of the ``(col, row)`` order, at any gap) are numbered.
+
+    Parameters
+    ----------
+    col : numpy.ndarray
+        Column of every peak, peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+
+    Returns
+    -------
+    above, below : numpy.ndarray
+        ``(N,)`` bool each.
+    """
+    col, number = np.asarray(col), np.asarray(number)
+    if col.size == 0:
+        return np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)
     same_prev = np.r_[False, col[1:] == col[:-1]]
     same_next = np.r_[col[1:] == col[:-1], False]
     above = same_prev & (np.r_[-1, number[:-1]] >= 0)
     below = same_next & (np.r_[number[1:], -1] >= 0)
-    return (number >= 0) & ~above & ~below
+    return above, below
 
 
 def column_islands(
