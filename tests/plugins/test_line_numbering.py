@@ -740,17 +740,21 @@ def test_clinic_scenes_through_a_faint_code_number_more_of_their_backs() -> None
         assert frame.code == "w9-45to55"
         covered = []
         v17 = dict(V17)
-        for params in ({"faint_ratio": 1.0, **v17}, {"faint_departure": 0.75, **v17}, v17, None):
+        variants = ({"faint_ratio": 1.0, **v17}, {"faint_departure": 0.75, **v17}, v17, V20, None)
+        for params in variants:
             bench._init(None, {"numbers": params} if params else None)
             scored = bench.score_frame(frame)
             covered.append(scored["back_covered"] / scored["back_crossings"])
-            if params is v17 or params is None:
+            if params is v17 or params is V20 or params is None:
                 # the frames differ by processor: the earlier versions' errors may too
                 assert scored["wrong_peaks"] == 0
         assert covered[2] > max(covered[:2])
         # version 18 refuses fewer of the code's runs and, last, the peaks left alone in
-        # their column (a few hundredths of a point)
+        # their column (a few hundredths of a point); 19 and 20 refuse nothing here
         assert covered[3] >= covered[2] - 0.002
+        # version 21 refuses the short lines no column confirms from both sides: the faint
+        # code's hair and shoulder dashes (on AMD EPYC 7707 loses 0.26 point, 7879 0.01)
+        assert covered[4] >= covered[3] - 0.004
         gains.append(covered[2] - covered[0])
     assert min(gains) > 0.01 and max(gains) > 0.03
 
@@ -842,11 +846,16 @@ def test_a_clinic_scene_whose_lines_run_on_onto_a_cloth_is_refused_as_a_block() 
     frame = _scene(bench, 7632, None, stored=True)
     bench._init(None, {"numbers": V19})
     before = bench.score_frame(frame)
-    bench._init(None, None)
+    bench._init(None, {"numbers": V20})
     after = bench.score_frame(frame)
     assert before["wrong_peaks"] >= 40 and before["wrong_objects"] == ["clothing"]
     assert after["wrong_peaks"] <= 1
     assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
+    # version 21 (short one-sided lines) keeps it so, for a few peaks of the back
+    bench._init(None, None)
+    installed = bench.score_frame(frame)
+    assert installed["wrong_peaks"] <= 1
+    assert installed["back_covered"] >= after["back_covered"] - 0.001 * after["back_crossings"]
 
 
 @pytest.mark.slow
