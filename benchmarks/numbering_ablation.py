@@ -31,7 +31,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import importlib.util  # noqa: E402
+import importlib  # noqa: E402
 import json  # noqa: E402
 import multiprocessing as mp  # noqa: E402
 import sys  # noqa: E402
@@ -67,16 +67,7 @@ STEPS: dict[str, tuple[str, dict[str, Any]]] = {
 
 
 def _real_bodies() -> Any:
-    if "real_bodies" in sys.modules:  # loaded once per process, not once per scene
-        return sys.modules["real_bodies"]
-    spec = importlib.util.spec_from_file_location(
-        "real_bodies", Path(__file__).with_name("real_bodies.py")
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["real_bodies"] = module  # its dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module("real_bodies")  # beside this script; once per process
 
 
 _CACHE: Path | None = None

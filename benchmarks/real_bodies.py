@@ -47,7 +47,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import importlib.util  # noqa: E402
+import importlib  # noqa: E402
 import json  # noqa: E402
 import multiprocessing as mp  # noqa: E402
 import sys  # noqa: E402
@@ -58,17 +58,15 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 CODES = ("default", "mseq7", "w8-1to2", "w9-45to55")
 TUNING = (0, 200)  # seeds 0-199
 HELD_OUT = (5000, 6200)  # seeds 5000-6199
 
 
 def _sibling(name: str) -> Any:
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module(name)  # a script beside this one; once per process
 
 
 def generic_peaks(image: np.ndarray, *, min_height: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
