@@ -271,7 +271,9 @@ def truth(scene: Scene) -> dict[str, Any]:
     Parameters
     ----------
     scene : Scene
-        A scene made by :func:`rasterserver.simulator.back.make_back`.
+        A scene made by :func:`rasterserver.simulator.back.make_back` or by
+        :func:`rasterserver.simulator.body.make_body` (a clinic scene's trunk is its back's,
+        and so is its truth).
 
     Returns
     -------
@@ -300,8 +302,8 @@ def truth(scene: Scene) -> dict[str, Any]:
         For a scene that is not a simulated back.
     """
     metadata = scene.metadata
-    if metadata.get("kind") != "back" or "truth" not in metadata:
-        raise InputError("not a simulated back: truth needs a scene made by make_back")
+    if metadata.get("kind") not in ("back", "body") or "truth" not in metadata:
+        raise InputError("not a simulated back: truth needs a scene made by make_back or make_body")
     lm = scene.landmarks
     spine, extra = metadata["spine"], metadata["truth"]
     vp, dm = _point(lm, "vertebra_prominens"), _point(lm, "dimple_midpoint")

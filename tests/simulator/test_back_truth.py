@@ -322,3 +322,19 @@ def test_degenerate_inputs_are_refused() -> None:
     t = np.linspace(0.0, 0.1, 20)
     with pytest.raises(InputError):
         sagittal_points(t, t * 400.0, np.zeros_like(t))
+
+
+def test_a_clinic_scene_has_its_backs_truth() -> None:
+    # make_body builds the trunk with make_back (over a taller range, for the neck): the
+    # landmarks, spine and parameters are the back's, whatever head, arms and cloth add
+    from rasterserver.simulator.body import make_body, random_body
+
+    params = random_body(3)
+    body = truth(make_body(params, spacing=5.0))
+    back = truth(make_back(params.back, spacing=5.0))
+    for name, point in back["landmarks"].items():
+        np.testing.assert_allclose(body["landmarks"][name], point, atol=1e-9)
+    np.testing.assert_allclose(
+        body["spine"]["lateral_deviation_mm"], back["spine"]["lateral_deviation_mm"], atol=1e-9
+    )
+    assert body["parameters"] == back["parameters"]
