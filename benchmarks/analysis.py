@@ -336,7 +336,13 @@ def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
         params=_STATE.get("params"),
     )["surface"]
     t2 = time.perf_counter()
-    shape = run_chain(surface, context=context, until="analysis", durations=durations)["analysis"]
+    shape = run_chain(
+        surface,
+        context=context,
+        until="analysis",
+        durations=durations,
+        params=_STATE.get("params"),
+    )["analysis"]
     curves = params.curves
     result = {
         "set": kind,
@@ -845,7 +851,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--params",
         default=None,
-        help='stage parameters of the chain up to the surface, JSON: {"numbers": {...}} '
+        help='stage parameters of the chain, JSON: {"numbers": {...}, "analysis": {...}} '
         "(to compare a plugin's settings in one run)",
     )
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))

@@ -18,11 +18,14 @@ what head, hair, arms and clothing cost the clinical answer. The refusals' reaso
 tallied (a refusal is the safe answer; a wrong landmark would not be).
 
 One JSON line per (seed, kind) is appended to ``--out`` as soon as it is done; a rerun
-resumes, and rows of other analysis code (``analysis.analysis_code``) are refused.
+resumes, and rows of other analysis code (``analysis.analysis_code``) or other ``--params``
+are refused.
 
 Usage::
 
     python benchmarks/clinic_analysis.py --first-seed 0 --scenes 100 --out /tmp/ca.jsonl
+    python benchmarks/clinic_analysis.py --first-seed 0 --scenes 100 --out /tmp/ca3.jsonl \\
+        --params '{"analysis": {"vp_axis_offset": 0}}'      # analysis version 3
     python benchmarks/clinic_analysis.py --summary /tmp/ca.jsonl
 """
 
@@ -49,6 +52,13 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 KINDS = ("body", "back")
+_PARAMS: dict[str, dict[str, Any]] = {}
+
+
+def _init(params: dict[str, dict[str, Any]] | None) -> None:
+    """Worker start: the chain's stage parameters (``--params``)."""
+    _PARAMS.clear()
+    _PARAMS.update(params or {})
 
 
 def _bench(name: str) -> Any:
@@ -75,7 +85,9 @@ def run_scene(task: tuple[int, str]) -> dict[str, Any]:
     settings = _bench("numbering_backs")._settings(seed).replace(threads=1)
     image = render(scene, station, settings=settings, seed=seed).image
     t1 = time.perf_counter()
-    shape = run_chain(image, context=context, until="analysis")["analysis"]
+    shape = run_chain(image, context=context, until="analysis", params=_PARAMS or None)[
+        "analysis"
+    ]
     return {
         "seed": seed,
         "kind": kind,
@@ -192,6 +204,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/clinic-analysis.jsonl"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
+    ap.add_argument(
+        "--params",
+        default=None,
+        help='stage parameters, JSON: {"analysis": {"vp_axis_offset": 0}} (version 3)',
+    )
     args = ap.parse_args(argv)
     if args.summary is not None:
         s = summary(_read(args.summary))
@@ -200,10 +217,14 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.scenes < 1:
         ap.error("--scenes must be at least 1")
-    stamp = _bench("analysis").analysis_code()
+    try:
+        params = json.loads(args.params) if args.params else None
+    except json.JSONDecodeError as exc:
+        ap.error(f"--params is not JSON: {exc}")
+    stamp = _bench("analysis").analysis_code() + (f" {json.dumps(params)}" if params else "")
     rows = _read(args.out)
     if any(r.get("stamp") != stamp for r in rows):
-        ap.error(f"{args.out} holds rows of other analysis code; give another --out")
+        ap.error(f"{args.out} holds rows of other analysis code or --params; give another --out")
     done = {(r["seed"], r["kind"]) for r in rows}
     seeds = range(args.first_seed, args.first_seed + args.scenes)
     todo = [(s, k) for s in seeds for k in KINDS if (s, k) not in done]
@@ -211,7 +232,9 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     start = time.time()
     with (
-        mp.get_context("spawn").Pool(args.workers, maxtasksperchild=40) as pool,
+        mp.get_context("spawn").Pool(
+            args.workers, initializer=_init, initargs=(params,), maxtasksperchild=40
+        ) as pool,
         args.out.open("a") as fh,
     ):
         for i, res in enumerate(pool.imap_unordered(_safe, todo, chunksize=1), 1):

@@ -8,6 +8,7 @@ station's vertical (``context.calibration.gravity``), wiring the concepts of the
 2. :mod:`~rasterserver_plugins.curvature`: H, K, κ1, κ2 and principal directions;
 3. :mod:`~rasterserver_plugins.trunk`: the measured trunk, its outline and centre;
 4. :mod:`~rasterserver_plugins.landmarks`: VP, DL, DR, DM, SP (Drerup & Hierholzer 1987);
+   VP checked against the symmetry axis below it (:mod:`~rasterserver_plugins.vp_axis`);
 5. :mod:`~rasterserver_plugins.body_frame`: the body-fixed frame from VP, DL, DR;
 6. :mod:`~rasterserver_plugins.symmetry_line`: Hierholzer's symmetry line VP → DM;
 7. :mod:`~rasterserver_plugins.spinal_midline`: surface rotation and the vertebral-body
@@ -49,6 +50,7 @@ from .level_frame import LevelFrame
 from .spinal_midline import line_normals, spinal_midline
 from .symmetry_line import find_symmetry_line
 from .trunk import find_trunk
+from .vp_axis import MAX_OFFSET, check_vertebra_prominens
 
 __all__ = ["NO_VERTICAL", "BackShapeAnalysis", "analyse_back"]
 
@@ -59,7 +61,13 @@ NO_VERTICAL = (
 )
 
 
-def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float = 5.0) -> BackShape:
+def analyse_back(
+    surface: Surface,
+    gravity: np.ndarray | None,
+    *,
+    sigma: float = 5.0,
+    vp_axis_offset: float = MAX_OFFSET,
+) -> BackShape:
     """Analyse one smoothed surface.
 
     Parameters
@@ -70,6 +78,9 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
         ``(3,)`` direction of gravity (down) in the world frame; None refuses the analysis.
     sigma : float, optional
         Gaussian scale (mm) of the curvature used for the landmarks and the symmetry line.
+    vp_axis_offset : float, optional
+        Largest distance (mm) of VP from the back's symmetry axis below it
+        (:mod:`~rasterserver_plugins.vp_axis`); 0 does not check.
 
     Returns
     -------
@@ -98,7 +109,13 @@ def analyse_back(surface: Surface, gravity: np.ndarray | None, *, sigma: float =
 
     reasons: dict[str, str] = {}
     vp = find_vertebra_prominens(grid, curv, trunk)
+    # the candidate's height starts the dimples' search even when it is refused below: a
+    # shoulder's convex point lies about as high as C7
     dl, dr = find_dimples(grid, curv, trunk, vp)
+    if vp_axis_offset > 0:
+        vp = check_vertebra_prominens(
+            grid, curv, vp, trunk.reference_half_width(), max_offset=vp_axis_offset
+        )
     dm = midpoint(grid, curv, dl, dr)
     sp = find_sacrum_point(grid, curv, trunk, dl, dr)
     found: dict[str, Landmark] = {lm.name: lm for lm in (vp, dl, dr, dm, sp)}
@@ -200,7 +217,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     # 2: the scoliosis angle reads only tangents with a centred window (not the line's ends)
     # 3: the signed maxima of lateral deviation and surface rotation are refused when the two
     #    sides' extremes are too close for the sign to be decided (back_parameters.SIGN_MARGIN)
-    version: ClassVar[str] = "3"
+    # 4: VP is refused when it lies beside the back's symmetry axis just below it (a
+    #    shoulder's convex point where hair hides the nape or an arm joins the shoulder)
+    version: ClassVar[str] = "4"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -214,8 +233,17 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             le=30.0,
             description="Gaussian scale (mm) of the curvature for landmarks and symmetry line.",
         )
+        vp_axis_offset: float = Field(
+            MAX_OFFSET,
+            ge=0.0,
+            description="Largest distance (mm) of VP from the back's symmetry axis just below "
+            "it; a convex point farther off is a shoulder's and is refused. 0 does not check "
+            "(version 3).",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
         gravity = getattr(context.calibration, "gravity", None)
-        return analyse_back(data, gravity, sigma=params.sigma)
+        return analyse_back(
+            data, gravity, sigma=params.sigma, vp_axis_offset=params.vp_axis_offset
+        )

@@ -1,0 +1,112 @@
+"""The vertebra prominens checked against the back's symmetry axis just below it.
+
+C7's spinous process lies on the spine, and a few centimetres below it the back is mirror
+symmetric about the spine: Hierholzer's symmetry line starts there. The convex maximum that
+:func:`~rasterserver_plugins.landmarks.find_vertebra_prominens` takes for VP is searched
+beside the measured trunk's centre line; on what a clinic's camera sees the centre line can
+be pulled off the spine at the top of the back, where hair or the head's shadow hides the
+nape, or a hanging arm joins the shoulder in the measured surface, and the strongest convex
+point there is a shoulder's, 6-13 cm beside C7 (14 of 300 clinic tuning scenes,
+``benchmarks/clinic_analysis.py``).
+
+The check runs the symmetry line's search (:func:`~rasterserver_plugins.symmetry_line.
+find_symmetry_line`) from the candidate straight down (the line's prior is vertical there)
+and measures how far the symmetry axis lies from the candidate over the profiles
+:data:`NEAR` below it. On the simulated backs a true VP lies within 7 mm of that axis; the
+shoulders' points of the clinic scenes lay 23-87 mm off. A candidate beyond
+:data:`MAX_OFFSET` is refused; a candidate whose axis cannot be measured there is kept (the
+check then says nothing either way).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .curvature import Curvature
+from .landmarks import Landmark
+from .level_frame import LevelGrid
+from .symmetry_line import find_symmetry_line
+
+__all__ = ["MAX_OFFSET", "NEAR", "axis_offset", "check_vertebra_prominens"]
+
+#: Heights below VP (mm) over which the symmetry axis is compared with VP.
+NEAR = (10.0, 40.0)
+#: Largest lateral distance (mm) of VP from the symmetry axis below it (true VPs: <= 7 mm
+#: on the clinic tuning scenes, shoulders' points 23 mm and more).
+MAX_OFFSET = 15.0
+#: Length (mm) of the straight-down line the axis is searched along.
+_DEPTH = 100.0
+
+
+def axis_offset(grid: LevelGrid, curv: Curvature, point: np.ndarray, half_width: float) -> float:
+    """Lateral distance (mm, signed ``x``) of the symmetry axis below ``point`` from it.
+
+    Parameters
+    ----------
+    grid : LevelGrid
+        The surface in the level frame.
+    curv : Curvature
+        Its curvature maps (the symmetry line's scale).
+    point : numpy.ndarray
+        ``(3,)`` level point (the VP candidate).
+    half_width : float
+        The trunk's median half-width (mm): sets the symmetry search's reach.
+
+    Returns
+    -------
+    float
+        Median axis ``x`` minus the point's ``x`` over the profiles :data:`NEAR` below the
+        point; NaN when the axis is not measured there.
+    """
+    point = np.asarray(point, dtype=float)
+    bottom = point + np.array([0.0, _DEPTH, 0.0])
+    line = find_symmetry_line(grid, curv, point, bottom, half_width)
+    if not line.found:
+        return float("nan")
+    below = line.y - point[1]
+    sel = (below >= NEAR[0]) & (below <= NEAR[1]) & np.isfinite(line.asymmetry)
+    if not sel.any():
+        return float("nan")
+    return float(np.median(line.raw_x[sel]) - point[0])
+
+
+def check_vertebra_prominens(
+    grid: LevelGrid,
+    curv: Curvature,
+    vp: Landmark,
+    half_width: float,
+    *,
+    max_offset: float = MAX_OFFSET,
+) -> Landmark:
+    """``vp`` unchanged, or refused when it lies beside the symmetry axis below it.
+
+    Parameters
+    ----------
+    grid : LevelGrid
+        The surface in the level frame.
+    curv : Curvature
+        Its curvature maps.
+    vp : Landmark
+        The VP found by :func:`~rasterserver_plugins.landmarks.find_vertebra_prominens`.
+    half_width : float
+        The trunk's median half-width (mm).
+    max_offset : float, optional
+        Largest distance (mm) from the axis (:data:`MAX_OFFSET`).
+
+    Returns
+    -------
+    Landmark
+    """
+    if not vp.found:
+        return vp
+    offset = axis_offset(grid, curv, vp.point, half_width)
+    if np.isfinite(offset) and abs(offset) > max_offset:
+        return Landmark(
+            "VP",
+            None,
+            0.0,
+            f"the convex point at the neck's base lies {abs(offset):.0f} mm beside the back's "
+            "symmetry axis below it: a shoulder's, not C7 (the nape hidden by hair or a "
+            "shadow, or an arm joined to the shoulder?)",
+        )
+    return vp
