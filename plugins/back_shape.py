@@ -40,6 +40,7 @@ from .back_parameters import PARAMETER_UNITS, back_parameters
 from .body_frame import body_frame
 from .curvature import surface_curvature
 from .landmarks import (
+    ROW_CONCAVITIES,
     Landmark,
     find_dimples,
     find_sacrum_point,
@@ -67,6 +68,7 @@ def analyse_back(
     *,
     sigma: float = 5.0,
     vp_axis_offset: float = MAX_OFFSET,
+    row_concavities: int = ROW_CONCAVITIES,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -81,6 +83,9 @@ def analyse_back(
     vp_axis_offset : float, optional
         Largest distance (mm) of VP from the back's symmetry axis below it
         (:mod:`~rasterserver_plugins.vp_axis`); 0 does not check.
+    row_concavities : int, optional
+        Other concave candidates at the dimples' height that refuse them (a clothing
+        edge, :func:`~rasterserver_plugins.landmarks.find_dimples`); 0 does not check.
 
     Returns
     -------
@@ -111,7 +116,7 @@ def analyse_back(
     vp = find_vertebra_prominens(grid, curv, trunk)
     # the candidate's height starts the dimples' search even when it is refused below: a
     # shoulder's convex point lies about as high as C7
-    dl, dr = find_dimples(grid, curv, trunk, vp)
+    dl, dr = find_dimples(grid, curv, trunk, vp, row_concavities=row_concavities)
     if vp_axis_offset > 0:
         vp = check_vertebra_prominens(
             grid, curv, vp, trunk.reference_half_width(), max_offset=vp_axis_offset
@@ -219,7 +224,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    sides' extremes are too close for the sign to be decided (back_parameters.SIGN_MARGIN)
     # 4: VP is refused when it lies beside the back's symmetry axis just below it (a
     #    shoulder's convex point where hair hides the nape or an arm joins the shoulder)
-    version: ClassVar[str] = "4"
+    # 5: the lumbar dimples are refused when they lie in a row of concavities across the
+    #    lower back (the edge of clothing)
+    version: ClassVar[str] = "5"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -240,10 +247,21 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "it; a convex point farther off is a shoulder's and is refused. 0 does not check "
             "(version 3).",
         )
+        row_concavities: int = Field(
+            ROW_CONCAVITIES,
+            ge=0,
+            description="Refuse the lumbar dimples when this many other concave candidates lie "
+            "at their height (a row of concavities across the lower back: the edge of "
+            "clothing). 0 does not check (version 4).",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
         gravity = getattr(context.calibration, "gravity", None)
         return analyse_back(
-            data, gravity, sigma=params.sigma, vp_axis_offset=params.vp_axis_offset
+            data,
+            gravity,
+            sigma=params.sigma,
+            vp_axis_offset=params.vp_axis_offset,
+            row_concavities=params.row_concavities,
         )

@@ -72,6 +72,14 @@ DIMPLE_AXIS_REACH = 0.4
 #: A landmark's curvature must also exceed this many times the curvature noise that the
 #: measurement noise causes (:attr:`Curvature.noise`): noisy surfaces need clearer features.
 NOISE_FACTOR = 8.0
+#: Concavities besides the pair, at the pair's height (within :data:`LEVEL_MM`), that make
+#: the pair part of a row of concavities across the lower back: the edge of clothing (a
+#: waistband standing off the skin), not two dimples. On the clinic tuning scenes a
+#: waistband's edge held 6 such candidates besides the pair taken for dimples; the dimples
+#: of a back have at most the furrow's point between them.
+ROW_CONCAVITIES = 3
+#: Height band (mm, either side of the pair's mean height) of :data:`ROW_CONCAVITIES`.
+LEVEL_MM = 10.0
 #: Least ratio of the trunk's extent on the shorter side of VP to the longer one.
 MIN_BALANCE = 0.4
 #: Why a landmark next to an unmeasured cell is refused: its curvature extreme may be an
@@ -310,7 +318,12 @@ def _band(
 
 
 def find_dimples(
-    grid: LevelGrid, curv: Curvature, trunk: Trunk, vp: Landmark
+    grid: LevelGrid,
+    curv: Curvature,
+    trunk: Trunk,
+    vp: Landmark,
+    *,
+    row_concavities: int = ROW_CONCAVITIES,
 ) -> tuple[Landmark, Landmark]:
     """The lumbar dimples DL (patient's left, ``-x``) and DR (right, ``+x``).
 
@@ -333,6 +346,9 @@ def find_dimples(
         The trunk.
     vp : Landmark
         The vertebra prominens (its height starts the search), found or not.
+    row_concavities : int, optional
+        Refuse the pair when this many other candidates lie at its height (a row of
+        concavities: a clothing edge); 0 does not check (version 4).
 
     Returns
     -------
@@ -401,6 +417,16 @@ def find_dimples(
             break
     if runner >= AMBIGUOUS_RATIO * score:
         reason = "two similar pairs of concavities in the lower back: ambiguous" + hint
+        return _missing("DL", reason), _missing("DR", reason)
+    level = 0.5 * (pl.row + pr.row)
+    beside = sum(
+        1 for q in peaks if q is not pl and q is not pr and abs(q.row - level) * s <= LEVEL_MM
+    )
+    if row_concavities > 0 and beside >= row_concavities:
+        reason = (
+            f"the pair lies in a row of {beside + 2} concavities across the lower back (the "
+            "edge of clothing, not dimples?)"
+        )
         return _missing("DL", reason), _missing("DR", reason)
     below = (trunk.bottom - max(pl.row, pr.row)) * s
     if below < 2.0 * curv.sigma:

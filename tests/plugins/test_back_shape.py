@@ -141,3 +141,15 @@ def test_gravity_defines_the_vertical() -> None:
     # wrongly believing the camera level shows up as an imbalance of the trunk
     naive = analyse_back(rolled, GRAVITY).parameter_table()
     assert abs(naive["trunk_imbalance_mm"]["value"] - p["trunk_imbalance_mm"]["value"]) > 20.0
+
+
+def test_the_checks_of_versions_4_and_5_are_parameters_that_switch_them_off() -> None:
+    from rasterserver_plugins.back_shape import BackShapeAnalysis
+
+    default = BackShapeAnalysis.Params()
+    assert default.vp_axis_offset == 15.0 and default.row_concavities == 3
+    old = BackShapeAnalysis.Params(vp_axis_offset=0.0, row_concavities=0)  # version 3
+    assert old.vp_axis_offset == 0.0 and old.row_concavities == 0
+    for bad in ({"vp_axis_offset": -1.0}, {"row_concavities": -1}):
+        with pytest.raises(ValueError):
+            BackShapeAnalysis.Params(**bad)

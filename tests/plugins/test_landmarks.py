@@ -107,3 +107,26 @@ def test_a_hole_beside_a_landmark_refuses_it() -> None:
     found = _landmarks(_cut(surface, ~hole))
     assert not found["VP"].found and "hole" in found["VP"].reason
     assert found["DL"].found and found["DR"].found
+
+
+def test_a_row_of_concavities_across_the_lower_back_refuses_the_dimples() -> None:
+    # A clothing edge below the dimples, as the chain reconstructs a waistband standing off
+    # the skin: a groove across the back whose depth waves along it, deeper than the dimples.
+    surface, truth = back("normal")
+    xs, ys = surface.coordinates()
+    dl = truth["landmarks"]["DL"]
+    wave = 1.0 + 0.6 * np.cos(2.0 * np.pi * xs[None, :] / 30.0)
+    groove = 3.0 * wave * np.exp(-0.5 * ((ys[:, None] - dl[1] - 60.0) / 5.0) ** 2)
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z + groove)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    # without the check (version 4) two of the groove's points are taken for the dimples
+    wrong, _ = find_dimples(grid, curv, trunk, vp, row_concavities=0)
+    assert wrong.found and np.linalg.norm(wrong.point - dl) > 40.0
+    dl_found, dr_found = find_dimples(grid, curv, trunk, vp)
+    assert not dl_found.found and not dr_found.found
+    assert "row of" in dl_found.reason and "clothing" in dl_found.reason
+    # the back itself keeps its dimples: the furrow's point between them is no row
+    plain = _landmarks(surface)
+    assert plain["DL"].found and plain["DR"].found

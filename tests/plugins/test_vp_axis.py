@@ -4,7 +4,6 @@ shoulder's convex point beside it is refused, an unmeasurable axis decides nothi
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from rasterserver_plugins.curvature import surface_curvature
 from rasterserver_plugins.landmarks import Landmark
 from rasterserver_plugins.level_frame import LevelGrid
@@ -58,13 +57,3 @@ def test_an_unmeasured_axis_or_a_missing_vp_decides_nothing() -> None:
     assert check_vertebra_prominens(blind, curv, shoulder, 130.0) is shoulder
     missing = Landmark("VP", None, 0.0, "no convex point")
     assert check_vertebra_prominens(blind, curv, missing, 130.0) is missing
-
-
-@pytest.mark.parametrize("offset", [0.0, 15.0])
-def test_the_stage_parameter_switches_the_check(offset: float) -> None:
-    from rasterserver_plugins.back_shape import BackShapeAnalysis
-
-    params = BackShapeAnalysis.Params(vp_axis_offset=offset)
-    assert params.vp_axis_offset == offset
-    with pytest.raises(ValueError):
-        BackShapeAnalysis.Params(vp_axis_offset=-1.0)
