@@ -3,28 +3,19 @@ process), resumed, refused on other analysis code; its summary on hand-made rows
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "clinic_analysis.py"
+from bench_scripts import load_script, run_script
 
 
-def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=600
-    )
+def _run(*args: str) -> Any:
+    return run_script("clinic_analysis", *args, timeout=600)
 
 
 def _module() -> Any:
-    spec = importlib.util.spec_from_file_location("clinic_analysis", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("clinic_analysis")
 
 
 def test_a_scene_is_analysed_as_a_body_and_as_its_back_alone(tmp_path: Path) -> None:

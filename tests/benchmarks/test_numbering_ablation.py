@@ -3,28 +3,19 @@ its totals on hand-made rows."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "numbering_ablation.py"
+from bench_scripts import load_script, run_script
 
 
-def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300
-    )
+def _run(*args: str) -> Any:
+    return run_script("numbering_ablation", *args)
 
 
 def _module() -> Any:
-    spec = importlib.util.spec_from_file_location("numbering_ablation", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("numbering_ablation")
 
 
 def test_an_unknown_step_is_refused_with_the_steps_listed(tmp_path: Path) -> None:

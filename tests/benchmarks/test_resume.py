@@ -2,21 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+from bench_scripts import load_script
 
 
 def _resume() -> ModuleType:
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "_resume.py"
-    spec = importlib.util.spec_from_file_location("benchmarks_resume_for_tests", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("_resume", "benchmarks_resume_for_tests")
 
 
 def test_rows_of_the_same_stages_are_skipped_others_refused(tmp_path: Path) -> None:
