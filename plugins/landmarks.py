@@ -75,7 +75,7 @@ NOISE_FACTOR = 8.0
 #: Concavities besides the pair, at the pair's height (within :data:`LEVEL_MM`), that make
 #: the pair part of a row of concavities across the lower back: the edge of clothing (a
 #: waistband standing off the skin), not two dimples. On the clinic tuning scenes a
-#: waistband's edge held 6 such candidates besides the pair taken for dimples; the dimples
+#: waistband's edge held 5 such candidates besides the pair taken for dimples; the dimples
 #: of a back have at most the furrow's point between them.
 ROW_CONCAVITIES = 3
 #: Height band (mm, either side of the pair's mean height) of :data:`ROW_CONCAVITIES`.
