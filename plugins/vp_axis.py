@@ -98,7 +98,7 @@ def check_vertebra_prominens(
     -------
     Landmark
     """
-    if not vp.found:
+    if vp.point is None:  # not found
         return vp
     offset = axis_offset(grid, curv, vp.point, half_width)
     if np.isfinite(offset) and abs(offset) > max_offset:
