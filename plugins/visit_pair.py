@@ -37,7 +37,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
 
     name = "comparison.landmark-icp"
     stage = "comparison"
-    version = "1"
+    version = "2"
     input_type = VisitPair
     output_type = ComparisonRecord
 
@@ -57,10 +57,39 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             le=50.0,
             description="Voxel the moved trunk is thinned to for ICP (mm).",
         )
+        displaced_limit: float = Field(
+            THRESHOLDS.displaced_limit or 15.0,
+            ge=0.0,
+            le=30.0,
+            description=(
+                "Difference (mm) beyond which a region of the distance map reaching the "
+                "trunk's outline is not compared (arms, hands or clothing placed otherwise); "
+                "0 compares every vertex (version 1)."
+            ),
+        )
+        displaced_slope: float = Field(
+            THRESHOLDS.displaced_slope,
+            gt=0.0,
+            le=10.0,
+            description="Change of the difference along the surface (mm/mm) joining a region.",
+        )
+        displaced_margin: float = Field(
+            THRESHOLDS.displaced_margin,
+            ge=0.0,
+            le=100.0,
+            description="Band (mm) around such a region also not compared.",
+        )
 
     def run(self, data: VisitPair, params: Params, context: StageContext) -> ComparisonRecord:
         """Compare the two visits; a refusal is a record with its reason."""
-        thresholds = replace(THRESHOLDS, robust_scale=params.robust_scale, voxel=params.voxel)
+        thresholds = replace(
+            THRESHOLDS,
+            robust_scale=params.robust_scale,
+            voxel=params.voxel,
+            displaced_limit=params.displaced_limit or None,
+            displaced_slope=params.displaced_slope,
+            displaced_margin=params.displaced_margin,
+        )
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
 
 

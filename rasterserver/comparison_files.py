@@ -174,6 +174,7 @@ def _draw_distance(
     landmarks: dict[str, np.ndarray] | None,
 ) -> Figure:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
     from matplotlib.tri import Triangulation
 
@@ -184,6 +185,22 @@ def _draw_distance(
     # fixed margins rather than bbox_inches="tight", which draws the figure twice
     fig.subplots_adjust(left=0.14, right=0.9, bottom=0.09, top=0.94)
     ax = fig.add_subplot(1, 1, 1)
+    if dmap.displaced is not None and dmap.displaced.any():
+        # drawn beneath the map, so that a reader sees where the visits were not compared
+        # rather than an outline that ends
+        shown = dmap.vertices[dmap.displaced]
+        flat = _on_grid(shown, np.zeros(len(shown)))
+        if flat is not None:
+            ax.imshow(flat[0], cmap=ListedColormap(["0.8"]), extent=flat[1], origin="lower")
+        else:
+            ax.plot(shown[:, 0], shown[:, 1], ".", markersize=1, color="0.8", rasterized=True)
+        ax.text(
+            0.01,
+            0.01,
+            "grey: not compared (arms, hands or clothing placed otherwise)",
+            fontsize=7,
+            transform=ax.transAxes,
+        )
     grid = _on_grid(vertices, values)
     if grid is not None and len(triangles):
         # the mesh of a height field: drawing it as an image is ten times faster than

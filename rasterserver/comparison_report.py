@@ -141,7 +141,14 @@ def write_report(
             f"<h3>{label}</h3><p>registration: fitness {r['fitness']:.2f}, residual "
             f"{r['rmse_mm']:.2f} mm; distance rms {s['rms_mm']:.2f} mm, largest "
             f"{s['max_abs_mm']:.1f} mm; area beyond ±2 mm "
-            f"{(s['area_above_2mm_mm2'] + s['area_below_minus_2mm_mm2']) / 100:.0f} cm²</p>"
+            f"{(s['area_above_2mm_mm2'] + s['area_below_minus_2mm_mm2']) / 100:.0f} cm²"
+            + (
+                f"; not compared (arms, hands or clothing placed otherwise): "
+                f"{100 * s['displaced']:.0f} % of the trunk"
+                if s.get("displaced")
+                else ""
+            )
+            + "</p>"
             f"<img src='{e(p['files'][1])}' alt='distance map'>"
         )
     parts.append("<h2>Asymmetry maps (Komeili et al. 2015)</h2>")

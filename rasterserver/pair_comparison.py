@@ -157,7 +157,7 @@ def compare_pair(
             distance=np.zeros(0, dtype=np.float64),
             parameters=parameters,
         )
-    dmap = distance_map(a, b, reg, margin=margin)
+    dmap = distance_map(a, b, reg, margin=margin, thresholds=thresholds)
     return ComparisonRecord(
         reason="",
         transform=np.asarray(reg.transform, dtype=np.float64),
@@ -168,6 +168,7 @@ def compare_pair(
         trunk=_indices(a, margin),
         distance=np.asarray(dmap.distance, dtype=np.float64),
         parameters=parameters,
+        displaced=dmap.displaced,
     )
 
 
@@ -220,7 +221,13 @@ def registration_of(record: ComparisonRecord) -> Registration:
     )
 
 
-def _map(mesh: MeshRecord, index: np.ndarray, values: np.ndarray, what: str) -> DistanceMap:
+def _map(
+    mesh: MeshRecord,
+    index: np.ndarray,
+    values: np.ndarray,
+    what: str,
+    displaced: np.ndarray | None = None,
+) -> DistanceMap:
     from rasterserver.comparison import submesh
 
     if len(index) and int(index.max()) >= len(mesh.vertices):
@@ -228,7 +235,14 @@ def _map(mesh: MeshRecord, index: np.ndarray, values: np.ndarray, what: str) -> 
     keep = np.zeros(len(mesh.vertices), dtype=bool)
     keep[index] = True
     trunk = submesh(mesh, keep)
-    return DistanceMap(trunk.vertices, trunk.triangles, trunk.normals, np.array(values), what=what)
+    return DistanceMap(
+        trunk.vertices,
+        trunk.triangles,
+        trunk.normals,
+        np.array(values),
+        what=what,
+        displaced=None if displaced is None else np.array(displaced),
+    )
 
 
 def distance_of(record: ComparisonRecord, mesh_a: MeshRecord) -> DistanceMap:
@@ -241,7 +255,7 @@ def distance_of(record: ComparisonRecord, mesh_a: MeshRecord) -> DistanceMap:
     """
     if record.refused:
         raise ComparisonRefusedError(record.reason)
-    return _map(mesh_a, record.trunk, record.distance, "signed distance (mm)")
+    return _map(mesh_a, record.trunk, record.distance, "signed distance (mm)", record.displaced)
 
 
 def asymmetry_of(record: AsymmetryRecord, mesh: MeshRecord) -> DistanceMap | None:

@@ -134,9 +134,12 @@ class ComparisonRecord(Record):
         ``(K,)`` int64 indices of A's mesh vertices on A's trunk, where the distance map is.
     distance : numpy.ndarray
         ``(K,)`` float64 signed distance (mm) along A's normals to registered B, NaN without
-        a counterpart; positive where B is posterior of A.
+        a counterpart or where not compared; positive where B is posterior of A.
     parameters : str
         JSON: the stage's parameters and the thresholds used.
+    displaced : numpy.ndarray or None
+        ``(K,)`` bool: trunk vertices not compared, where the visits hold their arms, hands
+        or clothing otherwise (version 2); None for comparisons that compared every vertex.
     """
 
     kind: ClassVar[str] = "comparison"
@@ -149,6 +152,7 @@ class ComparisonRecord(Record):
     trunk: np.ndarray
     distance: np.ndarray
     parameters: str = "{}"
+    displaced: np.ndarray | None = None
 
     def validate(self) -> None:
         """Refuse maps whose indices and values differ in length, or bad transforms."""
@@ -157,6 +161,10 @@ class ComparisonRecord(Record):
                 raise InputError(f"ComparisonRecord.{name} must be (4, 4)")
         if self.trunk.shape != self.distance.shape:
             raise InputError("ComparisonRecord.trunk and distance differ in length")
+        if self.displaced is not None and (
+            self.displaced.dtype != np.bool_ or self.displaced.shape != self.trunk.shape
+        ):
+            raise InputError("ComparisonRecord.displaced must be one bool per trunk vertex")
 
     @property
     def refused(self) -> bool:

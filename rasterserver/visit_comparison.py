@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from rasterserver.analysis import acquisition_analysis
 from rasterserver.comparison import (
     ComparisonRefusedError,
@@ -255,8 +257,17 @@ def _pair(
         "provenance": stored.provenance(),
         "files": [f"{stem}.ply", f"{stem}.png"],
     }
-    entry["_stored"] = (stored, reg)
+    entry["_stored"] = (stored, reg, dmap)
     return entry
+
+
+def _asymmetry_change(
+    map_a: DistanceMap, map_b: DistanceMap, reg: Registration, dmap: DistanceMap
+) -> DistanceMap:
+    """B's asymmetry minus A's, not compared where the distance map was not (arms, hands or
+    clothing placed otherwise) when both maps lie on the same trunk (the same margin)."""
+    same = dmap.displaced is not None and np.array_equal(dmap.vertices, map_a.vertices)
+    return asymmetry_change(map_a, map_b, reg, displaced=dmap.displaced if same else None)
 
 
 @dataclass(frozen=True)
@@ -318,7 +329,7 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
     (map_a, entry_a), (map_b, entry_b) = _asymmetry(pipeline, a, {}), _asymmetry(pipeline, b, {})
     change = None
     if map_a is not None and map_b is not None:
-        change = asymmetry_change(map_a, map_b, reg).statistics()
+        change = _asymmetry_change(map_a, map_b, reg, dmap).statistics()
     document = {
         "format": COMPARISON_FORMAT,
         "frame": "world frame of visit A's calibration (mm)",
@@ -464,7 +475,7 @@ def compare_visits(
         for entry in entries:
             kept = entry.pop("_stored", None)
             if kept is not None and entry["a"] in maps and entry["b"] in maps:
-                change = asymmetry_change(maps[entry["a"]], maps[entry["b"]], kept[1])
+                change = _asymmetry_change(maps[entry["a"]], maps[entry["b"]], kept[1], kept[2])
                 entry["asymmetry_change"] = change.statistics()
         table = trends([TrendVisit(v.uid, v.acquired_at, v.parameters) for v in visits])
         write_trends(table, temp)

@@ -78,6 +78,10 @@ def test_a_comparison_is_stored_once_and_reused(archived) -> None:
     assert report.problems == []
     assert report.frames_checked == len(pipeline.results(first)) + len(pipeline.results(second))
     assert made.record.trunk.size == made.record.distance.size > 500
+    # version 2 stores which trunk vertices were not compared (none on these visits)
+    assert made.record.displaced is not None
+    assert made.record.displaced.shape == made.record.trunk.shape
+    assert (again.record.displaced == made.record.displaced).all()
 
 
 def test_other_parameters_make_another_result(archived) -> None:

@@ -17,7 +17,9 @@ the world frame of visit A's calibration (mm); visit B is moved onto it.
     Signed distance along A's vertex normal from each trunk vertex of A's mesh to B's
     registered mesh: positive where B lies *posterior* of A (towards the camera: a rib hump
     that grew), negative where it lies anterior (flattened). NaN where B has no surface
-    within :data:`MAX_DISTANCE` (no overlap).
+    within :data:`MAX_DISTANCE` (no overlap), and where the visits hold their arms, hands or
+    clothing otherwise (a region from the outline inwards differing by more than any change
+    of the back: :func:`displaced_regions`).
 :func:`asymmetry_map`
     One visit against its own mirror image about the symmetry plane (Komeili et al., Spine J
     15 (2015) 743-751): the back mirrored about the body frame's sagittal plane (through DM,
@@ -29,11 +31,13 @@ the world frame of visit A's calibration (mm); visit B is moved onto it.
 
 The package by concept: :mod:`.thresholds` (what is accepted, the refusal), :mod:`.visits`
 (the records compared and produced), :mod:`.geometry`, :mod:`.trunk` (landmark frame and
-trunk), :mod:`.registration` and :mod:`.distances`.
+trunk), :mod:`.registration`, :mod:`.distances` and :mod:`.displaced` (regions where the
+visits' arms, hands or clothing lie otherwise: not compared).
 """
 
 from __future__ import annotations
 
+from rasterserver.comparison.displaced import displaced_regions
 from rasterserver.comparison.distances import (
     asymmetry_change,
     asymmetry_fit,
@@ -66,6 +70,7 @@ __all__ = [
     "asymmetry_change",
     "asymmetry_fit",
     "asymmetry_map",
+    "displaced_regions",
     "distance_map",
     "landmark_transform",
     "register",

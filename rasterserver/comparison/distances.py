@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from rasterserver.comparison.displaced import displaced_regions
 from rasterserver.comparison.geometry import apply_transform, rotation_angle
 from rasterserver.comparison.registration import icp
 from rasterserver.comparison.thresholds import (
@@ -58,6 +59,7 @@ def distance_map(
     *,
     margin: float = EDGE_MARGIN,
     limit: float = MAX_DISTANCE,
+    thresholds: Thresholds = THRESHOLDS,
 ) -> DistanceMap:
     """Signed distance from each trunk vertex of A's mesh to B's mesh, after registration.
 
@@ -71,12 +73,16 @@ def distance_map(
         Outline erosion of A's trunk, mm.
     limit : float, optional
         Largest distance reported (mm); beyond, NaN.
+    thresholds : Thresholds, optional
+        ``displaced_limit``, ``displaced_slope`` and ``displaced_margin``: regions from the
+        outline inwards that differ by more (arms, hands or clothing placed otherwise) are
+        not compared.
 
     Returns
     -------
     DistanceMap
         On A's trunk mesh; positive where B is posterior of A (along A's normal, which faces
-        the camera).
+        the camera); NaN and ``displaced`` where not compared.
     """
     trunk = trunk_mesh(a, margin=margin)
     moved = MeshRecord(
@@ -85,7 +91,20 @@ def distance_map(
         normals=np.asarray(b.mesh.normals) @ registration.transform[:3, :3].T,
     )
     distance = signed_distances(trunk.vertices, trunk.normals, moved, limit=limit)
-    return DistanceMap(trunk.vertices, trunk.triangles, trunk.normals, distance)
+    if thresholds.displaced_limit is None:
+        return DistanceMap(trunk.vertices, trunk.triangles, trunk.normals, distance)
+    displaced = displaced_regions(
+        trunk.vertices,
+        trunk.triangles,
+        distance,
+        limit=thresholds.displaced_limit,
+        slope=thresholds.displaced_slope,
+        margin=thresholds.displaced_margin,
+    )
+    distance[displaced] = np.nan
+    return DistanceMap(
+        trunk.vertices, trunk.triangles, trunk.normals, distance, displaced=displaced
+    )
 
 
 def asymmetry_map(
@@ -191,7 +210,12 @@ def asymmetry_fit(
 
 
 def asymmetry_change(
-    a_map: DistanceMap, b_map: DistanceMap, registration: Registration, *, reach: float = 3.0
+    a_map: DistanceMap,
+    b_map: DistanceMap,
+    registration: Registration,
+    *,
+    reach: float = 3.0,
+    displaced: np.ndarray | None = None,
 ) -> DistanceMap:
     """B's asymmetry minus A's, on A's trunk vertices.
 
@@ -204,6 +228,9 @@ def asymmetry_change(
     reach : float, optional
         Largest distance (mm) from an A vertex to the nearest registered B vertex whose value
         it takes; farther, NaN.
+    displaced : numpy.ndarray, optional
+        The distance map's ``displaced`` vertices (the same trunk as ``a_map``'s): not
+        compared here either.
 
     Returns
     -------
@@ -218,6 +245,15 @@ def asymmetry_change(
         gap, index = cKDTree(moved).query(a_map.vertices, distance_upper_bound=reach)
         near = np.isfinite(gap)
         change[near] = b_map.distance[np.asarray(index)[near]] - a_map.distance[near]
+    if displaced is not None:
+        if len(displaced) != len(change):
+            raise ValueError("displaced must hold one flag per vertex of A's asymmetry map")
+        change[displaced] = np.nan
     return DistanceMap(
-        a_map.vertices, a_map.triangles, a_map.normals, change, what="asymmetry change (mm)"
+        a_map.vertices,
+        a_map.triangles,
+        a_map.normals,
+        change,
+        what="asymmetry change (mm)",
+        displaced=displaced,
     )

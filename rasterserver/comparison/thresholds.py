@@ -49,6 +49,18 @@ class Thresholds:
         their mean); None: every point.
     mirror_distance : float
         Correspondence distance (mm) of the asymmetry map's mirror fit, both passes.
+    displaced_limit : float or None
+        Difference (mm) beyond which a region of the distance map reaching the trunk's
+        outline is not compared (:func:`~rasterserver.comparison.displaced_regions`: arms,
+        hands or clothing placed otherwise); a back changes between visits by millimetres
+        (the moderate preset's main curve turned by +4° and moved by +7 mm: 12 mm at most),
+        an arm moved differs by 10-30 mm or has no counterpart. None: every vertex compared
+        (version 1).
+    displaced_slope : float
+        Change of the difference along the surface (mm per mm) that joins such a region: the
+        ramp from the trunk onto an arm (a changed back's difference changes slowly).
+    displaced_margin : float
+        Band (mm) around such a region also not compared.
     """
 
     coarse_distance: float = 20.0
@@ -61,6 +73,9 @@ class Thresholds:
     robust_scale: float | None = 1.0
     voxel: float | None = 4.0
     mirror_distance: float = 10.0
+    displaced_limit: float | None = 15.0
+    displaced_slope: float = 0.2
+    displaced_margin: float = 20.0
 
 
 #: The thresholds :func:`register` uses unless given others.

@@ -140,6 +140,10 @@ class DistanceMap:
         ``(N,)`` float64 signed distance (mm), NaN where there is no counterpart.
     what : str
         What the value is (for file headers and plots).
+    displaced : numpy.ndarray or None
+        ``(N,)`` bool: vertices not compared, in regions where the visits' arms, hands or
+        clothing lie otherwise (:func:`~rasterserver.comparison.displaced_regions`); their
+        distance is NaN. None: every vertex compared.
     """
 
     vertices: np.ndarray
@@ -147,6 +151,7 @@ class DistanceMap:
     normals: np.ndarray
     distance: np.ndarray
     what: str = "signed distance (mm)"
+    displaced: np.ndarray | None = None
     area: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -159,8 +164,9 @@ class DistanceMap:
         -------
         dict
             ``vertices``, ``measured`` (vertices with a value), ``overlap`` (their area
-            fraction), ``rms_mm``, ``mean_mm``, ``max_abs_mm`` (signed), ``max_abs_at``
-            (world mm), ``area_mm2`` (measured), ``area_above_2mm_mm2``,
+            fraction), ``displaced`` (the area fraction not compared: arms, hands or
+            clothing placed otherwise), ``rms_mm``, ``mean_mm``, ``max_abs_mm`` (signed),
+            ``max_abs_at`` (world mm), ``area_mm2`` (measured), ``area_above_2mm_mm2``,
             ``area_below_minus_2mm_mm2``, ``area_above_5mm_mm2``, ``area_below_minus_5mm_mm2``.
             Values are None when nothing was measured.
         """
@@ -171,6 +177,11 @@ class DistanceMap:
             "vertices": int(d.size),
             "measured": int(ok.sum()),
             "overlap": float(self.area[ok].sum() / total) if total > 0 else 0.0,
+            "displaced": (
+                float(self.area[self.displaced].sum() / total)
+                if total > 0 and self.displaced is not None
+                else 0.0
+            ),
         }
         if not ok.any():
             return out | dict.fromkeys(
