@@ -18,7 +18,7 @@ from dataclasses import replace
 
 from pydantic import Field
 
-from rasterserver.comparison import EDGE_MARGIN, THRESHOLDS
+from rasterserver.comparison import AXIS_WINDOW, EDGE_MARGIN, THRESHOLDS
 from rasterserver.pair_comparison import compare_pair, visit_asymmetry
 from rasterserver.records_comparison import (
     AsymmetryRecord,
@@ -29,6 +29,12 @@ from rasterserver.records_comparison import (
 from rasterserver.stage import Stage, StageContext, StageParams
 
 __all__ = ["LandmarkIcpComparison", "MirrorIcpAsymmetry"]
+
+_WINDOW = (
+    "Half-width (mm) of the band about the DM-VP line that a row's run of the outline must "
+    "reach to be trunk (arms apart from the trunk in the row left out); 0: the connected "
+    "piece of the outline (version 1)."
+)
 
 
 class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
@@ -79,6 +85,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             le=100.0,
             description="Band (mm) around such a region also not compared.",
         )
+        axis_window: float = Field(AXIS_WINDOW, ge=0.0, le=200.0, description=_WINDOW)
 
     def run(self, data: VisitPair, params: Params, context: StageContext) -> ComparisonRecord:
         """Compare the two visits; a refusal is a record with its reason."""
@@ -89,6 +96,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             displaced_limit=params.displaced_limit or None,
             displaced_slope=params.displaced_slope,
             displaced_margin=params.displaced_margin,
+            axis_window=params.axis_window or None,
         )
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
 
@@ -99,7 +107,7 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
 
     name = "asymmetry.mirror-icp"
     stage = "asymmetry"
-    version = "1"
+    version = "2"
     input_type = VisitGeometry
     output_type = AsymmetryRecord
 
@@ -113,8 +121,13 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
             le=50.0,
             description="Correspondence distance of the mirror fit (mm).",
         )
+        axis_window: float = Field(AXIS_WINDOW, ge=0.0, le=200.0, description=_WINDOW)
 
     def run(self, data: VisitGeometry, params: Params, context: StageContext) -> AsymmetryRecord:
         """Map the visit's asymmetry; a refusal is a record with its reason."""
-        thresholds = replace(THRESHOLDS, mirror_distance=params.mirror_distance)
+        thresholds = replace(
+            THRESHOLDS,
+            mirror_distance=params.mirror_distance,
+            axis_window=params.axis_window or None,
+        )
         return visit_asymmetry(data, thresholds=thresholds, margin=params.margin)

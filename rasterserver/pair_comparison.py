@@ -117,8 +117,10 @@ def unpack_visit(record: VisitGeometry) -> Visit:
     return _visit(record, "")
 
 
-def _indices(visit: Visit, margin: float) -> np.ndarray:
-    return np.flatnonzero(trunk_mask(visit, visit.mesh.vertices, margin=margin)).astype(np.int64)
+def _indices(visit: Visit, margin: float, window: float | None) -> np.ndarray:
+    return np.flatnonzero(
+        trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window)
+    ).astype(np.int64)
 
 
 def compare_pair(
@@ -165,7 +167,7 @@ def compare_pair(
         fitness=float(reg.fitness),
         rmse=float(reg.rmse),
         points=int(reg.points),
-        trunk=_indices(a, margin),
+        trunk=_indices(a, margin, thresholds.axis_window),
         distance=np.asarray(dmap.distance, dtype=np.float64),
         parameters=parameters,
         displaced=dmap.displaced,
@@ -193,7 +195,7 @@ def visit_asymmetry(
         )
     return AsymmetryRecord(
         reason="",
-        trunk=_indices(visit, margin),
+        trunk=_indices(visit, margin, thresholds.axis_window),
         asymmetry=np.asarray(amap.distance, dtype=np.float64),
         transform=np.asarray(transform, dtype=np.float64),
         fitness=float(fitness),

@@ -48,6 +48,7 @@ from rasterserver.comparison.distances import (
 from rasterserver.comparison.geometry import vertex_areas
 from rasterserver.comparison.registration import register
 from rasterserver.comparison.thresholds import (
+    AXIS_WINDOW,
     EDGE_MARGIN,
     MAX_DISTANCE,
     THRESHOLDS,
@@ -58,6 +59,7 @@ from rasterserver.comparison.trunk import landmark_transform, submesh, trunk_mas
 from rasterserver.comparison.visits import BodyFrame, DistanceMap, Registration, Visit
 
 __all__ = [
+    "AXIS_WINDOW",
     "EDGE_MARGIN",
     "MAX_DISTANCE",
     "THRESHOLDS",

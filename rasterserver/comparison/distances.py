@@ -84,26 +84,34 @@ def distance_map(
         On A's trunk mesh; positive where B is posterior of A (along A's normal, which faces
         the camera); NaN and ``displaced`` where not compared.
     """
-    trunk = trunk_mesh(a, margin=margin)
+    # the displaced regions are found on the connected trunk, arms included: an arm's core
+    # (differing most) shows where its ramp onto the trunk begins
+    wide = trunk_mesh(a, margin=margin, window=None)
     moved = MeshRecord(
         vertices=apply_transform(registration.transform, np.asarray(b.mesh.vertices, dtype=float)),
         triangles=b.mesh.triangles,
         normals=np.asarray(b.mesh.normals) @ registration.transform[:3, :3].T,
     )
-    distance = signed_distances(trunk.vertices, trunk.normals, moved, limit=limit)
-    if thresholds.displaced_limit is None:
-        return DistanceMap(trunk.vertices, trunk.triangles, trunk.normals, distance)
-    displaced = displaced_regions(
+    distance = signed_distances(wide.vertices, wide.normals, moved, limit=limit)
+    displaced = np.zeros(len(distance), dtype=bool)
+    if thresholds.displaced_limit is not None:
+        displaced = displaced_regions(
+            wide.vertices,
+            wide.triangles,
+            distance,
+            limit=thresholds.displaced_limit,
+            slope=thresholds.displaced_slope,
+            margin=thresholds.displaced_margin,
+        )
+        distance[displaced] = np.nan
+    keep = trunk_mask(a, wide.vertices, margin=margin, window=thresholds.axis_window)
+    trunk = submesh(wide, keep)
+    return DistanceMap(
         trunk.vertices,
         trunk.triangles,
-        distance,
-        limit=thresholds.displaced_limit,
-        slope=thresholds.displaced_slope,
-        margin=thresholds.displaced_margin,
-    )
-    distance[displaced] = np.nan
-    return DistanceMap(
-        trunk.vertices, trunk.triangles, trunk.normals, distance, displaced=displaced
+        trunk.normals,
+        distance[keep],
+        displaced=displaced[keep] if thresholds.displaced_limit is not None else None,
     )
 
 
@@ -166,13 +174,15 @@ def asymmetry_fit(
         triangles=np.ascontiguousarray(mesh.triangles[:, ::-1]),  # a mirror turns the winding
         normals=np.asarray(mesh.normals) @ reflect[:3, :3].T,
     )
-    trunk = trunk_mesh(visit, margin=margin)
+    trunk = trunk_mesh(visit, margin=margin, window=thresholds.axis_window)
     if len(trunk.vertices) < thresholds.min_points:
         raise ComparisonRefusedError(
             f"visit {visit.label or '?'} has too little measured trunk for an asymmetry map "
             f"({len(trunk.vertices)} points, at least {thresholds.min_points} needed)"
         )
-    mirror_trunk = submesh(mirrored, trunk_mask(visit, mesh.vertices, margin=margin))
+    mirror_trunk = submesh(
+        mirrored, trunk_mask(visit, mesh.vertices, margin=margin, window=thresholds.axis_window)
+    )
     # The landmark plane is within a few millimetres of the plane of best symmetry, so both
     # passes use mirror_distance, whose cut-off already keeps the most asymmetric parts (a
     # scoliotic back differs from its mirror image by up to a centimetre or two: that is what

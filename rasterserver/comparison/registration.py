@@ -96,8 +96,8 @@ def register(
         start; the message names the figure and its limit.
     """
     start = landmark_transform(a.shape, b.shape, labels=(a.label, b.label))
-    target = trunk_mesh(a, margin=margin)
-    source = trunk_mesh(b, margin=margin)
+    target = trunk_mesh(a, margin=margin, window=thresholds.axis_window)
+    source = trunk_mesh(b, margin=margin, window=thresholds.axis_window)
     for visit, part in ((a, target), (b, source)):
         if len(part.vertices) < thresholds.min_points:
             raise ComparisonRefusedError(

@@ -12,6 +12,10 @@ from rasterserver.errors import InputError
 EDGE_MARGIN = 15.0
 #: Largest distance a distance map reports (mm); farther, the vertex has no counterpart.
 MAX_DISTANCE = 30.0
+#: Half-width (mm) of the band about the DM–VP line that a row's run of the measured outline
+#: must reach to be trunk: wide enough for a scoliotic back's midline (2-3 cm off the line)
+#: and a hole or two along the spine, far narrower than the back (the arms start 15-20 cm out).
+AXIS_WINDOW = 40.0
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,10 @@ class Thresholds:
         ramp from the trunk onto an arm (a changed back's difference changes slowly).
     displaced_margin : float
         Band (mm) around such a region also not compared.
+    axis_window : float or None
+        :func:`~rasterserver.comparison.trunk_mask`'s ``window``: in each row only the runs
+        of the outline reaching this close to the DM–VP line are trunk (arms apart from it in
+        the row left out); None: the connected piece (version 1).
     """
 
     coarse_distance: float = 20.0
@@ -76,6 +84,7 @@ class Thresholds:
     displaced_limit: float | None = 15.0
     displaced_slope: float = 0.2
     displaced_margin: float = 20.0
+    axis_window: float | None = AXIS_WINDOW
 
 
 #: The thresholds :func:`register` uses unless given others.

@@ -1,11 +1,11 @@
 """The body-fixed landmark frame of a visit and its trunk: the part of the back between DM and
-VP inside the measured outline, eroded by the edge margin."""
+VP inside the measured outline, eroded by the edge margin, without the arms."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from rasterserver.comparison.thresholds import EDGE_MARGIN, ComparisonRefusedError
+from rasterserver.comparison.thresholds import AXIS_WINDOW, EDGE_MARGIN, ComparisonRefusedError
 from rasterserver.comparison.visits import BodyFrame, Visit
 from rasterserver.records_analysis import BackShape
 from rasterserver.records_surface import MeshRecord
@@ -61,13 +61,44 @@ def landmark_transform(
     return out
 
 
-def trunk_mask(visit: Visit, points: np.ndarray, *, margin: float = EDGE_MARGIN) -> np.ndarray:
+def _axis_runs(
+    eroded: np.ndarray, surface: object, dm: np.ndarray, vp: np.ndarray, window: float
+) -> np.ndarray:
+    """The cells of each grid row's runs of ``eroded`` that come within ``window`` (mm) of the
+    DM–VP line at the row's height."""
+    from scipy import ndimage
+
+    ny, nx = eroded.shape
+    x0, y0, spacing = (float(getattr(surface, k)) for k in ("x0", "y0", "spacing"))
+    runs, _count = ndimage.label(eroded, structure=[[0, 0, 0], [1, 1, 1], [0, 0, 0]])
+    if abs(vp[1] - dm[1]) < spacing:
+        return eroded
+    y = y0 + spacing * np.arange(ny)
+    axis = dm[0] + (y - dm[1]) / (vp[1] - dm[1]) * (vp[0] - dm[0])
+    x = x0 + spacing * np.arange(nx)
+    near = np.abs(x[None, :] - axis[:, None]) <= window
+    keep = np.zeros(int(runs.max()) + 1, dtype=bool)
+    keep[np.unique(runs[near & eroded])] = True
+    keep[0] = False
+    return keep[runs]
+
+
+def trunk_mask(
+    visit: Visit,
+    points: np.ndarray,
+    *,
+    margin: float = EDGE_MARGIN,
+    window: float | None = AXIS_WINDOW,
+) -> np.ndarray:
     """Which of ``points`` (world mm) lie on the visit's trunk.
 
     The trunk is the part of the measured surface between DM and VP along the body frame's
     vertical axis (the head and neck above VP, the buttocks below DM left out), at least
     ``margin`` inside the measured outline (the outline eroded), and in the connected piece
     of it that holds the VP–DM line's midpoint (arms measured apart from the trunk left out).
+    In each row of the surface's grid, only the runs of the eroded outline that come within
+    ``window`` of the DM–VP line are trunk: an arm beside the trunk, with a gap between
+    them in the row, is left out even where it joins the trunk at the shoulder (version 2).
 
     Parameters
     ----------
@@ -77,6 +108,9 @@ def trunk_mask(visit: Visit, points: np.ndarray, *, margin: float = EDGE_MARGIN)
         ``(N, 3)`` points in the visit's world frame.
     margin : float, optional
         Erosion of the outline, mm.
+    window : float or None, optional
+        Half-width (mm) of the band about the DM–VP line a row's run must reach; None: the
+        connected piece alone (version 1).
 
     Returns
     -------
@@ -111,6 +145,8 @@ def trunk_mask(visit: Visit, points: np.ndarray, *, margin: float = EDGE_MARGIN)
     piece = labels[mi[0], mj[0]] if mok[0] else 0
     i, j, ok = cells(points)
     on = ok & (labels[i, j] == piece) if piece else ok & eroded[i, j]
+    if window is not None:
+        on &= _axis_runs(eroded, surface, origin, vp, window)[i, j]
     return inside & on
 
 
@@ -126,6 +162,8 @@ def submesh(mesh: MeshRecord, keep: np.ndarray) -> MeshRecord:
     )
 
 
-def trunk_mesh(visit: Visit, *, margin: float = EDGE_MARGIN) -> MeshRecord:
+def trunk_mesh(
+    visit: Visit, *, margin: float = EDGE_MARGIN, window: float | None = AXIS_WINDOW
+) -> MeshRecord:
     """The part of the visit's mesh on its trunk (:func:`trunk_mask`)."""
-    return submesh(visit.mesh, trunk_mask(visit, visit.mesh.vertices, margin=margin))
+    return submesh(visit.mesh, trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window))
