@@ -23,7 +23,9 @@ renders): the peer, in the same run. Both are scored by ``comparison.py``'s
 distance maps A→C against the true change, A→D and A→E with no change on the back,
 trend flags on the noise-only pairs and on the progressions); and here, how often a
 comparison was refused and why (a visit without a body frame cannot be registered: the
-safe answer), and how many progressions got no answer at all.
+safe answer), and how many progressions got no answer at all. Every pair is compared with
+the comparison's defaults and with version 1 (every vertex of the connected trunk: columns
+``body_v1``, ``back_v1``) on the same acquisitions.
 
 Per person one JSON line (its scores for both kinds) is appended to ``--out`` once its 18
 acquisitions are done; a rerun resumes, and rows of other analysis or comparison code are
@@ -62,6 +64,9 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 KINDS = ("body", "back")
+#: The comparison's versions scored on the same acquisitions: the plugin's defaults, and
+#: version 1 (every vertex of the connected trunk compared).
+VERSIONS = ("", "_v1")
 #: Pairs whose registration is counted: the re-pose, the progression in A's dress, the same
 #: posture, and one other visit (another dress).
 PAIRS = ("B", "C", "D", "E")
@@ -152,10 +157,7 @@ _STATE: dict[str, Any] = {}
 
 def run_task(task: tuple[int, str, str]) -> dict[str, Any]:
     """Render, reconstruct and analyse one acquisition of one kind; its Visit and truth."""
-    from rasterserver.comparison import Visit
-    from rasterserver.pipeline import run_chain
     from rasterserver.simulator.back import make_back
-    from rasterserver.simulator.back_truth import truth
     from rasterserver.simulator.body import clinic_station, make_body
     from rasterserver.simulator.render import render
     from rasterserver.stage import StageContext
@@ -172,39 +174,15 @@ def run_task(task: tuple[int, str, str]) -> dict[str, Any]:
     image = render(
         scene, station, settings=settings, seed=300_000 + 10 * seed + cmp.ROLES.index(role)
     )
-    records = run_chain(image.image, context=context, until="analysis")
-    mesh = run_chain(records["surface"], context=context, until="mesh")["mesh"]
-    shape = records["analysis"]
-    out: dict[str, Any] = {
+    return {
         "seed": seed,
         "role": role,
         "kind": kind,
         "posture": body.arm_posture,
         "params": body.back.to_dict(),
+        **cmp.acquisition(scene, image.image, context, role=role, label=f"{seed}:{role}:{kind}"),
         "seconds": time.perf_counter() - t0,
-        "reason": shape.reason,
-        "frame": bool(
-            not shape.reason
-            and np.all(np.isfinite(shape.frame_origin))
-            and np.all(np.isfinite(shape.frame_axes))
-        ),
-        "visit": Visit(records["surface"], mesh, shape, label=f"{seed}:{role}:{kind}"),
-        "parameters": shape.parameter_table(),
-        "truth": {k: v["value"] for k, v in truth(scene)["parameters"].items()},
-        "landmarks": {
-            k: np.asarray(v)
-            for k, v in scene.landmarks.items()
-            if np.size(v) == 3 and not k.startswith("sagittal_")
-        },
     }
-    if role in ("A", "C"):
-        vertices, triangles, n = [], [], 0
-        for o in scene.objects:
-            vertices.append(np.asarray(o.mesh.vertices))
-            triangles.append(np.asarray(o.mesh.triangles) + n)
-            n += len(vertices[-1])
-        out["truth_mesh"] = (np.vstack(vertices), np.vstack(triangles))
-    return out
 
 
 def _safe(task: tuple[int, str, str]) -> dict[str, Any]:
@@ -220,11 +198,20 @@ def _why(reason: str) -> str:
     return re.sub(r"[-+]?\d+(\.\d+)?", "#", text).strip()[:100]
 
 
-def score_person(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
+def thresholds(version: str) -> Any:
+    """The comparison's thresholds of ``version`` ("" the defaults, "_v1" version 1)."""
+    from rasterserver.comparison import THRESHOLDS
+
+    if version == "_v1":
+        return dataclasses.replace(THRESHOLDS, displaced_limit=None, axis_window=None)
+    return THRESHOLDS
+
+
+def score_person(rows: dict[str, dict[str, Any]], version: str = "") -> dict[str, Any]:
     """``comparison.score_back`` of one person's nine acquisitions of one kind, plus what a
     clinician would not get: refused registrations and progressions without an answer."""
     cmp = _bench("comparison")
-    s = cmp.score_back(rows)
+    s = cmp.score_back(rows, thresholds(version))
     refused = {}
     if "refused" in s["registration"]:
         refused["B"] = _why(s["registration"]["refused"])
@@ -233,6 +220,18 @@ def score_person(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
             refused[y] = _why(entry["refused"])
     s["refused"] = refused
     s["no_frame"] = sorted(r for r in rows if not rows[r]["frame"])
+    # the true change of each progression pair, in the order of its flags: a grown curve
+    # need not change the back's largest deviation or rotation (another curve holds it)
+    tr = {r: rows[r]["truth"] for r in rows}
+    s["deviation_true"] = [
+        tr["F"]["lateral_deviation_max_mm"] - tr[x]["lateral_deviation_max_mm"]
+        for x in cmp.UNCHANGED
+    ]
+    s["rotation_true"] = [
+        tr[y]["surface_rotation_max_deg"] - tr[x]["surface_rotation_max_deg"]
+        for y in ("C", "G")
+        for x in cmp.UNCHANGED
+    ]
     s["posture"] = {r: rows[r]["posture"] for r in rows}
     return s
 
@@ -250,14 +249,16 @@ def stamp() -> str:
 
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Per kind: ``comparison.summarise`` and the refusals."""
+    from rasterserver.trends import sdc
+
     cmp = _bench("comparison")
     out: dict[str, Any] = {
         "people": len(rows),
         "crashed": [r["seed"] for r in rows if "error" in r],
     }
     good = [r for r in rows if "error" not in r]
-    for kind in KINDS:
-        scores = [r[kind] for r in good]
+    for kind in [k + v for v in VERSIONS for k in KINDS]:
+        scores = [r[kind] for r in good if kind in r]
         if not scores:
             continue
         entry = cmp.summarise(scores)
@@ -269,17 +270,28 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         entry["refusals"] = dict(why.most_common(10))
         entry["no_frame"] = sum(len(s["no_frame"]) for s in scores)
         entry["acquisitions"] = 9 * len(scores)
-        for name, flags in (("deviation", "deviation_flags"), ("rotation", "rotation_flags")):
-            key = (
-                ("lateral_deviation_max_mm",)
-                if name == "deviation"
-                else ("surface_rotation_max_deg",)
-            )
-            sets = [f for s in scores for f in s[flags]]
-            entry["trends"][f"{name}_unanswered"] = sum(
-                all(f.get(k) is None for k in key) for f in sets
-            )
+        for name, key in (
+            ("deviation", "lateral_deviation_max_mm"),
+            ("rotation", "surface_rotation_max_deg"),
+        ):
+            sets = [f for s in scores for f in s[f"{name}_flags"]]
+            entry["trends"][f"{name}_unanswered"] = sum(f.get(key) is None for f in sets)
             entry["trends"][f"{name}_pairs"] = len(sets)
+            # flagged among the answered pairs whose true change is at least twice the
+            # smallest detectable change (where detection is promised, ≥ 97 %)
+            limit = 2.0 * (sdc(key) or math.inf)
+            due = [
+                f.get(key)
+                for s in scores
+                for f, true in zip(s[f"{name}_flags"], s.get(f"{name}_true", []), strict=False)
+                if abs(true) >= limit and f.get(key) is not None
+            ]
+            entry["trends"][f"{name}_due"] = {
+                "n": len(due),
+                "flagged": sum(bool(v) for v in due),
+                "fraction": sum(bool(v) for v in due) / len(due) if due else math.nan,
+                "two_sdc": limit,
+            }
         out[kind] = entry
     return out
 
@@ -290,7 +302,7 @@ def _f(v: Any, nd: int = 2) -> str:
 
 def markdown(s: dict[str, Any]) -> str:
     """The summary as a markdown table, body against back alone."""
-    kinds = [k for k in KINDS if k in s]
+    kinds = [k + v for v in VERSIONS for k in KINDS if k + v in s]
 
     def med_max(path: tuple[str, ...], nd: int = 2) -> list[str]:
         cells = []
@@ -329,6 +341,7 @@ def markdown(s: dict[str, Any]) -> str:
         ("A→E (no change, another visit's dress): map rms (mm)", med_max(("maps", "E", "rms_mm"))),
         ("noise-only pairs: parameter changes flagged", pct("noise")),
         ("deviation +5 mm: `lateral_deviation_max_mm` flagged", pct("deviation_max")),
+        ("  of those whose true change is ≥ 2 SDC", pct("deviation_due")),
         (
             "  progressions without an answer (parameter refused)",
             [
@@ -337,6 +350,7 @@ def markdown(s: dict[str, Any]) -> str:
             ],
         ),
         ("rotation +3°: `surface_rotation_max_deg` flagged", pct("rotation_max")),
+        ("  of those whose true change is ≥ 2 SDC", pct("rotation_due")),
         (
             "  progressions without an answer (parameter refused)",
             [
@@ -401,7 +415,8 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     try:
                         for k in KINDS:
-                            row[k] = score_person(person[k])
+                            for v in VERSIONS:
+                                row[k + v] = score_person(person[k], v)
                     except Exception as exc:  # a crash in the comparison is a result too
                         row = {"seed": res["seed"], "stamp": code, "error": f"{exc!r}"}
                 fh.write(json.dumps(row, default=float) + "\n")

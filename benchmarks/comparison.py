@@ -193,13 +193,51 @@ def true_transform(a: Any, b: Any) -> np.ndarray:
 _STATE: dict[str, Any] = {}
 
 
+def acquisition(
+    scene: Any, image: np.ndarray, context: Any, *, role: str, label: str
+) -> dict[str, Any]:
+    """Reconstruct and analyse one rendered acquisition: what :func:`score_back` reads of it
+    (its Visit, parameters, true parameters and landmarks; for A and C the true mesh)."""
+    from rasterserver.comparison import Visit
+    from rasterserver.pipeline import run_chain
+    from rasterserver.simulator.back_truth import truth
+
+    records = run_chain(image, context=context, until="analysis")
+    mesh = run_chain(records["surface"], context=context, until="mesh")["mesh"]
+    shape = records["analysis"]
+    out: dict[str, Any] = {
+        "reason": shape.reason,
+        "frame": bool(
+            not shape.reason
+            and np.all(np.isfinite(shape.frame_origin))
+            and np.all(np.isfinite(shape.frame_axes))
+        ),
+        "visit": Visit(records["surface"], mesh, shape, label=label),
+        "parameters": shape.parameter_table(),
+        "truth": {k: v["value"] for k, v in truth(scene)["parameters"].items()},
+        # Body-fixed landmarks only: the sagittal points are found against the vertical, so
+        # they slide along the profile when the posture changes.
+        "landmarks": {
+            k: np.asarray(v)
+            for k, v in scene.landmarks.items()
+            if np.size(v) == 3 and not k.startswith("sagittal_")
+        },
+    }
+    if role in ("A", "C"):
+        # The whole scene (trunk and arms): the reconstruction holds the arms by the shoulders.
+        vertices, triangles, n = [], [], 0
+        for o in scene.objects:
+            vertices.append(np.asarray(o.mesh.vertices))
+            triangles.append(np.asarray(o.mesh.triangles) + n)
+            n += len(vertices[-1])
+        out["truth_mesh"] = (np.vstack(vertices), np.vstack(triangles))
+    return out
+
+
 def run_task(task: tuple[str, str, str]) -> dict[str, Any]:
     """Render, reconstruct and analyse one acquisition; its Visit, parameters and truth."""
-    from rasterserver.comparison import Visit
     from rasterserver.optics import default_station
-    from rasterserver.pipeline import run_chain
     from rasterserver.simulator.back import make_back
-    from rasterserver.simulator.back_truth import truth
     from rasterserver.simulator.render import render
     from rasterserver.stage import StageContext
 
@@ -216,37 +254,16 @@ def run_task(task: tuple[str, str, str]) -> dict[str, Any]:
     image = render(
         scene, station, settings=render_settings(back), seed=200_000 + 100 * _seed(back) + offset
     )
-    records = run_chain(image.image, context=context, until="analysis")
-    mesh = run_chain(records["surface"], context=context, until="mesh")["mesh"]
-    shape = records["analysis"]
     out: dict[str, Any] = {
         "set": kind,
         "back": back,
         "role": role,
         "params": params.to_dict(),
+        **acquisition(scene, image.image, context, role=role, label=f"{back}:{role}"),
         "seconds": time.perf_counter() - t0,
-        "reason": shape.reason,
-        "visit": Visit(records["surface"], mesh, shape, label=f"{back}:{role}"),
-        "parameters": shape.parameter_table(),
-        "truth": {k: v["value"] for k, v in truth(scene)["parameters"].items()},
-        # Body-fixed landmarks only: the sagittal points are found against the vertical, so
-        # they slide along the profile when the posture changes.
-        "landmarks": {
-            k: np.asarray(v)
-            for k, v in scene.landmarks.items()
-            if np.size(v) == 3 and not k.startswith("sagittal_")
-        },
     }
     if kind == "series":
         out["image"] = image.image  # stored in an archive for the report's timing
-    if role in ("A", "C"):
-        # The whole scene (trunk and arms): the reconstruction holds the arms by the shoulders.
-        vertices, triangles, n = [], [], 0
-        for o in scene.objects:
-            vertices.append(np.asarray(o.mesh.vertices))
-            triangles.append(np.asarray(o.mesh.triangles) + n)
-            n += len(vertices[-1])
-        out["truth_mesh"] = (np.vstack(vertices), np.vstack(triangles))
     return out
 
 
@@ -282,9 +299,11 @@ def _truth_distance(dmap: Any, mesh: tuple[np.ndarray, np.ndarray]) -> np.ndarra
     return signed_distances(dmap.vertices, dmap.normals, record, limit=60.0)
 
 
-def score_back(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Registration, distance maps and trend flags of one back's acquisitions."""
+def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[str, Any]:
+    """Registration, distance maps and trend flags of one back's acquisitions (``thresholds``:
+    the comparison's, :data:`~rasterserver.comparison.THRESHOLDS` by default)."""
     from rasterserver.comparison import (
+        THRESHOLDS,
         ComparisonRefusedError,
         Registration,
         distance_map,
@@ -300,17 +319,18 @@ def score_back(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
     )
     from rasterserver.trends import TrendVisit, trends
 
+    th = thresholds or THRESHOLDS
     out: dict[str, Any] = {"times_s": [], "asymmetry_times_s": []}
     for role in ("A", "C", "D"):
         t0 = time.perf_counter()
-        visit_asymmetry(pack_visit(rows[role]["visit"]))
+        visit_asymmetry(pack_visit(rows[role]["visit"]), thresholds=th)
         out["asymmetry_times_s"].append(time.perf_counter() - t0)
 
     def compare(x: str, y: str) -> tuple[Any, Any] | str:
         # the whole comparison stage as the archive runs it: registration and distance map
         # (each visit's asymmetry map is a stage of its own, timed apart)
         t0 = time.perf_counter()
-        record = compare_pair(pack(rows[x]["visit"], rows[y]["visit"]))
+        record = compare_pair(pack(rows[x]["visit"], rows[y]["visit"]), thresholds=th)
         out["times_s"].append(time.perf_counter() - t0)
         try:
             reg = registration_of(record)
@@ -336,7 +356,7 @@ def score_back(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
         out["registration"] = {"refused": got, **applied}
     else:
         reg, dmap = got
-        centre = trunk_mesh(b["visit"]).vertices.mean(axis=0)[None]
+        centre = trunk_mesh(b["visit"], window=th.axis_window).vertices.mean(axis=0)[None]
         err = reg.transform @ np.linalg.inv(truth_t)
         start = reg.start @ np.linalg.inv(truth_t)
         out["registration"] = {
@@ -370,9 +390,13 @@ def score_back(rows: dict[str, dict[str, Any]]) -> dict[str, Any]:
             # A and C stand in one posture: the true registration is the identity. The map
             # with it separates the surface error from what ICP absorbs of a local change.
             ident = Registration(np.eye(4), np.eye(4), 1.0, 0.0, 0)
-            plain = distance_map(rows["A"]["visit"], rows["C"]["visit"], ident).distance
+            plain = distance_map(
+                rows["A"]["visit"], rows["C"]["visit"], ident, thresholds=th
+            ).distance
             ok = np.isfinite(true) & np.isfinite(dmap.distance)
-            centre = trunk_mesh(rows["C"]["visit"]).vertices.mean(axis=0)[None]
+            centre = trunk_mesh(rows["C"]["visit"], window=th.axis_window).vertices.mean(axis=0)[
+                None
+            ]
             entry |= {
                 "error_rms_mm": _rms(dmap.distance[ok] - true[ok]),
                 "error_p95_mm": float(np.percentile(np.abs(dmap.distance[ok] - true[ok]), 95)),

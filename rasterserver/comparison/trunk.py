@@ -8,7 +8,7 @@ import numpy as np
 from rasterserver.comparison.thresholds import AXIS_WINDOW, EDGE_MARGIN, ComparisonRefusedError
 from rasterserver.comparison.visits import BodyFrame, Visit
 from rasterserver.records_analysis import BackShape
-from rasterserver.records_surface import MeshRecord
+from rasterserver.records_surface import MeshRecord, Surface
 
 
 def landmark_frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -62,20 +62,19 @@ def landmark_transform(
 
 
 def _axis_runs(
-    eroded: np.ndarray, surface: object, dm: np.ndarray, vp: np.ndarray, window: float
+    eroded: np.ndarray, surface: Surface, dm: np.ndarray, vp: np.ndarray, window: float
 ) -> np.ndarray:
     """The cells of each grid row's runs of ``eroded`` that come within ``window`` (mm) of the
     DM–VP line at the row's height."""
     from scipy import ndimage
 
     ny, nx = eroded.shape
-    x0, y0, spacing = (float(getattr(surface, k)) for k in ("x0", "y0", "spacing"))
-    runs, _count = ndimage.label(eroded, structure=[[0, 0, 0], [1, 1, 1], [0, 0, 0]])
-    if abs(vp[1] - dm[1]) < spacing:
+    if abs(vp[1] - dm[1]) < surface.spacing:  # no line to follow down the rows
         return eroded
-    y = y0 + spacing * np.arange(ny)
+    runs, _count = ndimage.label(eroded, structure=[[0, 0, 0], [1, 1, 1], [0, 0, 0]])
+    y = surface.y0 + surface.spacing * np.arange(ny)
     axis = dm[0] + (y - dm[1]) / (vp[1] - dm[1]) * (vp[0] - dm[0])
-    x = x0 + spacing * np.arange(nx)
+    x = surface.x0 + surface.spacing * np.arange(nx)
     near = np.abs(x[None, :] - axis[:, None]) <= window
     keep = np.zeros(int(runs.max()) + 1, dtype=bool)
     keep[np.unique(runs[near & eroded])] = True

@@ -29,6 +29,8 @@ def test_a_person_is_compared_as_a_body_and_as_its_back_alone(tmp_path: Path) ->
     assert body["maps"]["E"]["rms_mm"] < 0.5
     assert back["maps"]["E"]["rms_mm"] < 0.5
     assert body["maps"]["C"]["error_rms_mm"] < 0.5  # the +3° progression mapped
+    # the same pairs with version 1 of the comparison: the arms show as a change
+    assert rows[0]["body_v1"]["maps"]["E"]["rms_mm"] > 1.0
     assert "| A→E refused |" in done.stdout
     again = _run(*args)  # resumed: nothing left to do, nothing appended
     assert again.returncode == 0, again.stderr[-2000:]
