@@ -203,7 +203,9 @@ def thresholds(version: str) -> Any:
     from rasterserver.comparison import THRESHOLDS
 
     if version == "_v1":
-        return dataclasses.replace(THRESHOLDS, displaced_limit=None, axis_window=None)
+        return dataclasses.replace(
+            THRESHOLDS, displaced_limit=None, axis_window=None, partial_frame=False
+        )
     return THRESHOLDS
 
 

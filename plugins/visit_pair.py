@@ -86,6 +86,14 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             description="Band (mm) around such a region also not compared.",
         )
         axis_window: float = Field(AXIS_WINDOW, ge=0.0, le=200.0, description=_WINDOW)
+        partial_frame: bool = Field(
+            True,
+            description=(
+                "Register a visit whose VP was not found from DM, DL -> DR and the camera's "
+                "vertical, the trunk as high as the other visit's; false refuses it "
+                "(version 1)."
+            ),
+        )
 
     def run(self, data: VisitPair, params: Params, context: StageContext) -> ComparisonRecord:
         """Compare the two visits; a refusal is a record with its reason."""
@@ -97,6 +105,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             displaced_slope=params.displaced_slope,
             displaced_margin=params.displaced_margin,
             axis_window=params.axis_window or None,
+            partial_frame=params.partial_frame,
         )
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
 

@@ -139,7 +139,13 @@ def write_report(
         s, r = p["distance"], p["registration"]
         parts.append(
             f"<h3>{label}</h3><p>registration: fitness {r['fitness']:.2f}, residual "
-            f"{r['rmse_mm']:.2f} mm; distance rms {s['rms_mm']:.2f} mm, largest "
+            f"{r['rmse_mm']:.2f} mm"
+            + (
+                f" ({e(r['landmark_start_from'])})"
+                if "not found" in r.get("landmark_start_from", "")
+                else ""
+            )
+            + f"; distance rms {s['rms_mm']:.2f} mm, largest "
             f"{s['max_abs_mm']:.1f} mm; area beyond ±2 mm "
             f"{(s['area_above_2mm_mm2'] + s['area_below_minus_2mm_mm2']) / 100:.0f} cm²"
             + (

@@ -24,9 +24,11 @@ from rasterserver.comparison import (
     DistanceMap,
     Registration,
     Thresholds,
+    TrunkFrame,
     Visit,
     asymmetry_fit,
     distance_map,
+    pair_frames,
     register,
     trunk_mask,
 )
@@ -68,6 +70,7 @@ def _fields(visit: Visit, prefix: str) -> dict[str, object]:
         f"{prefix}reason": frame.reason,
         f"{prefix}reasons": frame.reasons,
         f"{prefix}label": visit.label,
+        f"{prefix}gravity": frame.gravity,
     }
 
 
@@ -103,6 +106,7 @@ def _visit(record: VisitPair | VisitGeometry, prefix: str) -> Visit:
         np.asarray(get("landmarks")),
         str(get("reason")),
         str(get("reasons")),
+        None if get("gravity") is None else np.asarray(get("gravity"), dtype=float),
     )
     return Visit(surface, mesh, frame, label=str(get("label")))
 
@@ -117,9 +121,11 @@ def unpack_visit(record: VisitGeometry) -> Visit:
     return _visit(record, "")
 
 
-def _indices(visit: Visit, margin: float, window: float | None) -> np.ndarray:
+def _indices(
+    visit: Visit, margin: float, window: float | None, frame: TrunkFrame | None = None
+) -> np.ndarray:
     return np.flatnonzero(
-        trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window)
+        trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window, frame=frame)
     ).astype(np.int64)
 
 
@@ -167,10 +173,16 @@ def compare_pair(
         fitness=float(reg.fitness),
         rmse=float(reg.rmse),
         points=int(reg.points),
-        trunk=_indices(a, margin, thresholds.axis_window),
+        trunk=_indices(
+            a,
+            margin,
+            thresholds.axis_window,
+            pair_frames(a, b, partial=thresholds.partial_frame)[0],
+        ),
         distance=np.asarray(dmap.distance, dtype=np.float64),
         parameters=parameters,
         displaced=dmap.displaced,
+        start_from=reg.start_from,
     )
 
 
@@ -220,6 +232,7 @@ def registration_of(record: ComparisonRecord) -> Registration:
         record.fitness,
         record.rmse,
         record.points,
+        record.start_from,
     )
 
 

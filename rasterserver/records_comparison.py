@@ -61,6 +61,7 @@ class VisitGeometry(Record):
     reason: str
     reasons: str
     label: str
+    gravity: np.ndarray | None = None
 
     def validate(self) -> None:
         """Refuse badly shaped meshes, landmark tables or frames."""
@@ -75,7 +76,8 @@ class VisitPair(Record):
     height; ``x0``, ``y0``, ``spacing``) and the analysis's body frame (``landmarks`` in the
     order of :data:`~rasterserver.records_analysis.LANDMARKS`, NaN when not found;
     ``frame_origin``, ``frame_axes``; ``reason`` and ``reasons`` (JSON) when it has none),
-    and ``label``, how messages name the visit (its acquisition uid).
+    ``label``, how messages name the visit (its acquisition uid), and ``gravity``, the
+    station's down in the world frame (from the analysis's level frame; None when unknown).
     """
 
     kind: ClassVar[str] = "visit-pair"
@@ -109,6 +111,8 @@ class VisitPair(Record):
     b_reason: str
     b_reasons: str
     b_label: str
+    a_gravity: np.ndarray | None = None
+    b_gravity: np.ndarray | None = None
 
     def validate(self) -> None:
         """Refuse badly shaped meshes, landmark tables or frames."""
@@ -140,6 +144,9 @@ class ComparisonRecord(Record):
     displaced : numpy.ndarray or None
         ``(K,)`` bool: trunk vertices not compared, where the visits hold their arms, hands
         or clothing otherwise (version 2); None for comparisons that compared every vertex.
+    start_from : str or None
+        How the landmark start was made when one visit's VP was not found (version 2); None
+        when from both visits' body frames.
     """
 
     kind: ClassVar[str] = "comparison"
@@ -153,6 +160,7 @@ class ComparisonRecord(Record):
     distance: np.ndarray
     parameters: str = "{}"
     displaced: np.ndarray | None = None
+    start_from: str | None = None
 
     def validate(self) -> None:
         """Refuse maps whose indices and values differ in length, or bad transforms."""

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rasterserver.comparison import (
+    THRESHOLDS,
     ComparisonRefusedError,
     Visit,
     asymmetry_change,
@@ -127,20 +128,52 @@ def test_trunk_leaves_out_head_buttocks_and_edges() -> None:
     assert not trunk_mask(a, np.array([[0.0, vp[1] - 60.0, 0.0]]))[0]  # the neck
 
 
-def test_missing_landmarks_are_refused_with_the_reason() -> None:
-    a = first()
+def without_vp(v: Visit, label: str) -> Visit:
     shape = dataclasses.replace(
-        a.shape,
-        landmarks=np.vstack([np.full(3, np.nan), a.shape.landmarks[1:]]),
+        v.shape,
+        landmarks=np.vstack([np.full(3, np.nan), v.shape.landmarks[1:]]),
         frame_origin=np.full(3, np.nan),
         frame_axes=np.full((3, 3), np.nan),
         reasons='{"VP": "no neck in view"}',
     )
-    b = dataclasses.replace(a, shape=shape, label="cropped")
+    return dataclasses.replace(v, shape=shape, label=label)
+
+
+def test_missing_landmarks_are_refused_with_the_reason() -> None:
+    a = first()
+    b = without_vp(a, "cropped")
+    version_1 = dataclasses.replace(THRESHOLDS, partial_frame=False)
     with pytest.raises(ComparisonRefusedError, match=r"cropped has no body-fixed frame.*VP"):
-        register(a, b)
+        register(a, b, thresholds=version_1)
+    with pytest.raises(ComparisonRefusedError, match=r"cropped has no body-fixed frame.*VP"):
+        register(b, without_vp(a, "also"))  # neither visit has VP: no trunk height
+    dimples = np.isin(np.arange(len(a.shape.landmarks)), [1, 2])  # DL, DR
+    shape = dataclasses.replace(
+        b.shape, landmarks=np.where(dimples[:, None], np.nan, b.shape.landmarks)
+    )
+    with pytest.raises(ComparisonRefusedError, match="no body-fixed frame"):
+        register(a, dataclasses.replace(b, shape=shape))  # no dimples: no frame at all
     with pytest.raises(ComparisonRefusedError, match="no neck in view"):
         asymmetry_map(b)
+
+
+def test_a_visit_without_vp_is_registered_from_the_dimples_and_the_vertical() -> None:
+    a = first()
+    b = visit(posture_sway(BASE, 3, translation=5.0, rotation=1.0), 2, "swayed")
+    full = register(a, b)
+    for x, y in ((a, without_vp(b, "cropped")), (without_vp(a, "cropped"), b)):
+        reg = register(x, y)
+        assert reg.start_from is not None and "VP of visit cropped not found" in reg.start_from
+        assert "VP, DL and DR" in full.summary()["landmark_start_from"]
+        assert reg.summary()["landmark_start_from"] == reg.start_from
+        # the same alignment as with both body frames, and no change on the trunk
+        err = reg.transform @ np.linalg.inv(full.transform)
+        assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 0.05
+        assert np.linalg.norm(err[:3, 3]) < 0.5
+        stats = distance_map(x, y, reg).statistics()
+        assert stats["rms_mm"] < 0.3 and stats["vertices"] > 0.8 * len(
+            distance_map(a, b, full).vertices
+        )
 
 
 def test_empty_surface_is_refused() -> None:

@@ -55,7 +55,16 @@ from rasterserver.comparison.thresholds import (
     ComparisonRefusedError,
     Thresholds,
 )
-from rasterserver.comparison.trunk import landmark_transform, submesh, trunk_mask, trunk_mesh
+from rasterserver.comparison.trunk import (
+    TrunkFrame,
+    frame_transform,
+    landmark_transform,
+    pair_frames,
+    submesh,
+    trunk_frame,
+    trunk_mask,
+    trunk_mesh,
+)
 from rasterserver.comparison.visits import BodyFrame, DistanceMap, Registration, Visit
 
 __all__ = [
@@ -68,16 +77,20 @@ __all__ = [
     "DistanceMap",
     "Registration",
     "Thresholds",
+    "TrunkFrame",
     "Visit",
     "asymmetry_change",
     "asymmetry_fit",
     "asymmetry_map",
     "displaced_regions",
     "distance_map",
+    "frame_transform",
     "landmark_transform",
+    "pair_frames",
     "register",
     "signed_distances",
     "submesh",
+    "trunk_frame",
     "trunk_mask",
     "trunk_mesh",
     "vertex_areas",

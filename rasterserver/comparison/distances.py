@@ -17,7 +17,13 @@ from rasterserver.comparison.thresholds import (
     ComparisonRefusedError,
     Thresholds,
 )
-from rasterserver.comparison.trunk import landmark_frame, submesh, trunk_mask, trunk_mesh
+from rasterserver.comparison.trunk import (
+    landmark_frame,
+    pair_frames,
+    submesh,
+    trunk_mask,
+    trunk_mesh,
+)
 from rasterserver.comparison.visits import DistanceMap, Registration, Visit
 from rasterserver.records_surface import MeshRecord
 
@@ -86,7 +92,8 @@ def distance_map(
     """
     # the displaced regions are found on the connected trunk, arms included: an arm's core
     # (differing most) shows where its ramp onto the trunk begins
-    wide = trunk_mesh(a, margin=margin, window=None)
+    frame = pair_frames(a, b, partial=thresholds.partial_frame)[0]
+    wide = trunk_mesh(a, margin=margin, window=None, frame=frame)
     moved = MeshRecord(
         vertices=apply_transform(registration.transform, np.asarray(b.mesh.vertices, dtype=float)),
         triangles=b.mesh.triangles,
@@ -104,7 +111,7 @@ def distance_map(
             margin=thresholds.displaced_margin,
         )
         distance[displaced] = np.nan
-    keep = trunk_mask(a, wide.vertices, margin=margin, window=thresholds.axis_window)
+    keep = trunk_mask(a, wide.vertices, margin=margin, window=thresholds.axis_window, frame=frame)
     trunk = submesh(wide, keep)
     return DistanceMap(
         trunk.vertices,

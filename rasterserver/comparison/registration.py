@@ -14,7 +14,7 @@ from rasterserver.comparison.thresholds import (
     ComparisonRefusedError,
     Thresholds,
 )
-from rasterserver.comparison.trunk import landmark_transform, trunk_mesh
+from rasterserver.comparison.trunk import frame_transform, pair_frames, trunk_mesh
 from rasterserver.comparison.visits import Registration, Visit
 from rasterserver.records_surface import MeshRecord
 
@@ -95,9 +95,12 @@ def register(
         ends with too low a fitness or too high an rmse, or that moved far from the landmark
         start; the message names the figure and its limit.
     """
-    start = landmark_transform(a.shape, b.shape, labels=(a.label, b.label))
-    target = trunk_mesh(a, margin=margin, window=thresholds.axis_window)
-    source = trunk_mesh(b, margin=margin, window=thresholds.axis_window)
+    fa, fb, start_from = pair_frames(a, b, partial=thresholds.partial_frame)
+    start = frame_transform(fa, fb)
+    # B's trunk is moved onto A's connected trunk, arms included, so that B's points at the
+    # edge of its rows (the armpits) keep their counterparts in the overlap and the fitness
+    target = trunk_mesh(a, margin=margin, window=None, frame=fa)
+    source = trunk_mesh(b, margin=margin, window=thresholds.axis_window, frame=fb)
     for visit, part in ((a, target), (b, source)):
         if len(part.vertices) < thresholds.min_points:
             raise ComparisonRefusedError(
@@ -131,4 +134,4 @@ def register(
             f"visits {a.label or 'A'} and {b.label or 'B'} could not be registered: "
             + "; ".join(problems)
         )
-    return Registration(transform, start, fitness, rmse, len(source.vertices))
+    return Registration(transform, start, fitness, rmse, len(source.vertices), start_from)

@@ -69,6 +69,9 @@ class Thresholds:
         :func:`~rasterserver.comparison.trunk_mask`'s ``window``: in each row only the runs
         of the outline reaching this close to the DM–VP line are trunk (arms apart from it in
         the row left out); None: the connected piece (version 1).
+    partial_frame : bool
+        Register a visit whose VP was not found from DM, DL → DR and the station's vertical
+        (:func:`~rasterserver.comparison.pair_frames`); False refuses it (version 1).
     """
 
     coarse_distance: float = 20.0
@@ -85,6 +88,7 @@ class Thresholds:
     displaced_slope: float = 0.2
     displaced_margin: float = 20.0
     axis_window: float | None = AXIS_WINDOW
+    partial_frame: bool = True
 
 
 #: The thresholds :func:`register` uses unless given others.

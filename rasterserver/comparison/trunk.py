@@ -3,6 +3,8 @@ VP inside the measured outline, eroded by the edge margin, without the arms."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from rasterserver.comparison.thresholds import AXIS_WINDOW, EDGE_MARGIN, ComparisonRefusedError
@@ -61,6 +63,134 @@ def landmark_transform(
     return out
 
 
+@dataclass(frozen=True)
+class TrunkFrame:
+    """Where a visit's trunk lies: a body frame and the top of the trunk.
+
+    Attributes
+    ----------
+    origin : numpy.ndarray
+        ``(3,)`` DM (world mm).
+    axes : numpy.ndarray
+        ``(3, 3)`` rows: transverse, vertical, sagittal unit axes.
+    top : numpy.ndarray
+        ``(3,)`` VP, or where the other visit's trunk height puts it (:func:`pair_frames`).
+    """
+
+    origin: np.ndarray
+    axes: np.ndarray
+    top: np.ndarray
+
+    @property
+    def height(self) -> float:
+        """The trunk's height above DM along the vertical axis (mm)."""
+        return float((self.top - self.origin) @ self.axes[1])
+
+
+def trunk_frame(visit: Visit) -> TrunkFrame:
+    """A visit's body frame (VP, DL, DR) with VP as the trunk's top; refused without it."""
+    origin, axes = landmark_frame(visit.shape, visit.label)
+    vp = visit.shape.landmark("VP")
+    assert vp is not None  # the frame exists, so VP does
+    return TrunkFrame(origin, axes, np.asarray(vp, dtype=float))
+
+
+def _upright(shape: BackShape | BodyFrame) -> tuple[np.ndarray, np.ndarray] | None:
+    """Origin DM, transverse DL → DR, vertical the station's up made perpendicular to it."""
+    frame = BodyFrame.of(shape)
+    dl, dr, dm = (shape.landmark(n) for n in ("DL", "DR", "DM"))
+    if shape.reason or dl is None or dr is None or dm is None or frame.gravity is None:
+        return None
+    up = -np.asarray(frame.gravity, dtype=float)
+    if not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-6:
+        return None
+    up /= np.linalg.norm(up)
+    across = np.asarray(dr - dl, dtype=float)
+    if np.linalg.norm(across) < 1e-6:
+        return None
+    transverse = across / np.linalg.norm(across)
+    vertical = up - (up @ transverse) * transverse
+    if np.linalg.norm(vertical) < 0.5:  # the dimples one above the other: no back standing
+        return None
+    vertical /= np.linalg.norm(vertical)
+    return np.asarray(dm, dtype=float), np.stack(
+        [transverse, vertical, np.cross(transverse, vertical)]
+    )
+
+
+def pair_frames(
+    a: Visit, b: Visit, *, partial: bool = True
+) -> tuple[TrunkFrame, TrunkFrame, str | None]:
+    """The trunk frames of two visits to be compared, and how they were made.
+
+    Both visits' body frames (:func:`trunk_frame`) when both have one. When one visit's VP
+    was not found (hair over the nape, two similar convex points) but both have their
+    dimples and the other visit its VP, and ``partial``: both frames from DM, DL → DR and
+    the station's vertical (the analysis's gravity; one construction for both, so that the
+    landmark start does not mix two kinds of frame; the patient stands upright in both, and
+    ICP takes up the few degrees of posture), the trunk of the visit without VP as high as
+    the other's (one person's trunk, a few months apart). Without gravity in either
+    analysis, refused.
+
+    Parameters
+    ----------
+    a, b : Visit
+        The two visits.
+    partial : bool, optional
+        Allow the frames without one visit's VP.
+
+    Returns
+    -------
+    TrunkFrame, TrunkFrame
+        A's and B's.
+    str or None
+        None for the body frames; otherwise what was done, for the comparison's record.
+
+    Raises
+    ------
+    ComparisonRefusedError
+        Neither way gives the frames (the reason of the visit without a body frame).
+    """
+    try:
+        return trunk_frame(a), trunk_frame(b), None
+    except ComparisonRefusedError as exc:
+        if not partial:
+            raise
+        refusal = exc
+    ua, ub = _upright(a.shape), _upright(b.shape)
+    va, vb = a.shape.landmark("VP"), b.shape.landmark("VP")
+    if ua is None or ub is None or (va is None) == (vb is None):
+        raise refusal
+    seen, frame = (va, ua) if va is not None else (vb, ub)
+    height = float((np.asarray(seen, dtype=float) - frame[0]) @ frame[1][1])
+    if height <= 0.0:
+        raise refusal
+
+    def made(visit: Visit, upright: tuple[np.ndarray, np.ndarray]) -> TrunkFrame:
+        vp = visit.shape.landmark("VP")
+        origin, axes = upright
+        top = origin + height * axes[1] if vp is None else np.asarray(vp, dtype=float)
+        return TrunkFrame(origin, axes, top)
+
+    lacking, having = (a, b) if va is None else (b, a)
+    note = (
+        f"VP of visit {lacking.label or '?'} not found: both visits' frames from DM, DL → DR "
+        f"and the station's vertical, the trunk {height:.0f} mm high as visit "
+        f"{having.label or '?'}'s"
+    )
+    return made(a, ua), made(b, ub), note
+
+
+def frame_transform(a: TrunkFrame, b: TrunkFrame) -> np.ndarray:
+    """The rigid transform putting frame ``b`` onto frame ``a`` (see
+    :func:`landmark_transform`)."""
+    rotation = a.axes.T @ b.axes
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = a.origin - rotation @ b.origin
+    return out
+
+
 def _axis_runs(
     eroded: np.ndarray, surface: Surface, dm: np.ndarray, vp: np.ndarray, window: float
 ) -> np.ndarray:
@@ -88,6 +218,7 @@ def trunk_mask(
     *,
     margin: float = EDGE_MARGIN,
     window: float | None = AXIS_WINDOW,
+    frame: TrunkFrame | None = None,
 ) -> np.ndarray:
     """Which of ``points`` (world mm) lie on the visit's trunk.
 
@@ -110,6 +241,8 @@ def trunk_mask(
     window : float or None, optional
         Half-width (mm) of the band about the DM–VP line a row's run must reach; None: the
         connected piece alone (version 1).
+    frame : TrunkFrame, optional
+        The frame and top to use (:func:`pair_frames`); the visit's own by default.
 
     Returns
     -------
@@ -122,10 +255,8 @@ def trunk_mask(
     surface = visit.surface
     if surface.z.size == 0 or len(points) == 0:
         return np.zeros(len(points), dtype=bool)
-    origin, axes = landmark_frame(visit.shape, visit.label)
-    vp = visit.shape.landmark("VP")
-    assert vp is not None  # the frame exists, so VP does
-    height = float((vp - origin) @ axes[1])
+    frame = frame or trunk_frame(visit)
+    origin, axes, vp, height = frame.origin, frame.axes, frame.top, frame.height
     local = (points - origin) @ axes.T
     inside = (local[:, 1] >= 0.0) & (local[:, 1] <= height)
     steps = max(1, round(margin / surface.spacing))
@@ -162,7 +293,14 @@ def submesh(mesh: MeshRecord, keep: np.ndarray) -> MeshRecord:
 
 
 def trunk_mesh(
-    visit: Visit, *, margin: float = EDGE_MARGIN, window: float | None = AXIS_WINDOW
+    visit: Visit,
+    *,
+    margin: float = EDGE_MARGIN,
+    window: float | None = AXIS_WINDOW,
+    frame: TrunkFrame | None = None,
 ) -> MeshRecord:
     """The part of the visit's mesh on its trunk (:func:`trunk_mask`)."""
-    return submesh(visit.mesh, trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window))
+    return submesh(
+        visit.mesh,
+        trunk_mask(visit, visit.mesh.vertices, margin=margin, window=window, frame=frame),
+    )

@@ -31,6 +31,9 @@ class BodyFrame:
         Why the analysis found nothing, if it did not.
     reasons : str
         JSON object: what could not be computed, and why.
+    gravity : numpy.ndarray or None
+        ``(3,)`` the station's down (world), from the analysis's level frame; None when the
+        analysis does not say.
     """
 
     frame_origin: np.ndarray
@@ -38,6 +41,7 @@ class BodyFrame:
     landmarks: np.ndarray
     reason: str = ""
     reasons: str = "{}"
+    gravity: np.ndarray | None = None
 
     @classmethod
     def of(cls, shape: BackShape | BodyFrame) -> BodyFrame:
@@ -50,6 +54,7 @@ class BodyFrame:
             np.asarray(shape.landmarks, dtype=float),
             shape.reason,
             shape.reasons,
+            None if shape.level_axes is None else np.asarray(shape.level_axes[1], dtype=float),
         )
 
     def landmark(self, name: str) -> np.ndarray | None:
@@ -101,6 +106,9 @@ class Registration:
         Rms distance of those counterparts (mm).
     points : int
         B's trunk points used.
+    start_from : str or None
+        None when ICP started from both visits' body frames; otherwise how the start was
+        made (:func:`~rasterserver.comparison.pair_frames`: one visit without VP).
     """
 
     transform: np.ndarray
@@ -108,6 +116,7 @@ class Registration:
     fitness: float
     rmse: float
     points: int
+    start_from: str | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: transform, landmark start, fitness, rmse, points, and what ICP added to
@@ -119,6 +128,7 @@ class Registration:
             "fitness": float(self.fitness),
             "rmse_mm": float(self.rmse),
             "points": int(self.points),
+            "landmark_start_from": self.start_from or "VP, DL and DR of both visits",
             "icp_rotation_deg": rotation_angle(extra[:3, :3]),
             "icp_translation_mm": float(np.linalg.norm(extra[:3, 3])),
         }

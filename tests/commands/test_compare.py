@@ -49,7 +49,12 @@ def test_two_acquisitions(patient, tmp_path: Path) -> None:
     assert not [n for n in names if n.startswith(".")]
     document = json.loads((out / "comparison.json").read_text())
     (pair,) = document["pairs"]
-    assert pair["a"] == first and pair["registration"]["fitness"] > 0.9
+    # fitness: the share of B's trunk within 5 mm of A after registration; the progressed
+    # rib hump lies farther, and since version 2 the arms (always within reach) no longer
+    # count, so it is 0.90 of the trunk here (version 1: 0.91 with the arms)
+    assert pair["a"] == first and pair["registration"]["fitness"] > 0.85
+    assert pair["registration"]["rmse_mm"] < 2.5
+    assert pair["registration"]["landmark_start_from"] == "VP, DL and DR of both visits"
     assert pair["distance"]["rms_mm"] > 0.5  # the scoliosis progressed
     assert (out / f"{stem}.ply").read_bytes().startswith(b"ply\nformat binary_little_endian")
     trends = (out / "trends.csv").read_text().splitlines()

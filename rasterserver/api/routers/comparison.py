@@ -35,7 +35,8 @@ class ComparisonOut(BaseModel):
     acquisitions: list[AcquisitionRef] = Field(description="A and B (researchers: shifted).")
     registration: dict[str, Any] = Field(
         description="transform (4×4, B's world frame to A's), landmark_start, fitness, "
-        "rmse_mm, points, icp_rotation_deg, icp_translation_mm."
+        "rmse_mm, points, landmark_start_from (how the start was made: both visits' body "
+        "frames, or without one visit's VP), icp_rotation_deg, icp_translation_mm."
     )
     distance: dict[str, Any] = Field(
         description="Statistics of B − A along A's normals (mm, + posterior): rms, largest, "
