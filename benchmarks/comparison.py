@@ -307,6 +307,7 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         ComparisonRefusedError,
         Registration,
         distance_map,
+        pair_frames,
         trunk_mesh,
     )
     from rasterserver.pair_comparison import (
@@ -356,7 +357,9 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         out["registration"] = {"refused": got, **applied}
     else:
         reg, dmap = got
-        centre = trunk_mesh(b["visit"], window=th.axis_window).vertices.mean(axis=0)[None]
+        frame = pair_frames(a["visit"], b["visit"], partial=th.partial_frame)[1]
+        centre = trunk_mesh(b["visit"], window=th.axis_window, frame=frame).vertices
+        centre = centre.mean(axis=0)[None]
         err = reg.transform @ np.linalg.inv(truth_t)
         start = reg.start @ np.linalg.inv(truth_t)
         out["registration"] = {
@@ -394,9 +397,9 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
                 rows["A"]["visit"], rows["C"]["visit"], ident, thresholds=th
             ).distance
             ok = np.isfinite(true) & np.isfinite(dmap.distance)
-            centre = trunk_mesh(rows["C"]["visit"], window=th.axis_window).vertices.mean(axis=0)[
-                None
-            ]
+            frame = pair_frames(rows["A"]["visit"], rows["C"]["visit"], partial=th.partial_frame)
+            centre = trunk_mesh(rows["C"]["visit"], window=th.axis_window, frame=frame[1])
+            centre = centre.vertices.mean(axis=0)[None]
             entry |= {
                 "error_rms_mm": _rms(dmap.distance[ok] - true[ok]),
                 "error_p95_mm": float(np.percentile(np.abs(dmap.distance[ok] - true[ok]), 95)),

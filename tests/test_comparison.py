@@ -174,6 +174,15 @@ def test_a_visit_without_vp_is_registered_from_the_dimples_and_the_vertical() ->
         assert stats["rms_mm"] < 0.3 and stats["vertices"] > 0.8 * len(
             distance_map(a, b, full).vertices
         )
+    # as the stage runs it: the gravity travels with the visits, the record keeps the note
+    from rasterserver.pair_comparison import compare_pair, pack, registration_of
+
+    record = compare_pair(pack(a, without_vp(b, "cropped")))
+    assert not record.refused and record.start_from is not None
+    assert registration_of(record).start_from == record.start_from
+    shape = dataclasses.replace(b.shape, level_axes=None)  # an analysis without gravity
+    with pytest.raises(ComparisonRefusedError, match="no body-fixed frame"):
+        register(a, without_vp(dataclasses.replace(b, shape=shape), "cropped"))
 
 
 def test_empty_surface_is_refused() -> None:
