@@ -80,9 +80,10 @@ def distance_map(
     limit : float, optional
         Largest distance reported (mm); beyond, NaN.
     thresholds : Thresholds, optional
-        ``displaced_limit``, ``displaced_slope`` and ``displaced_margin``: regions from the
-        outline inwards that differ by more (arms, hands or clothing placed otherwise) are
-        not compared.
+        ``axis_window`` (the trunk's rows), ``partial_frame`` (A's trunk frame as
+        :func:`register` made it), ``displaced_limit``, ``displaced_slope`` and
+        ``displaced_margin`` (regions from the outline inwards that differ by more, arms,
+        hands or clothing placed otherwise, are not compared).
 
     Returns
     -------
