@@ -89,9 +89,9 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
         partial_frame: bool = Field(
             True,
             description=(
-                "Register a visit whose VP was not found from DM, DL -> DR and the camera's "
-                "vertical, the trunk as high as the other visit's; false refuses it "
-                "(version 1)."
+                "Register a visit whose VP was not found from DM, DL -> DR and the station's "
+                "vertical (the analysis's gravity), the trunk as high as the other visit's; "
+                "false refuses it (version 1)."
             ),
         )
 
