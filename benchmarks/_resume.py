@@ -13,7 +13,14 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["chain_stamp", "done_seeds"]
+__all__ = ["chain_stamp", "done_seeds", "read_rows"]
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """The JSON rows of a run's ``--out`` (none when it does not exist yet)."""
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def chain_stamp(params: dict[str, Any] | None) -> dict[str, Any]:
@@ -61,9 +68,7 @@ def done_seeds(path: Path, stamp: dict[str, Any]) -> set[int]:
         When a row was computed with other stages (or carries no stamp): its rows would be
         summarised with this run's.
     """
-    if not path.exists():
-        return set()
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = read_rows(path)
     other = [row for row in rows if row.get("stamp") != stamp]
     if other:
         raise SystemExit(

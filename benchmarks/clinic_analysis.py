@@ -51,6 +51,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _resume import read_rows  # noqa: E402
+
 KINDS = ("body", "back")
 _PARAMS: dict[str, dict[str, Any]] = {}
 
@@ -190,12 +192,6 @@ def markdown(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _read(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
-
-
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
@@ -211,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     if args.summary is not None:
-        s = summary(_read(args.summary))
+        s = summary(read_rows(args.summary))
         print(json.dumps(s, indent=2))
         print(markdown(s))
         return 0
@@ -222,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     except json.JSONDecodeError as exc:
         ap.error(f"--params is not JSON: {exc}")
     stamp = _bench("analysis").analysis_code() + (f" {json.dumps(params)}" if params else "")
-    rows = _read(args.out)
+    rows = read_rows(args.out)
     if any(r.get("stamp") != stamp for r in rows):
         ap.error(f"{args.out} holds rows of other analysis code or --params; give another --out")
     done = {(r["seed"], r["kind"]) for r in rows}
@@ -243,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
             if i % 20 == 0 or res.get("error"):
                 rate = (time.time() - start) / i
                 print(f"{i}/{len(todo)} {res.get('error') or ''} {rate:.2f} s each", flush=True)
-    s = summary(_read(args.out))
+    s = summary(read_rows(args.out))
     print(json.dumps(s, indent=2))
     print(markdown(s))
     return 0

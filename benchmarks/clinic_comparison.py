@@ -63,6 +63,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _resume import read_rows  # noqa: E402
+
 KINDS = ("body", "back")
 #: The comparison's versions scored on the same acquisitions: the plugin's defaults, and
 #: version 1 (every vertex of the connected trunk compared).
@@ -367,12 +369,6 @@ def markdown(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _read(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
-
-
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
@@ -383,14 +379,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this file")
     args = ap.parse_args(argv)
     if args.summary is not None:
-        s = summary(_read(args.summary))
+        s = summary(read_rows(args.summary))
         print(json.dumps(s, indent=2, default=float))
         print(markdown(s))
         return 0
     if args.people < 1:
         ap.error("--people must be at least 1")
     code = stamp()
-    rows = _read(args.out)
+    rows = read_rows(args.out)
     if any(r.get("stamp") != code for r in rows):
         ap.error(f"{args.out} holds rows of other analysis or comparison code; give another --out")
     done = {r["seed"] for r in rows}
@@ -429,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"{rate:.2f} s each",
                     flush=True,
                 )
-    s = summary(_read(args.out))
+    s = summary(read_rows(args.out))
     print(json.dumps(s, indent=2, default=float))
     print(markdown(s))
     return 0
