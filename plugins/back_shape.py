@@ -40,6 +40,7 @@ from .back_parameters import PARAMETER_UNITS, back_parameters
 from .body_frame import body_frame
 from .curvature import surface_curvature
 from .landmarks import (
+    PIT_RATIO,
     ROW_CONCAVITIES,
     Landmark,
     find_dimples,
@@ -69,6 +70,7 @@ def analyse_back(
     sigma: float = 5.0,
     vp_axis_offset: float = MAX_OFFSET,
     row_concavities: int = ROW_CONCAVITIES,
+    pit_ratio: float | None = PIT_RATIO,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -86,6 +88,9 @@ def analyse_back(
     row_concavities : int, optional
         Other concave candidates at the dimples' height that refuse them (a clothing
         edge, :func:`~rasterserver_plugins.landmarks.find_dimples`); 0 does not check.
+    pit_ratio : float or None, optional
+        Least ratio of a dimple candidate's weaker to its stronger principal curvature
+        (a pit, not a groove); None does not check.
 
     Returns
     -------
@@ -116,7 +121,9 @@ def analyse_back(
     vp = find_vertebra_prominens(grid, curv, trunk)
     # the candidate's height starts the dimples' search even when it is refused below: a
     # shoulder's convex point lies about as high as C7
-    dl, dr = find_dimples(grid, curv, trunk, vp, row_concavities=row_concavities)
+    dl, dr = find_dimples(
+        grid, curv, trunk, vp, row_concavities=row_concavities, pit_ratio=pit_ratio
+    )
     if vp_axis_offset > 0:
         vp = check_vertebra_prominens(
             grid, curv, vp, trunk.reference_half_width(), max_offset=vp_axis_offset
@@ -226,7 +233,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    shoulder's convex point where hair hides the nape or an arm joins the shoulder)
     # 5: the lumbar dimples are refused when they lie in a row of concavities across the
     #    lower back (the edge of clothing)
-    version: ClassVar[str] = "5"
+    # 6: the lumbar dimples' candidates must be pits, concave along the body as well as
+    #    across it: the grooves of clothing edges and folds are no candidates
+    version: ClassVar[str] = "6"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -254,6 +263,14 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "at their height (a row of concavities across the lower back: the edge of "
             "clothing). 0 does not check (version 4).",
         )
+        dimple_pit_ratio: float | None = Field(
+            PIT_RATIO,
+            ge=0.0,
+            le=1.0,
+            description="Least ratio of a lumbar dimple candidate's weaker to its stronger "
+            "principal curvature: a dimple is a pit, a clothing edge or a fold a groove "
+            "(ratio near 0). null does not check (version 5).",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
@@ -264,4 +281,5 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             sigma=params.sigma,
             vp_axis_offset=params.vp_axis_offset,
             row_concavities=params.row_concavities,
+            pit_ratio=params.dimple_pit_ratio,
         )

@@ -7,7 +7,10 @@ import pytest
 from back_surfaces import back, with_z
 from rasterserver_plugins.curvature import surface_curvature
 from rasterserver_plugins.landmarks import (
+    PIT_RATIO,
     Landmark,
+    _is_pit,
+    _Peak,
     find_dimples,
     find_sacrum_point,
     find_vertebra_prominens,
@@ -130,3 +133,38 @@ def test_a_row_of_concavities_across_the_lower_back_refuses_the_dimples() -> Non
     # the back itself keeps its dimples: the furrow's point between them is no row
     plain = _landmarks(surface)
     assert plain["DL"].found and plain["DR"].found
+
+
+def test_a_groove_below_the_dimples_is_no_candidate() -> None:
+    # A clothing edge as a groove across the lower back, deeper than the dimples and slowly
+    # varying along it: version 5 (no pit check) finds two similar pairs and refuses; the
+    # groove is concave across it only, so with the pit check the dimples are found.
+    surface, truth = back("normal")
+    xs, ys = surface.coordinates()
+    dl = truth["landmarks"]["DL"]
+    wave = 1.0 + 0.15 * np.cos(2.0 * np.pi * xs[None, :] / 40.0)
+    groove = 4.0 * wave * np.exp(-0.5 * ((ys[:, None] - dl[1] - 45.0) / 6.0) ** 2)
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z + groove)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    old, _ = find_dimples(grid, curv, trunk, vp, pit_ratio=None)
+    assert not old.found and "two similar pairs" in old.reason
+    found = find_dimples(grid, curv, trunk, vp)
+    for lm in found:
+        assert lm.found, lm.reason
+        assert np.linalg.norm(lm.point - truth["landmarks"][lm.name]) <= 2.0
+
+
+@pytest.mark.parametrize(
+    ("across", "along", "pit"),
+    [(0.02, 0.02, True), (0.02, 0.006, True), (0.02, 0.0, False), (0.02, -0.01, False)],
+)
+def test_pit_or_groove(across: float, along: float, pit: bool) -> None:
+    # z = a x^2 / 2 + b y^2 / 2 with the depth's maximum a concavity (H < 0): a pit when
+    # both curvatures are concave and the weaker is at least PIT_RATIO of the stronger, a
+    # groove when one is 0, a saddle when the other is convex.
+    y, x = np.mgrid[-40:41, -40:41].astype(float)
+    z = 500.0 - 0.5 * across * x**2 - 0.5 * along * y**2
+    curv = surface_curvature(z, 1.0, sigma=5.0)
+    assert _is_pit(curv, _Peak(40.0, 40.0, 0.0), PIT_RATIO) is pit
