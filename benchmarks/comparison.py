@@ -357,7 +357,9 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         out["registration"] = {"refused": got, **applied}
     else:
         reg, dmap = got
-        frame = pair_frames(a["visit"], b["visit"], partial=th.partial_frame)[1]
+        frame = pair_frames(
+            a["visit"], b["visit"], partial=th.partial_frame, neither=th.frame_without_vp
+        )[1]
         centre = trunk_mesh(b["visit"], window=th.axis_window, frame=frame).vertices
         centre = centre.mean(axis=0)[None]
         err = reg.transform @ np.linalg.inv(truth_t)
@@ -397,7 +399,12 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
                 rows["A"]["visit"], rows["C"]["visit"], ident, thresholds=th
             ).distance
             ok = np.isfinite(true) & np.isfinite(dmap.distance)
-            frame = pair_frames(rows["A"]["visit"], rows["C"]["visit"], partial=th.partial_frame)
+            frame = pair_frames(
+                rows["A"]["visit"],
+                rows["C"]["visit"],
+                partial=th.partial_frame,
+                neither=th.frame_without_vp,
+            )
             centre = trunk_mesh(rows["C"]["visit"], window=th.axis_window, frame=frame[1])
             centre = centre.vertices.mean(axis=0)[None]
             entry |= {

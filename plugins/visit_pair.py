@@ -43,7 +43,9 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
 
     name = "comparison.landmark-icp"
     stage = "comparison"
-    version = "2"
+    # 2: the trunk's rows, displaced regions, a visit without VP framed from its dimples
+    # 3: two visits without VP framed from their dimples, the trunk as high as both measure it
+    version = "3"
     input_type = VisitPair
     output_type = ComparisonRecord
 
@@ -94,6 +96,14 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
                 "false refuses it (version 1)."
             ),
         )
+        frame_without_vp: bool = Field(
+            True,
+            description=(
+                "With partial_frame, also register two visits neither of which has its VP "
+                "(the same hair over the nape), the trunk compared as high as both visits "
+                "measure it below the neck, less 40 mm; false refuses them (version 2)."
+            ),
+        )
 
     def run(self, data: VisitPair, params: Params, context: StageContext) -> ComparisonRecord:
         """Compare the two visits; a refusal is a record with its reason."""
@@ -106,6 +116,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             displaced_margin=params.displaced_margin,
             axis_window=params.axis_window or None,
             partial_frame=params.partial_frame,
+            frame_without_vp=params.frame_without_vp,
         )
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
 

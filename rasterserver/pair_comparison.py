@@ -177,7 +177,9 @@ def compare_pair(
             a,
             margin,
             thresholds.axis_window,
-            pair_frames(a, b, partial=thresholds.partial_frame)[0],
+            pair_frames(
+                a, b, partial=thresholds.partial_frame, neither=thresholds.frame_without_vp
+            )[0],
         ),
         distance=np.asarray(dmap.distance, dtype=np.float64),
         parameters=parameters,

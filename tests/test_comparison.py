@@ -11,12 +11,16 @@ import pytest
 
 from rasterserver.comparison import (
     THRESHOLDS,
+    TOP_MARGIN,
     ComparisonRefusedError,
     Visit,
     asymmetry_change,
     asymmetry_map,
     distance_map,
+    landmark_frame,
     landmark_transform,
+    measured_height,
+    pair_frames,
     register,
     trunk_mask,
 )
@@ -145,8 +149,9 @@ def test_missing_landmarks_are_refused_with_the_reason() -> None:
     version_1 = dataclasses.replace(THRESHOLDS, partial_frame=False)
     with pytest.raises(ComparisonRefusedError, match=r"cropped has no body-fixed frame.*VP"):
         register(a, b, thresholds=version_1)
+    version_2 = dataclasses.replace(THRESHOLDS, frame_without_vp=False)
     with pytest.raises(ComparisonRefusedError, match=r"cropped has no body-fixed frame.*VP"):
-        register(b, without_vp(a, "also"))  # neither visit has VP: no trunk height
+        register(b, without_vp(a, "also"), thresholds=version_2)  # neither visit has VP
     dimples = np.isin(np.arange(len(a.shape.landmarks)), [1, 2])  # DL, DR
     shape = dataclasses.replace(
         b.shape, landmarks=np.where(dimples[:, None], np.nan, b.shape.landmarks)
@@ -183,6 +188,65 @@ def test_a_visit_without_vp_is_registered_from_the_dimples_and_the_vertical() ->
     shape = dataclasses.replace(b.shape, level_axes=None)  # an analysis without gravity
     with pytest.raises(ComparisonRefusedError, match="no body-fixed frame"):
         register(a, without_vp(dataclasses.replace(b, shape=shape), "cropped"))
+
+
+def test_two_visits_without_vp_are_registered_below_the_measured_top() -> None:
+    a = first()
+    b = visit(posture_sway(BASE, 3, translation=5.0, rotation=1.0), 2, "swayed")
+    full = register(a, b)
+    x, y = without_vp(a, "first"), without_vp(b, "second")
+    reg = register(x, y)
+    assert reg.start_from is not None and "VP of neither visit found" in reg.start_from
+    err = reg.transform @ np.linalg.inv(full.transform)
+    assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 0.05
+    assert np.linalg.norm(err[:3, 3]) < 0.5
+    stats = distance_map(x, y, reg).statistics()
+    assert stats["rms_mm"] < 0.3
+    # the trunk compared ends below VP: the measured top (or the neck) less the margin
+    fa, fb, _note = pair_frames(x, y)
+    vp = a.shape.landmark("VP")
+    lower = min(
+        measured_height(x, fa.origin, fa.axes[1]), measured_height(y, fb.origin, fb.axes[1])
+    )
+    assert fa.height == pytest.approx(lower - TOP_MARGIN) == fb.height
+    assert 250.0 <= fa.height < float((vp - fa.origin) @ fa.axes[1])
+    keep = trunk_mask(x, x.mesh.vertices, frame=fa)
+    assert keep.sum() > 0.6 * trunk_mask(a, a.mesh.vertices).sum()
+    assert ((x.mesh.vertices[keep] - fa.origin) @ fa.axes[1]).max() <= fa.height + 1e-9
+    # the stage record keeps the note
+    from rasterserver.pair_comparison import compare_pair, pack
+
+    record = compare_pair(pack(x, y))
+    assert not record.refused and record.start_from == reg.start_from
+
+
+def test_two_visits_without_vp_and_too_little_trunk_are_refused() -> None:
+    a = first()
+    dm = a.shape.landmark("DM")
+    # the surface measured only up to 200 mm above DM (hair down to the shoulder blades)
+    lost = a.surface.coordinates()[1][:, None] < dm[1] - 200.0
+    z = np.where(lost, np.nan, a.surface.z)
+    cut = dataclasses.replace(a, surface=dataclasses.replace(a.surface, z=z))
+    with pytest.raises(ComparisonRefusedError, match=r"without VP in either visit.*250 mm"):
+        register(without_vp(a, "first"), without_vp(cut, "second"))
+
+
+def test_measured_height_stops_at_the_neck_and_at_gaps() -> None:
+    a = first()
+    origin, axes = landmark_frame(a.shape, "a")
+    vp = a.shape.landmark("VP")
+    height = measured_height(a, origin, axes[1])
+    assert height > 300.0
+    dm = a.shape.landmark("DM")
+    ys = a.surface.coordinates()[1][:, None]
+    gap = (ys < dm[1] - 150.0) & (ys > dm[1] - 170.0)  # a band lost across the back
+    holed = dataclasses.replace(
+        a, surface=dataclasses.replace(a.surface, z=np.where(gap, np.nan, a.surface.z))
+    )
+    assert measured_height(holed, origin, axes[1]) < 155.0
+    empty = dataclasses.replace(a, surface=Surface.empty("nothing"))
+    assert measured_height(empty, origin, axes[1]) == 0.0
+    assert float((vp - origin) @ axes[1]) > 0.0
 
 
 def test_empty_surface_is_refused() -> None:

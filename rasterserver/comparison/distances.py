@@ -93,7 +93,9 @@ def distance_map(
     """
     # the displaced regions are found on the connected trunk, arms included: an arm's core
     # (differing most) shows where its ramp onto the trunk begins
-    frame = pair_frames(a, b, partial=thresholds.partial_frame)[0]
+    frame = pair_frames(
+        a, b, partial=thresholds.partial_frame, neither=thresholds.frame_without_vp
+    )[0]
     wide = trunk_mesh(a, margin=margin, window=None, frame=frame)
     moved = MeshRecord(
         vertices=apply_transform(registration.transform, np.asarray(b.mesh.vertices, dtype=float)),

@@ -95,7 +95,9 @@ def register(
         ends with too low a fitness or too high an rmse, or that moved far from the landmark
         start; the message names the figure and its limit.
     """
-    fa, fb, start_from = pair_frames(a, b, partial=thresholds.partial_frame)
+    fa, fb, start_from = pair_frames(
+        a, b, partial=thresholds.partial_frame, neither=thresholds.frame_without_vp
+    )
     start = frame_transform(fa, fb)
     # B's trunk is moved onto A's connected trunk, arms included, so that B's points at the
     # edge of its rows (the armpits) keep their counterparts in the overlap and the fitness

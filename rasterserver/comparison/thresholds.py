@@ -72,6 +72,10 @@ class Thresholds:
     partial_frame : bool
         Register a visit whose VP was not found from DM, DL → DR and the station's vertical
         (:func:`~rasterserver.comparison.pair_frames`); False refuses it (version 1).
+    frame_without_vp : bool
+        With ``partial_frame``, also register two visits neither of which has its VP (the
+        trunk compared as high as both measure it below the neck); False refuses them
+        (version 2).
     """
 
     coarse_distance: float = 20.0
@@ -89,6 +93,7 @@ class Thresholds:
     displaced_margin: float = 20.0
     axis_window: float | None = AXIS_WINDOW
     partial_frame: bool = True
+    frame_without_vp: bool = True
 
 
 #: The thresholds :func:`register` uses unless given others.

@@ -12,6 +12,21 @@ from rasterserver.comparison.visits import BodyFrame, Visit
 from rasterserver.records_analysis import BackShape
 from rasterserver.records_surface import MeshRecord, Surface
 
+#: Below the measured trunk's top (or its neck) the compared trunk of two visits without VP
+#: ends this much lower (mm): the hairline's and the neck's rim are the least certain parts.
+TOP_MARGIN = 40.0
+#: Where the measured trunk narrows to this share of its median half-width, above
+#: :data:`NECK_FROM` mm over DM, the neck begins: the compared trunk stays below it.
+NECK_WIDTH = 0.6
+#: Least height (mm) above DM at which a narrowing counts as the neck (the waist is lower).
+NECK_FROM = 150.0
+#: Least height (mm) of the trunk compared without either visit's VP.
+MIN_HEIGHT = 250.0
+#: Gap (mm) along the vertical through DM that ends the measured trunk.
+_TOP_GAP = 15.0
+#: Erosion (mm) of the outline before its top and widths are read (the rim's single cells).
+_TOP_EROSION = 6.0
+
 
 def landmark_frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray, np.ndarray]:
     """Origin and axes of a visit's body frame; refused when its landmarks are missing."""
@@ -119,7 +134,7 @@ def _upright(shape: BackShape | BodyFrame) -> tuple[np.ndarray, np.ndarray] | No
 
 
 def pair_frames(
-    a: Visit, b: Visit, *, partial: bool = True
+    a: Visit, b: Visit, *, partial: bool = True, neither: bool = True
 ) -> tuple[TrunkFrame, TrunkFrame, str | None]:
     """The trunk frames of two visits to be compared, and how they were made.
 
@@ -130,7 +145,10 @@ def pair_frames(
     landmark start does not mix two kinds of frame; the patient stands upright in both, and
     ICP takes up the few degrees of posture), the trunk of the visit without VP as high as
     the other's (one person's trunk, a few months apart). Without gravity in either
-    analysis, refused.
+    analysis, refused. When neither visit's VP was found (the same hair over the nape at
+    both) and ``neither``: the frames alike, the trunk compared up to
+    :func:`measured_height` of the lower of the two (below the measured top and the neck,
+    less :data:`TOP_MARGIN`), refused under :data:`MIN_HEIGHT`.
 
     Parameters
     ----------
@@ -138,6 +156,8 @@ def pair_frames(
         The two visits.
     partial : bool, optional
         Allow the frames without one visit's VP.
+    neither : bool, optional
+        Allow the frames without both visits' VP (with ``partial``).
 
     Returns
     -------
@@ -159,8 +179,12 @@ def pair_frames(
         refusal = exc
     ua, ub = _upright(a.shape), _upright(b.shape)
     va, vb = a.shape.landmark("VP"), b.shape.landmark("VP")
-    if ua is None or ub is None or (va is None) == (vb is None):
+    if ua is None or ub is None or (va is not None and vb is not None):
         raise refusal
+    if va is None and vb is None:
+        if not neither:
+            raise refusal
+        return _frames_without_vp(a, b, ua, ub, refusal)
     seen, frame = (va, ua) if va is not None else (vb, ub)
     height = float((np.asarray(seen, dtype=float) - frame[0]) @ frame[1][1])
     if height <= 0.0:
@@ -179,6 +203,95 @@ def pair_frames(
         f"{having.label or '?'}'s"
     )
     return made(a, ua), made(b, ub), note
+
+
+def measured_height(visit: Visit, origin: np.ndarray, up: np.ndarray) -> float:
+    """How high above DM the visit's trunk is measured, below its neck (mm).
+
+    Walks up the vertical through DM on the measured outline (eroded by a few millimetres)
+    until a gap of more than :data:`_TOP_GAP`; the neck begins, above :data:`NECK_FROM`,
+    where the outline's run through the vertical narrows to :data:`NECK_WIDTH` of its
+    median half-width over the lower 60 % of the way. On the clinic tuning scenes
+    (``benchmarks/clinic_analysis.py``, the 292 bodies with DM) this height less
+    :data:`TOP_MARGIN` never reached the true VP: 1.3 mm below it at the closest, 27 mm at
+    the median.
+
+    Parameters
+    ----------
+    visit : Visit
+        The visit (its surface's outline).
+    origin : numpy.ndarray
+        ``(3,)`` DM (world mm).
+    up : numpy.ndarray
+        ``(3,)`` unit vertical (world).
+
+    Returns
+    -------
+    float
+        The height (mm); 0 when DM itself is not on the outline.
+    """
+    from scipy import ndimage
+
+    surface = visit.surface
+    if surface.z.size == 0:
+        return 0.0
+    steps = max(1, round(_TOP_EROSION / surface.spacing))
+    valid = ndimage.binary_erosion(surface.valid, iterations=steps, border_value=0)
+    ny, nx = valid.shape
+    heights: list[float] = []
+    half_widths: list[float] = []
+    gap = 0.0
+    for t in np.arange(0.0, 1000.0, surface.spacing):
+        p = origin + t * up
+        j = round((p[0] - surface.x0) / surface.spacing)
+        i = round((p[1] - surface.y0) / surface.spacing)
+        if not (0 <= i < ny and 0 <= j < nx):
+            break
+        if not valid[i, j]:
+            gap += surface.spacing
+            if gap > _TOP_GAP:
+                break
+            continue
+        gap = 0.0
+        row = valid[i]
+        # the run of the row through the vertical: its first and last measured cell
+        left = j - int(np.argmin(row[j::-1])) + 1 if not row[: j + 1].all() else 0
+        right = j + int(np.argmin(row[j:])) - 1 if not row[j:].all() else nx - 1
+        heights.append(float(t))
+        half_widths.append(0.5 * (right - left) * surface.spacing)
+    if not heights:
+        return 0.0
+    h, w = np.asarray(heights), np.asarray(half_widths)
+    top = float(h[-1])
+    lower = w[h < 0.6 * top]
+    reference = float(np.median(lower)) if lower.size else float(np.median(w))
+    narrow = h[(w < NECK_WIDTH * reference) & (h > NECK_FROM)]
+    return min(top, float(narrow.min())) if narrow.size else top
+
+
+def _frames_without_vp(
+    a: Visit,
+    b: Visit,
+    ua: tuple[np.ndarray, np.ndarray],
+    ub: tuple[np.ndarray, np.ndarray],
+    refusal: ComparisonRefusedError,
+) -> tuple[TrunkFrame, TrunkFrame, str]:
+    """Both frames from DM, DL → DR and the vertical; the trunk as high as both measure it."""
+    height = (
+        min(measured_height(a, ua[0], ua[1][1]), measured_height(b, ub[0], ub[1][1])) - TOP_MARGIN
+    )
+    if height < MIN_HEIGHT:
+        raise ComparisonRefusedError(
+            f"{refusal}; without VP in either visit the trunk measured in both reaches "
+            f"{max(height, 0.0):.0f} mm above DM below the neck, less than {MIN_HEIGHT:.0f} mm"
+        )
+    frames = tuple(TrunkFrame(o, axes, o + height * axes[1]) for o, axes in (ua, ub))
+    note = (
+        "VP of neither visit found: both visits' frames from DM, DL → DR and the station's "
+        f"vertical, the trunk compared up to {height:.0f} mm above DM (as high as both "
+        f"visits measure it below the neck, less {TOP_MARGIN:.0f} mm)"
+    )
+    return frames[0], frames[1], note
 
 
 def frame_transform(a: TrunkFrame, b: TrunkFrame) -> np.ndarray:
