@@ -282,8 +282,9 @@ def _frames_without_vp(
     )
     if height < MIN_HEIGHT:
         raise ComparisonRefusedError(
-            f"{refusal}; without VP in either visit the trunk measured in both reaches "
-            f"{max(height, 0.0):.0f} mm above DM below the neck, less than {MIN_HEIGHT:.0f} mm"
+            "neither visit's VP was found, and the trunk measured in both reaches only "
+            f"{max(height, 0.0):.0f} mm above DM below the neck, less than "
+            f"{MIN_HEIGHT:.0f} mm (hair or a shadow over the upper back?); {refusal}"
         )
     frames = tuple(TrunkFrame(o, axes, o + height * axes[1]) for o, axes in (ua, ub))
     note = (
