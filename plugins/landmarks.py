@@ -381,13 +381,13 @@ def find_dimples(
     supported = curv.support >= MIN_SUPPORT
     region = _band(grid.shape, centre, r0, r1, 0.0, 0.8 * w / s)
     minimum = max(MIN_LANDMARK_CURVATURE, NOISE_FACTOR * curv.noise)
-    strong = [
+    candidates = [
         p
         for p in _peaks(concave, region)
         if p.value >= minimum and supported[int(p.row), int(p.col)]
     ]
-    pits = [p for p in strong if pit_ratio is None or _is_pit(curv, p, pit_ratio)]
-    grooves = len(strong) - len(pits)
+    pits = [p for p in candidates if pit_ratio is None or _is_pit(curv, p, pit_ratio)]
+    grooves = len(candidates) - len(pits)
     peaks = pits[:16]
     axis = _local_axes(curv, centre, r0, r1, w / s)
     pairs = []
