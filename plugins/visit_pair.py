@@ -45,7 +45,9 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
     stage = "comparison"
     # 2: the trunk's rows, displaced regions, a visit without VP framed from its dimples
     # 3: two visits without VP framed from their dimples, the trunk as high as both measure it
-    version = "3"
+    # 4: the distance map's hits through a hole of B's surface (to another part of it) are no
+    #    counterparts
+    version = "4"
     input_type = VisitPair
     output_type = ComparisonRecord
 
@@ -104,6 +106,16 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
                 "measure it below the neck, less 40 mm; false refuses them (version 2)."
             ),
         )
+        through_slack: float = Field(
+            THRESHOLDS.through_slack or 3.0,
+            ge=0.0,
+            le=30.0,
+            description=(
+                "A hit along A's normal more than twice as far as B's nearest point and "
+                "farther by more than this (mm) went through a hole of B's surface: not "
+                "compared. 0 keeps every hit (version 3)."
+            ),
+        )
 
     def run(self, data: VisitPair, params: Params, context: StageContext) -> ComparisonRecord:
         """Compare the two visits; a refusal is a record with its reason."""
@@ -117,6 +129,7 @@ class LandmarkIcpComparison(Stage[VisitPair, ComparisonRecord]):
             axis_window=params.axis_window or None,
             partial_frame=params.partial_frame,
             frame_without_vp=params.frame_without_vp,
+            through_slack=params.through_slack or None,
         )
         return compare_pair(data, thresholds=thresholds, margin=params.margin)
 

@@ -29,9 +29,35 @@ from rasterserver.records_surface import MeshRecord
 
 
 def signed_distances(
-    vertices: np.ndarray, normals: np.ndarray, mesh: MeshRecord, *, limit: float
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    mesh: MeshRecord,
+    *,
+    limit: float,
+    through_slack: float | None = None,
 ) -> np.ndarray:
-    """Signed distance along each normal to ``mesh`` (the nearer hit forward or backward)."""
+    """Signed distance along each normal to ``mesh`` (the nearer hit forward or backward).
+
+    Parameters
+    ----------
+    vertices, normals : numpy.ndarray
+        ``(N, 3)`` where from and along which (need not be unit).
+    mesh : MeshRecord
+        The surface hit.
+    limit : float
+        Farther hits are NaN (mm).
+    through_slack : float or None, optional
+        A hit along the normal more than twice as far as the nearest point of ``mesh`` and
+        farther than it by more than this (mm) passed through a hole of ``mesh`` (a piece
+        not measured) to another part of it: NaN, no counterpart. A real change between two
+        surfaces tilted by up to 60° to each other stays within twice the nearest distance.
+        None: every hit kept.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` mm, NaN where there is no counterpart.
+    """
     import open3d as o3d
 
     out = np.full(len(vertices), np.nan)
@@ -54,6 +80,11 @@ def signed_distances(
     ahead, behind = hit[: len(vertices)], hit[len(vertices) :]
     signed = np.where(ahead <= behind, ahead, -behind)
     ok = np.isfinite(signed) & (np.abs(signed) <= limit)
+    if through_slack is not None:
+        points = o3d.core.Tensor(vertices.astype(np.float32))  # type: ignore[call-overload]
+        nearest = scene.compute_distance(points).numpy().astype(np.float64)
+        far = np.abs(signed)
+        ok &= ~((far > 2.0 * nearest) & (far > nearest + through_slack))
     out[ok] = signed[ok]
     return out
 
@@ -102,7 +133,9 @@ def distance_map(
         triangles=b.mesh.triangles,
         normals=np.asarray(b.mesh.normals) @ registration.transform[:3, :3].T,
     )
-    distance = signed_distances(wide.vertices, wide.normals, moved, limit=limit)
+    distance = signed_distances(
+        wide.vertices, wide.normals, moved, limit=limit, through_slack=thresholds.through_slack
+    )
     displaced = np.zeros(len(distance), dtype=bool)
     if thresholds.displaced_limit is not None:
         displaced = displaced_regions(

@@ -76,6 +76,11 @@ class Thresholds:
         With ``partial_frame``, also register two visits neither of which has its VP (the
         trunk compared as high as both measure it below the neck); False refuses them
         (version 2).
+    through_slack : float or None
+        The distance map's hit along A's normal that lies more than twice as far as B's
+        nearest point and farther by more than this (mm) went through a hole of B's surface
+        to another part of it (:func:`~rasterserver.comparison.signed_distances`): not
+        compared. None: every hit kept (version 3).
     """
 
     coarse_distance: float = 20.0
@@ -94,6 +99,7 @@ class Thresholds:
     axis_window: float | None = AXIS_WINDOW
     partial_frame: bool = True
     frame_without_vp: bool = True
+    through_slack: float | None = 3.0
 
 
 #: The thresholds :func:`register` uses unless given others.
