@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from back_surfaces import back, with_z
-from rasterserver_plugins.curvature import surface_curvature
+from rasterserver_plugins.curvature import Curvature, surface_curvature
 from rasterserver_plugins.landmarks import (
     PIT_RATIO,
     Landmark,
@@ -17,7 +17,7 @@ from rasterserver_plugins.landmarks import (
     midpoint,
 )
 from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.trunk import find_trunk
+from rasterserver_plugins.trunk import Trunk, find_trunk
 
 from rasterserver.records_surface import Surface
 
@@ -112,18 +112,34 @@ def test_a_hole_beside_a_landmark_refuses_it() -> None:
     assert found["DL"].found and found["DR"].found
 
 
+def _grooved(
+    surface: Surface,
+    dl: np.ndarray,
+    *,
+    wave: float,
+    period: float,
+    depth: float,
+    below: float,
+    width: float = 5.0,
+) -> tuple[LevelGrid, Curvature, Trunk, Landmark]:
+    """The back with a groove across it ``below`` mm under DL (a clothing edge), its depth
+    waving along it by ``wave``; the grid, curvature, trunk and VP the dimples are searched
+    with."""
+    xs, ys = surface.coordinates()
+    waves = 1.0 + wave * np.cos(2.0 * np.pi * xs[None, :] / period)
+    groove = depth * waves * np.exp(-0.5 * ((ys[:, None] - dl[1] - below) / width) ** 2)
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z + groove)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    return grid, curv, trunk, find_vertebra_prominens(grid, curv, trunk)
+
+
 def test_a_row_of_concavities_across_the_lower_back_refuses_the_dimples() -> None:
     # A clothing edge below the dimples, as the chain reconstructs a waistband standing off
     # the skin: a groove across the back whose depth waves along it, deeper than the dimples.
     surface, truth = back("normal")
-    xs, ys = surface.coordinates()
     dl = truth["landmarks"]["DL"]
-    wave = 1.0 + 0.6 * np.cos(2.0 * np.pi * xs[None, :] / 30.0)
-    groove = 3.0 * wave * np.exp(-0.5 * ((ys[:, None] - dl[1] - 60.0) / 5.0) ** 2)
-    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z + groove)
-    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
-    trunk = find_trunk(grid.z, grid.spacing)
-    vp = find_vertebra_prominens(grid, curv, trunk)
+    grid, curv, trunk, vp = _grooved(surface, dl, wave=0.6, period=30.0, depth=3.0, below=60.0)
     # without the check (version 4) two of the groove's points are taken for the dimples
     wrong, _ = find_dimples(grid, curv, trunk, vp, row_concavities=0)
     assert wrong.found and np.linalg.norm(wrong.point - dl) > 40.0
@@ -140,14 +156,10 @@ def test_a_groove_below_the_dimples_is_no_candidate() -> None:
     # varying along it: version 5 (no pit check) finds two similar pairs and refuses; the
     # groove is concave across it only, so with the pit check the dimples are found.
     surface, truth = back("normal")
-    xs, ys = surface.coordinates()
     dl = truth["landmarks"]["DL"]
-    wave = 1.0 + 0.15 * np.cos(2.0 * np.pi * xs[None, :] / 40.0)
-    groove = 4.0 * wave * np.exp(-0.5 * ((ys[:, None] - dl[1] - 45.0) / 6.0) ** 2)
-    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z + groove)
-    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
-    trunk = find_trunk(grid.z, grid.spacing)
-    vp = find_vertebra_prominens(grid, curv, trunk)
+    grid, curv, trunk, vp = _grooved(
+        surface, dl, wave=0.15, period=40.0, depth=4.0, below=45.0, width=6.0
+    )
     old, _ = find_dimples(grid, curv, trunk, vp, pit_ratio=None)
     assert not old.found and "two similar pairs" in old.reason
     found = find_dimples(grid, curv, trunk, vp)
