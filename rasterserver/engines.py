@@ -130,8 +130,12 @@ class InProcess(Engine):
         future: cf.Future[Computation] = cf.Future()
         try:
             future.set_result(
-                work(plan, self.pipeline.archive.settings.archive,
-                     registry=self.pipeline.registry, keep="none")
+                work(
+                    plan,
+                    self.pipeline.archive.settings.archive,
+                    registry=self.pipeline.registry,
+                    keep="none",
+                )
             )
         except Exception as exc:
             future.set_exception(exc)
@@ -272,6 +276,9 @@ def dask_client(*, scheduler: str | None = None, n_workers: int | None = None) -
         ) as cluster,
         Client(cluster) as client,
     ):
+        from rasterserver.worker_logs import QuietClosingHeartbeat
+
+        client.register_plugin(QuietClosingHeartbeat())
         yield client
 
 
