@@ -142,7 +142,7 @@ def write_report(
             f"{r['rmse_mm']:.2f} mm"
             + (
                 f" ({e(r['landmark_start_from'])})"
-                if "not found" in r.get("landmark_start_from", "")
+                if "found" in r.get("landmark_start_from", "")  # frames without VP
                 else ""
             )
             + f"; distance rms {s['rms_mm']:.2f} mm, largest "
