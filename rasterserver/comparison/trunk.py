@@ -228,7 +228,8 @@ def measured_height(visit: Visit, origin: np.ndarray, up: np.ndarray) -> float:
     Returns
     -------
     float
-        The height (mm); 0 when DM itself is not on the outline.
+        The height (mm); 0 when the outline holds no cell of the vertical within
+        :data:`_TOP_GAP` of DM.
     """
     from scipy import ndimage
 
