@@ -42,6 +42,7 @@ from .curvature import surface_curvature
 from .landmarks import (
     PIT_RATIO,
     ROW_CONCAVITIES,
+    TOP_DROP,
     Landmark,
     find_dimples,
     find_sacrum_point,
@@ -71,6 +72,7 @@ def analyse_back(
     vp_axis_offset: float = MAX_OFFSET,
     row_concavities: int = ROW_CONCAVITIES,
     pit_ratio: float | None = PIT_RATIO,
+    vp_top_drop: float | None = TOP_DROP,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -91,6 +93,9 @@ def analyse_back(
     pit_ratio : float or None, optional
         Least ratio of a dimple candidate's weaker to its stronger principal curvature
         (a pit, not a groove); None does not check.
+    vp_top_drop : float or None, optional
+        VP's candidate at the top of the measured surface is kept when its curvature falls
+        below this share of its value above it, inside the surface; None refuses it.
 
     Returns
     -------
@@ -118,7 +123,7 @@ def analyse_back(
         )
 
     reasons: dict[str, str] = {}
-    vp = find_vertebra_prominens(grid, curv, trunk)
+    vp = find_vertebra_prominens(grid, curv, trunk, top_drop=vp_top_drop)
     # the candidate's height starts the dimples' search even when it is refused below: a
     # shoulder's convex point lies about as high as C7
     dl, dr = find_dimples(
@@ -235,7 +240,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    lower back (the edge of clothing)
     # 6: the lumbar dimples' candidates must be pits, concave along the body as well as
     #    across it: the grooves of clothing edges and folds are no candidates
-    version: ClassVar[str] = "6"
+    # 7: VP's candidate at the top of the measured surface (hair or a shadow ending it just
+    #    above C7) is kept when its curvature is seen to fall above it
+    version: ClassVar[str] = "7"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -271,6 +278,15 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "principal curvature: a dimple is a pit, a clothing edge or a fold a groove "
             "(ratio near 0). null does not check (version 5).",
         )
+        vp_top_drop: float | None = Field(
+            TOP_DROP,
+            gt=0.0,
+            lt=1.0,
+            description="VP's candidate at the top of the measured surface (hair or a shadow "
+            "ending it just above C7) is kept when its mean curvature falls, up its column "
+            "inside the measured surface, below this share of its value: the maximum is seen "
+            "on both sides. null refuses every such candidate (version 6).",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
@@ -282,4 +298,5 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             vp_axis_offset=params.vp_axis_offset,
             row_concavities=params.row_concavities,
             pit_ratio=params.dimple_pit_ratio,
+            vp_top_drop=params.vp_top_drop,
         )

@@ -91,6 +91,10 @@ LEVEL_MM = 10.0
 PIT_RATIO = 0.15
 #: Least ratio of the trunk's extent on the shorter side of VP to the longer one.
 MIN_BALANCE = 0.4
+#: A convex point at the top of the measured surface is VP's only when its curvature falls,
+#: up its column and within the measured surface, below this share of its value: a maximum
+#: seen on both sides, not a rise into the edge (where hair or a shadow cuts the nape off).
+TOP_DROP = 0.9
 #: Why a landmark next to an unmeasured cell is refused: its curvature extreme may be an
 #: artefact of the one-sided fits at the hole's rim, and the true one inside the hole.
 HOLE_REASON = (
@@ -198,7 +202,9 @@ def _centre_cols(trunk: Trunk) -> np.ndarray:
     return centre
 
 
-def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> Landmark:
+def find_vertebra_prominens(
+    grid: LevelGrid, curv: Curvature, trunk: Trunk, *, top_drop: float | None = TOP_DROP
+) -> Landmark:
     """The vertebra prominens: the convex maximum at the cervico-thoracic junction.
 
     Search region (derived from the trunk, ``W`` its median half-width): rows from
@@ -214,6 +220,11 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
         Its curvature (at the landmark scale).
     trunk : Trunk
         The trunk found in it.
+    top_drop : float or None, optional
+        A candidate within 1.5 curvature scales of the measured surface's top, or beside a
+        hole above it, is kept when its mean curvature falls up its column, inside the
+        measured surface, below this share of its value (:data:`TOP_DROP`); None refuses
+        every such candidate (analysis version 6).
 
     Returns
     -------
@@ -241,7 +252,10 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
         return _missing("VP", "no convex point near the midline at the neck's base" + hint)
     supported = curv.support >= MIN_SUPPORT
     best = all_peaks[0]
-    at_top = best.row - trunk.top < 1.5 * curv.sigma / s
+    # where hair or a shadow ends the surface just above C7, its bump's upper flank may still
+    # be measured: then the maximum is seen, not an artefact of the one-sided fit at the edge
+    seen = top_drop is not None and _falls_above(grid, h, best, top_drop)
+    at_top = best.row - trunk.top < 1.5 * curv.sigma / s and not seen
     if at_top or not supported[int(best.row), int(best.col)]:
         where = "top" if at_top else "border"
         return _missing(
@@ -257,27 +271,44 @@ def find_vertebra_prominens(grid: LevelGrid, curv: Curvature, trunk: Trunk) -> L
         return _missing(
             "VP",
             "the trunk is not measured on both sides of the convex point at the neck's base "
-            "(half a back in view?)",
+            "(the nape hidden by hair or a shadow, or half a back in view?)",
         )
     row, col = _refine(h, best)
-    if _next_to_hole(grid, row, col, curv.sigma):
+    if _next_to_hole(grid, row, col, curv.sigma, below_only=seen):
         return _missing("VP", HOLE_REASON)
     point = _surface_point(grid, curv, row, col)
     return Landmark("VP", point, _confidence(best.value, max(runner, 0.0), minimum))
 
 
-def _next_to_hole(grid: LevelGrid, row: float, col: float, radius: float) -> bool:
-    """Whether an unmeasured cell lies within ``radius`` mm of the fractional cell."""
+def _next_to_hole(
+    grid: LevelGrid, row: float, col: float, radius: float, *, below_only: bool = False
+) -> bool:
+    """Whether an unmeasured cell lies within ``radius`` mm of the fractional cell (with
+    ``below_only``, one in its row or below it: the surface's edge above is allowed)."""
     s = grid.spacing
     k = int(np.ceil(radius / s)) + 1
     i0, j0 = round(row), round(col)
     ii, jj = np.mgrid[i0 - k : i0 + k + 1, j0 - k : j0 + k + 1]
     near = (ii - row) ** 2 + (jj - col) ** 2 <= (radius / s) ** 2
+    if below_only:
+        near &= ii >= row
     ny, nx = grid.shape
     inside = (ii >= 0) & (ii < ny) & (jj >= 0) & (jj < nx)
     if not inside[near].all():
         return True
     return bool(np.isnan(grid.z[ii[near], jj[near]]).any())
+
+
+def _falls_above(grid: LevelGrid, h: np.ndarray, peak: _Peak, drop: float) -> bool:
+    """Whether ``h`` falls below ``drop`` times the peak's value up the peak's column before
+    the measured surface ends (the maximum's upper flank is measured)."""
+    j = int(peak.col)
+    for i in range(int(peak.row) - 1, -1, -1):
+        if not (np.isfinite(grid.z[i, j]) and np.isfinite(h[i, j])):
+            return False
+        if h[i, j] < drop * peak.value:
+            return True
+    return False
 
 
 def _balance(trunk: Trunk, peak: _Peak, rows: float) -> float:

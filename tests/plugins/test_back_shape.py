@@ -143,20 +143,24 @@ def test_gravity_defines_the_vertical() -> None:
     assert abs(naive["trunk_imbalance_mm"]["value"] - p["trunk_imbalance_mm"]["value"]) > 20.0
 
 
-def test_the_checks_of_versions_4_to_6_are_parameters_that_switch_them_off() -> None:
+def test_the_checks_of_versions_4_to_7_are_parameters_that_switch_them_off() -> None:
     from rasterserver_plugins.back_shape import BackShapeAnalysis
 
     default = BackShapeAnalysis.Params()
     assert default.vp_axis_offset == 15.0 and default.row_concavities == 3
-    assert default.dimple_pit_ratio == 0.15
-    old = BackShapeAnalysis.Params(vp_axis_offset=0.0, row_concavities=0, dimple_pit_ratio=None)
+    assert default.dimple_pit_ratio == 0.15 and default.vp_top_drop == 0.9
+    old = BackShapeAnalysis.Params(
+        vp_axis_offset=0.0, row_concavities=0, dimple_pit_ratio=None, vp_top_drop=None
+    )
     assert old.vp_axis_offset == 0.0 and old.row_concavities == 0  # version 3
-    assert old.dimple_pit_ratio is None
+    assert old.dimple_pit_ratio is None and old.vp_top_drop is None
     bads = (
         {"vp_axis_offset": -1.0},
         {"row_concavities": -1},
         {"dimple_pit_ratio": -0.1},
         {"dimple_pit_ratio": 1.5},
+        {"vp_top_drop": 0.0},
+        {"vp_top_drop": 1.0},
     )
     for bad in bads:
         with pytest.raises(ValueError):
@@ -190,3 +194,28 @@ def test_a_waistband_groove_no_longer_hides_the_dimples_of_a_clinic_scene() -> N
         point = new.landmark(name)
         assert point is not None, new.reason_table().get(name)
         assert np.linalg.norm(point - true[name]) < 5.0
+
+
+def test_vp_just_below_the_hair_of_a_clinic_scene_is_found() -> None:
+    # Clinic tuning scene 144 (hair down to just above C7): the measured surface ends a few
+    # millimetres above VP, whose convex maximum is seen on both sides; version 6 refused
+    # every candidate that close to the top, version 7 keeps it.
+    from rasterserver.simulator.back_truth import truth
+    from rasterserver.simulator.body import clinic_station, make_body, random_body
+    from rasterserver.simulator.render import RenderSettings, render
+
+    st = clinic_station(144)
+    context = StageContext(calibration=st, raster=st.raster_definition)
+    scene = make_body(random_body(144))
+    settings = RenderSettings(supersampling=1, threads=1)
+    image = render(scene, st, settings=settings, seed=144).image
+    surface = run_chain(image, context=context, until="surface")["surface"]
+    old = run_chain(
+        surface, context=context, until="analysis", params={"analysis": {"vp_top_drop": None}}
+    )["analysis"]
+    assert old.landmark("VP") is None
+    assert "top of the measured surface" in old.reason_table()["VP"]
+    new = run_chain(surface, context=context, until="analysis")["analysis"]
+    point = new.landmark("VP")
+    assert point is not None, new.reason_table().get("VP")
+    assert np.linalg.norm(point - truth(scene)["landmarks"]["VP"]) < 3.0

@@ -8,6 +8,7 @@ from back_surfaces import back, with_z
 from rasterserver_plugins.curvature import Curvature, surface_curvature
 from rasterserver_plugins.landmarks import (
     PIT_RATIO,
+    TOP_DROP,
     Landmark,
     _is_pit,
     _Peak,
@@ -83,6 +84,40 @@ def test_upper_back_cropped_refuses_the_vertebra_prominens() -> None:
     found = _landmarks(_cut(surface, keep))
     assert not found["VP"].found and found["VP"].reason
     assert found["DL"].found and found["DR"].found
+
+
+def _vp_cut_above(name: str, cut: float, top_drop: float | None) -> tuple[Landmark, np.ndarray]:
+    """VP of a back whose surface ends ``cut`` mm above the true VP (hair over the nape)."""
+    surface, truth = back(name)
+    _, ys = surface.coordinates()
+    vp = truth["landmarks"]["VP"]
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z)
+    grid = LevelGrid(
+        grid.x0, grid.y0, grid.spacing, np.where((ys > vp[1] - cut)[:, None], grid.z, np.nan)
+    )
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    return find_vertebra_prominens(
+        grid, curv, find_trunk(grid.z, grid.spacing), top_drop=top_drop
+    ), vp
+
+
+@pytest.mark.parametrize("name", ["normal", "moderate", "severe"])
+def test_vp_at_the_top_of_the_surface_is_kept_when_its_maximum_is_seen(name: str) -> None:
+    # Hair ends the surface 9 mm above C7: the bump's upper flank is measured (version 7)...
+    lm, vp = _vp_cut_above(name, 9.0, TOP_DROP)
+    assert lm.found, lm.reason
+    assert float(np.linalg.norm(lm.point - vp)) < 3.5
+    # ...where version 6 refused every candidate that close to the top
+    lm, _ = _vp_cut_above(name, 9.0, None)
+    assert not lm.found and "top of the measured surface" in lm.reason
+
+
+@pytest.mark.parametrize("cut", [3.0, 0.0, -3.0])
+def test_vp_cut_through_its_bump_stays_refused(cut: float) -> None:
+    # The surface ends on the bump itself: the curvature rises into the edge, no maximum seen.
+    for name in ("normal", "moderate", "severe"):
+        lm, _ = _vp_cut_above(name, cut, TOP_DROP)
+        assert not lm.found and lm.reason
 
 
 def test_sacrum_point_refused_when_the_cleft_is_not_in_view() -> None:
