@@ -349,6 +349,18 @@ def markdown(s: dict[str, Any]) -> str:
         ("A→C: map − true change, rms (mm)", med_max(("maps", "C", "error_rms_mm"))),
         ("A→D (no change, same dress): map rms (mm)", med_max(("maps", "D", "rms_mm"))),
         ("A→E (no change, another visit's dress): map rms (mm)", med_max(("maps", "E", "rms_mm"))),
+        (
+            "A→D: asymmetry change rms (mm; truth 0)",
+            med_max(("maps", "D", "asymmetry_change_rms_mm")),
+        ),
+        (
+            "A→E: asymmetry change rms (mm; truth 0)",
+            med_max(("maps", "E", "asymmetry_change_rms_mm")),
+        ),
+        (
+            "A→E: asymmetry change p99 of its \\|values\\| (mm)",
+            med_max(("maps", "E", "asymmetry_change_p99_mm")),
+        ),
         ("noise-only pairs: parameter changes flagged", pct("noise")),
         ("deviation +5 mm: `lateral_deviation_max_mm` flagged", pct("deviation_max")),
         ("  of those whose true change is ≥ 2 SDC", pct("deviation_due")),

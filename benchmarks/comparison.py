@@ -19,7 +19,8 @@ Figures (comparisons in the parent process, one thread):
   registration transform against the true rigid transform (``true_transform``): the angle of
   ``T_reg · T_true⁻¹`` and the distance of the trunk centre mapped by both;
 * distance maps A→C against the true signed change (along A's normals: distance to C's truth
-  mesh minus distance to A's truth mesh), and A→D, A→E (truth: no change);
+  mesh minus distance to A's truth mesh), and A→D, A→E (truth: no change; their asymmetry
+  change too);
 * trend flags (:func:`rasterserver.trends.trends`, SDC = 1.96·√2·SD): on the noise-only pairs
   among A, D, E, H, I (B's re-pose of up to 5° truly changes the posture parameters), the
   fraction of parameter changes flagged; on the progressions (F, or C and G, against each of
@@ -311,6 +312,7 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         trunk_mesh,
     )
     from rasterserver.pair_comparison import (
+        asymmetry_of,
         compare_pair,
         distance_of,
         pack,
@@ -319,13 +321,17 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         visit_asymmetry,
     )
     from rasterserver.trends import TrendVisit, trends
+    from rasterserver.visit_comparison import _asymmetry_change
 
     th = thresholds or THRESHOLDS
     out: dict[str, Any] = {"times_s": [], "asymmetry_times_s": []}
-    for role in ("A", "C", "D"):
+    asymmetry: dict[str, Any] = {}
+    for role in ("A", "C", "D", "E"):
         t0 = time.perf_counter()
-        visit_asymmetry(pack_visit(rows[role]["visit"]), thresholds=th)
-        out["asymmetry_times_s"].append(time.perf_counter() - t0)
+        record = visit_asymmetry(pack_visit(rows[role]["visit"]), thresholds=th)
+        if role != "E":  # the timing's three maps, as before E's was needed
+            out["asymmetry_times_s"].append(time.perf_counter() - t0)
+        asymmetry[role] = asymmetry_of(record, rows[role]["visit"].mesh)
 
     def compare(x: str, y: str) -> tuple[Any, Any] | str:
         # the whole comparison stage as the archive runs it: registration and distance map
@@ -388,6 +394,13 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
             continue
         reg, dmap = got
         entry = {"rms_mm": dmap.statistics()["rms_mm"], "overlap": dmap.statistics()["overlap"]}
+        if y in ("D", "E") and asymmetry["A"] is not None and asymmetry[y] is not None:
+            # the back did not change: its asymmetry change should be noise only
+            change = _asymmetry_change(asymmetry["A"], asymmetry[y], reg, dmap).distance
+            change = change[np.isfinite(change)]
+            if change.size:
+                entry["asymmetry_change_rms_mm"] = _rms(change)
+                entry["asymmetry_change_p99_mm"] = float(np.percentile(np.abs(change), 99))
         if y == "C":
             true = _truth_distance(dmap, rows["C"]["truth_mesh"]) - _truth_distance(
                 dmap, rows["A"]["truth_mesh"]
@@ -551,7 +564,9 @@ def summarise(scores: list[dict[str, Any]]) -> dict[str, Any]:
     for y in ("C", "D", "E"):
         rows = [s["maps"][y] for s in scores]
         good = [r for r in rows if "refused" not in r]
-        keys = ["rms_mm", "overlap"] + (
+        keys = ["rms_mm", "overlap"]
+        keys += ["asymmetry_change_rms_mm", "asymmetry_change_p99_mm"] if y != "C" else []
+        keys += (
             [
                 "error_rms_mm",
                 "error_p95_mm",
@@ -691,6 +706,15 @@ def markdown(sets: dict[str, dict[str, Any]], meta: dict[str, Any]) -> str:
     )
     row("A→D (no change, same posture): map rms (mm)", "≤ 0.3", ms(("maps", "D", "rms_mm")))
     row("A→E (no change, posture sway): map rms (mm)", "≤ 0.3", ms(("maps", "E", "rms_mm")))
+    for y, what in (("D", "same posture"), ("E", "posture sway")):
+        row(
+            f"A→{y} ({what}): asymmetry change rms / p99 (mm; truth 0)",
+            "",
+            lambda s, y=y: (
+                f"{_f(s['maps'][y]['asymmetry_change_rms_mm']['median'])} / "
+                f"{_f(s['maps'][y]['asymmetry_change_p99_mm']['median'])}"
+            ),
+        )
     row("A→B (no change, re-posed): map rms (mm)", "", ms(("registration", "map_rms_mm")))
     row(
         "noise-only pairs: parameter changes flagged",

@@ -140,7 +140,9 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
 
     name = "asymmetry.mirror-icp"
     stage = "asymmetry"
-    version = "2"
+    # 3: a vertex whose normal passes through a hole of the mirror image to another part of
+    #    it has no value (as the comparison's distance map since its version 4)
+    version = "3"
     input_type = VisitGeometry
     output_type = AsymmetryRecord
 
@@ -155,6 +157,16 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
             description="Correspondence distance of the mirror fit (mm).",
         )
         axis_window: float = Field(AXIS_WINDOW, ge=0.0, le=200.0, description=_WINDOW)
+        through_slack: float = Field(
+            THRESHOLDS.through_slack or 3.0,
+            ge=0.0,
+            le=30.0,
+            description=(
+                "A hit along the back's normal more than twice as far as its mirror image's "
+                "nearest point and farther by more than this (mm) went through a hole of the "
+                "mirror image: no value there. 0 keeps every hit (version 2)."
+            ),
+        )
 
     def run(self, data: VisitGeometry, params: Params, context: StageContext) -> AsymmetryRecord:
         """Map the visit's asymmetry; a refusal is a record with its reason."""
@@ -162,5 +174,6 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
             THRESHOLDS,
             mirror_distance=params.mirror_distance,
             axis_window=params.axis_window or None,
+            through_slack=params.through_slack or None,
         )
         return visit_asymmetry(data, thresholds=thresholds, margin=params.margin)

@@ -337,3 +337,60 @@ def test_trend_flags_against_the_simulated_truth() -> None:
 
     assert flagged(a, again) == set()  # noise only: nothing flagged
     assert "lateral_deviation_max_mm" in flagged(a, grown)  # +5 mm: flagged
+
+
+def _holed_with_a_part_behind(v: Visit, point: np.ndarray, radius: float, depth: float) -> Visit:
+    """``v`` with a hole of ``radius`` mm in its mesh at ``point`` and a 40 mm square of
+    surface ``depth`` mm behind it (a fold's other side, an arm seen through a gap)."""
+    mesh = v.mesh
+    centres = mesh.vertices[mesh.triangles].mean(axis=1)
+    kept = mesh.triangles[np.linalg.norm(centres - point, axis=1) > radius]
+    normal = mesh.normals[np.argmin(np.linalg.norm(mesh.vertices - point, axis=1))]
+    normal = normal / np.linalg.norm(normal)
+    u = np.cross(normal, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(normal, u)
+    steps = np.linspace(-20.0, 20.0, 21)
+    gu, gw = np.meshgrid(steps, steps)
+    sheet = point - depth * normal + gu.reshape(-1, 1) * u + gw.reshape(-1, 1) * w
+    n = len(steps)
+    tri = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            tri += [(a, b, d), (a, d, c)]
+    off = len(mesh.vertices)
+    holed = MeshRecord(
+        vertices=np.vstack([mesh.vertices, sheet]),
+        triangles=np.vstack([kept, np.asarray(tri, dtype=kept.dtype) + off]),
+        normals=np.vstack([mesh.normals, np.tile(normal, (len(sheet), 1))]),
+    )
+    return dataclasses.replace(v, mesh=holed)
+
+
+def test_the_asymmetry_map_takes_no_value_through_a_hole_of_the_mirror_image() -> None:
+    # A hole on the left of the back, with another part of the surface 25 mm behind it: the
+    # mirror image has the hole on the right, and normals there pass through it.
+    a = first()
+    origin, axes = landmark_frame(a.shape, a.label)
+    vp, dm = a.shape.landmark("VP"), a.shape.landmark("DM")
+    assert vp is not None and dm is not None
+    lower = np.abs(a.mesh.vertices[:, 1] - (vp[1] + 0.8 * (dm[1] - vp[1]))) < 10.0
+    side = (a.mesh.vertices - origin) @ axes[0]
+    left = np.flatnonzero(lower & (np.abs(side + 50.0) < 5.0))
+    assert left.size
+    holed = _holed_with_a_part_behind(a, a.mesh.vertices[left[0]], radius=8.0, depth=25.0)
+    version_2 = dataclasses.replace(THRESHOLDS, through_slack=None)
+    plain = asymmetry_map(a, thresholds=version_2)
+    kept = asymmetry_map(holed, thresholds=version_2)
+    checked = asymmetry_map(holed)
+    n = len(plain.vertices)  # the trunk's own vertices come first, the part behind after
+    np.testing.assert_array_equal(kept.vertices[:n], plain.vertices)
+    # version 2 maps the part behind the hole where the back has its counterpart
+    through = np.abs(kept.distance[:n] - plain.distance) > 10.0
+    assert through.sum() >= 3
+    assert np.isnan(checked.distance[:n][through]).all()
+    # elsewhere version 3 maps the holed back as it maps the back itself (whose own few
+    # through-hole hits, at the outline, it leaves out too)
+    own = asymmetry_map(a).distance
+    np.testing.assert_allclose(checked.distance[:n][~through], own[~through], atol=0.05)

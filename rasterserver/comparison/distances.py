@@ -188,7 +188,9 @@ def asymmetry_fit(
     visit : Visit
         The visit.
     thresholds, margin, limit
-        As for :func:`register` and :func:`distance_map`.
+        As for :func:`register` and :func:`distance_map`; ``thresholds.through_slack``
+        leaves a vertex whose normal passes through a hole of the mirror image without a
+        value (:func:`signed_distances`; asymmetry stage version 3).
 
     Returns
     -------
@@ -255,7 +257,15 @@ def asymmetry_fit(
         normals=mirrored.normals @ transform[:3, :3].T,
     )
     # the distance runs from the back to its mirror; the back lying out of it is the negative
-    distance = -signed_distances(trunk.vertices, trunk.normals, fitted, limit=limit)
+    # a normal passing through a hole of the mirror image (a piece not measured on the other
+    # side) meets another part of it: no counterpart there, as in the distance map
+    distance = -signed_distances(
+        trunk.vertices,
+        trunk.normals,
+        fitted,
+        limit=limit,
+        through_slack=thresholds.through_slack,
+    )
     amap = DistanceMap(
         trunk.vertices, trunk.triangles, trunk.normals, distance, what="asymmetry (mm)"
     )

@@ -80,7 +80,8 @@ class Thresholds:
         The distance map's hit along A's normal that lies more than twice as far as B's
         nearest point and farther by more than this (mm) went through a hole of B's surface
         to another part of it (:func:`~rasterserver.comparison.signed_distances`): not
-        compared. None: every hit kept (version 3).
+        compared. None: every hit kept (comparison version 3). The asymmetry map applies it
+        to the mirror image's holes (asymmetry version 3; None is its version 2).
     """
 
     coarse_distance: float = 20.0
