@@ -53,7 +53,7 @@ from .level_frame import LevelFrame
 from .spinal_midline import line_normals, spinal_midline
 from .symmetry_line import find_symmetry_line
 from .trunk import find_trunk
-from .vp_axis import MAX_OFFSET, check_vertebra_prominens
+from .vp_axis import MAX_IMBALANCE, MAX_OFFSET, check_imbalance, check_vertebra_prominens
 
 __all__ = ["NO_VERTICAL", "BackShapeAnalysis", "analyse_back"]
 
@@ -73,6 +73,7 @@ def analyse_back(
     row_concavities: int = ROW_CONCAVITIES,
     pit_ratio: float | None = PIT_RATIO,
     vp_top_drop: float | None = TOP_DROP,
+    vp_max_imbalance: float | None = MAX_IMBALANCE,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -96,6 +97,9 @@ def analyse_back(
     vp_top_drop : float or None, optional
         VP's candidate at the top of the measured surface is kept when its curvature falls
         below this share of its value above it, inside the surface; None refuses it.
+    vp_max_imbalance : float or None, optional
+        VP farther than this (mm) beside DM is refused (a shoulder's point, not C7); None
+        does not check.
 
     Returns
     -------
@@ -134,6 +138,8 @@ def analyse_back(
             grid, curv, vp, trunk.reference_half_width(), max_offset=vp_axis_offset
         )
     dm = midpoint(grid, curv, dl, dr)
+    if vp_max_imbalance is not None:
+        vp = check_imbalance(vp, dm, max_imbalance=vp_max_imbalance)
     sp = find_sacrum_point(grid, curv, trunk, dl, dr)
     found: dict[str, Landmark] = {lm.name: lm for lm in (vp, dl, dr, dm, sp)}
     for lm in found.values():
@@ -242,7 +248,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    across it: the grooves of clothing edges and folds are no candidates
     # 7: VP's candidate at the top of the measured surface (hair or a shadow ending it just
     #    above C7) is kept when its curvature is seen to fall above it
-    version: ClassVar[str] = "7"
+    # 8: VP is refused when it lies farther beside DM than a trunk imbalance does (a scapula's
+    #    convex point that the axis check of version 4 kept)
+    version: ClassVar[str] = "8"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -287,6 +295,13 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "inside the measured surface, below this share of its value: the maximum is seen "
             "on both sides. null refuses every such candidate (version 6).",
         )
+        vp_max_imbalance: float | None = Field(
+            MAX_IMBALANCE,
+            gt=0.0,
+            description="Largest lateral distance (mm) of VP from DM (the trunk imbalance); "
+            "a convex point farther off is a shoulder's or scapula's and is refused. Raise it "
+            "for a patient this far out of balance. null does not check (version 7).",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
@@ -299,4 +314,5 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             row_concavities=params.row_concavities,
             pit_ratio=params.dimple_pit_ratio,
             vp_top_drop=params.vp_top_drop,
+            vp_max_imbalance=params.vp_max_imbalance,
         )

@@ -28,13 +28,25 @@ from .landmarks import Landmark
 from .level_frame import LevelGrid
 from .symmetry_line import find_symmetry_line
 
-__all__ = ["MAX_OFFSET", "NEAR", "axis_offset", "check_vertebra_prominens"]
+__all__ = [
+    "MAX_IMBALANCE",
+    "MAX_OFFSET",
+    "NEAR",
+    "axis_offset",
+    "check_imbalance",
+    "check_vertebra_prominens",
+]
 
 #: Heights below VP (mm) over which the symmetry axis is compared with VP.
 NEAR = (10.0, 40.0)
 #: Largest lateral distance (mm) of VP from the symmetry axis below it (the shoulders'
 #: points of the clinic tuning scenes: 23 mm and more).
 MAX_OFFSET = 15.0
+#: Largest lateral distance (mm) of VP from DM, the trunk imbalance: the simulated backs and
+#: clinic bodies reach 29 mm; a decompensated scoliosis rarely exceeds 40-50 mm. A shoulder's
+#: or scapula's convex point that the axis check keeps (the centre line pulled off the spine
+#: where hair hides the nape and one side of the upper back is not measured) lay 60 mm off.
+MAX_IMBALANCE = 50.0
 #: Length (mm) of the straight-down line the axis is searched along.
 _DEPTH = 100.0
 
@@ -111,3 +123,37 @@ def check_vertebra_prominens(
             "shadow, or an arm joined to the shoulder?)",
         )
     return vp
+
+
+def check_imbalance(
+    vp: Landmark, dm: Landmark, *, max_imbalance: float = MAX_IMBALANCE
+) -> Landmark:
+    """``vp`` unchanged, or refused when it lies farther beside DM than a trunk imbalance does.
+
+    Parameters
+    ----------
+    vp, dm : Landmark
+        VP and the dimples' midpoint, in level coordinates (``x`` across the body).
+    max_imbalance : float, optional
+        Largest ``|VP.x - DM.x|`` (mm) kept (:data:`MAX_IMBALANCE`).
+
+    Returns
+    -------
+    Landmark
+        ``vp``, or VP refused with the distance in its reason; ``vp`` unchanged when either
+        is missing.
+    """
+    if vp.point is None or dm.point is None:
+        return vp
+    offset = abs(float(vp.point[0] - dm.point[0]))
+    if offset <= max_imbalance:
+        return vp
+    return Landmark(
+        "VP",
+        None,
+        0.0,
+        f"the convex point at the neck's base lies {offset:.0f} mm beside DM, more than a "
+        f"trunk imbalance ({max_imbalance:.0f} mm): a shoulder's or scapula's, not C7 (the nape "
+        "hidden by hair or a shadow?); a patient this far out of balance needs the "
+        "limit raised (analysis parameter vp_max_imbalance)",
+    )

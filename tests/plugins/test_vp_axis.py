@@ -1,5 +1,6 @@
 """VP checked against the symmetry axis below it: a candidate on the spine is kept, a
-shoulder's convex point beside it is refused, an unmeasurable axis decides nothing."""
+shoulder's convex point beside it is refused, an unmeasurable axis decides nothing; and
+against DM: a point farther beside it than a trunk imbalance is refused."""
 
 from __future__ import annotations
 
@@ -7,7 +8,13 @@ import numpy as np
 from rasterserver_plugins.curvature import surface_curvature
 from rasterserver_plugins.landmarks import Landmark
 from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.vp_axis import MAX_OFFSET, axis_offset, check_vertebra_prominens
+from rasterserver_plugins.vp_axis import (
+    MAX_IMBALANCE,
+    MAX_OFFSET,
+    axis_offset,
+    check_imbalance,
+    check_vertebra_prominens,
+)
 
 SPACING = 3.0
 AXIS = 12.0  # the spine's x (mm)
@@ -57,3 +64,17 @@ def test_an_unmeasured_axis_or_a_missing_vp_decides_nothing() -> None:
     assert check_vertebra_prominens(blind, curv, shoulder, 130.0) is shoulder
     missing = Landmark("VP", None, 0.0, "no convex point")
     assert check_vertebra_prominens(blind, curv, missing, 130.0) is missing
+
+
+def test_vp_farther_beside_dm_than_a_trunk_imbalance_is_refused() -> None:
+    dm = Landmark("DM", np.array([4.0, 210.0, 30.0]), 0.9)
+    near = Landmark("VP", np.array([4.0 + 45.0, -230.0, 0.0]), 0.8)
+    assert check_imbalance(near, dm) is near  # 45 mm: a decompensated back, kept
+    far = Landmark("VP", np.array([4.0 - 60.0, -230.0, 0.0]), 1.0)
+    refused = check_imbalance(far, dm)
+    assert refused.point is None and refused.confidence == 0.0
+    assert "60 mm beside DM" in refused.reason and "vp_max_imbalance" in refused.reason
+    assert check_imbalance(far, dm, max_imbalance=70.0) is far  # the limit raised
+    missing = Landmark("DM", None, 0.0, "no dimples")
+    assert check_imbalance(far, missing) is far  # without DM nothing to judge
+    assert MAX_IMBALANCE == 50.0
