@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,19 +238,15 @@ def test_a_scapulas_point_far_beside_dm_is_no_vp() -> None:
     # keeps it), but it lies 60 mm beside DM: no trunk imbalance (version 8).
     from rasterserver.simulator.back_truth import truth
     from rasterserver.simulator.body import clinic_station, make_body, random_body
-    from rasterserver.simulator.render import RenderSettings, render
+    from rasterserver.simulator.render import render
 
     seed = 41394
-    rng = np.random.default_rng([seed, 0xBEEF])
-    settings = RenderSettings(
-        supersampling=1,
-        projector_electrons=float(rng.uniform(15000.0, 45000.0)),
-        ambient_electrons=float(rng.uniform(300.0, 1500.0)),
-        read_noise=float(rng.uniform(8.0, 25.0)),
-        projector_defocus=float(rng.uniform(0.4, 0.9)),
-        camera_blur=float(rng.uniform(0.35, 0.7)),
-        threads=1,
-    )
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "numbering_backs.py"
+    spec = importlib.util.spec_from_file_location("numbering_backs_settings", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    settings = bench._settings(seed).replace(threads=1)
     st = clinic_station(seed, "w8-1to2")
     context = StageContext(calibration=st, raster=st.raster_definition)
     scene = make_body(random_body(seed))
