@@ -45,11 +45,11 @@ from .landmarks import (
     TOP_DROP,
     Landmark,
     find_dimples,
-    find_sacrum_point,
     find_vertebra_prominens,
     midpoint,
 )
 from .level_frame import LevelFrame
+from .sacrum_point import find_sacrum_point
 from .spinal_midline import line_normals, spinal_midline
 from .symmetry_line import find_symmetry_line
 from .trunk import find_trunk

@@ -13,11 +13,11 @@ from rasterserver_plugins.landmarks import (
     _is_pit,
     _Peak,
     find_dimples,
-    find_sacrum_point,
     find_vertebra_prominens,
     midpoint,
 )
 from rasterserver_plugins.level_frame import LevelGrid
+from rasterserver_plugins.sacrum_point import find_sacrum_point
 from rasterserver_plugins.trunk import Trunk, find_trunk
 
 from rasterserver.records_surface import Surface
