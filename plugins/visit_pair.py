@@ -142,7 +142,9 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
     stage = "asymmetry"
     # 3: a vertex whose normal passes through a hole of the mirror image to another part of
     #    it has no value (as the comparison's distance map since its version 4)
-    version = "3"
+    # 4: the mirror fit uses only the trunk seen alike on both sides where the landmarks put
+    #    the plane (mirror_reach), so that it cannot slide into another minimum
+    version = "4"
     input_type = VisitGeometry
     output_type = AsymmetryRecord
 
@@ -167,6 +169,16 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
                 "mirror image: no value there. 0 keeps every hit (version 2)."
             ),
         )
+        mirror_reach: float = Field(
+            THRESHOLDS.mirror_reach or 10.0,
+            ge=0.0,
+            le=50.0,
+            description=(
+                "The mirror fit uses only the trunk points whose mirror image about the "
+                "landmarks' plane lies within this distance (mm) of the measured trunk (seen "
+                "alike on both sides). 0 fits every trunk point (version 3)."
+            ),
+        )
 
     def run(self, data: VisitGeometry, params: Params, context: StageContext) -> AsymmetryRecord:
         """Map the visit's asymmetry; a refusal is a record with its reason."""
@@ -175,5 +187,6 @@ class MirrorIcpAsymmetry(Stage[VisitGeometry, AsymmetryRecord]):
             mirror_distance=params.mirror_distance,
             axis_window=params.axis_window or None,
             through_slack=params.through_slack or None,
+            mirror_reach=params.mirror_reach or None,
         )
         return visit_asymmetry(data, thresholds=thresholds, margin=params.margin)

@@ -13,8 +13,10 @@ from rasterserver.comparison import (
     THRESHOLDS,
     TOP_MARGIN,
     ComparisonRefusedError,
+    Thresholds,
     Visit,
     asymmetry_change,
+    asymmetry_fit,
     asymmetry_map,
     distance_map,
     landmark_frame,
@@ -22,8 +24,10 @@ from rasterserver.comparison import (
     measured_height,
     pair_frames,
     register,
+    submesh,
     trunk_mask,
 )
+from rasterserver.comparison.geometry import rotation_angle
 from rasterserver.comparison_files import colour_limit, write_distance_ply, write_distance_png
 from rasterserver.records_analysis import BackShape
 from rasterserver.records_surface import MeshRecord, Surface
@@ -394,3 +398,46 @@ def test_the_asymmetry_map_takes_no_value_through_a_hole_of_the_mirror_image() -
     # through-hole hits, at the outline, it leaves out too)
     own = asymmetry_map(a).distance
     np.testing.assert_allclose(checked.distance[:n][~through], own[~through], atol=0.05)
+
+
+def _plane(v: Visit, thresholds: Thresholds, across: np.ndarray) -> tuple[float, float]:
+    """Where the mirror fit puts the trunk's centre across the body (mm) and its turn (°)."""
+    amap, transform, _, _ = asymmetry_fit(v, thresholds=thresholds)
+    centre = amap.vertices.mean(axis=0)
+    moved = transform[:3, :3] @ centre + transform[:3, 3] - centre
+    return float(moved @ across), rotation_angle(transform[:3, :3])
+
+
+def test_the_mirror_fit_does_not_slide_onto_an_arm_held_before_one_flank() -> None:
+    # The right flank, from 60 mm out, pushed 15 mm towards the camera (an arm held close
+    # before it): fitted on every trunk point (version 3) the mirror plane slides sideways
+    # onto it; fitted on the trunk seen alike on both sides (version 4) it stays where the
+    # back alone puts it.
+    a = first()
+    origin, axes = landmark_frame(a.shape, a.label)
+    side = (a.mesh.vertices - origin) @ axes[0]
+    push = 15.0 * np.clip((side - 60.0) / 20.0, 0.0, 1.0)
+    armed = dataclasses.replace(
+        a,
+        mesh=MeshRecord(
+            vertices=a.mesh.vertices + push[:, None] * axes[2],
+            triangles=a.mesh.triangles,
+            normals=a.mesh.normals,
+        ),
+    )
+    version_3 = dataclasses.replace(THRESHOLDS, mirror_reach=None)
+    alone = _plane(a, THRESHOLDS, axes[0])
+    fitted = _plane(armed, THRESHOLDS, axes[0])
+    slid = _plane(armed, version_3, axes[0])
+    assert abs(fitted[0] - alone[0]) < 3.0 and abs(fitted[1] - alone[1]) < 1.0
+    assert abs(slid[0] - _plane(a, version_3, axes[0])[0]) > 8.0
+
+
+def test_too_little_trunk_seen_on_both_sides_refuses_the_asymmetry_map() -> None:
+    a = first()
+    origin, axes = landmark_frame(a.shape, a.label)
+    # the left of the back not measured (a whole flank in shadow or behind an arm)
+    keep = (a.mesh.vertices - origin) @ axes[0] > 20.0
+    half = dataclasses.replace(a, mesh=submesh(a.mesh, keep))
+    with pytest.raises(ComparisonRefusedError, match="seen alike on both sides"):
+        asymmetry_fit(half)

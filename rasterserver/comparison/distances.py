@@ -190,7 +190,8 @@ def asymmetry_fit(
     thresholds, margin, limit
         As for :func:`register` and :func:`distance_map`; ``thresholds.through_slack``
         leaves a vertex whose normal passes through a hole of the mirror image without a
-        value (:func:`signed_distances`; asymmetry stage version 3).
+        value (:func:`signed_distances`; asymmetry stage version 3); ``thresholds.mirror_reach``
+        fits only the trunk seen alike on both sides (version 4).
 
     Returns
     -------
@@ -235,6 +236,25 @@ def asymmetry_fit(
     # distance. Least squares, not the robust kernel: with the back's broad asymmetry Tukey's
     # weights keep changing and ICP runs to its iteration limit (4 times slower) for a plane
     # that differs by a few hundredths of a millimetre in the map's median.
+    if thresholds.mirror_reach:
+        from scipy.spatial import cKDTree
+
+        # the inliers are fixed where the landmarks put the plane, so that ICP refines the
+        # plane without trading them for other parts of an asymmetric scene (version 4)
+        gap, _ = cKDTree(trunk.vertices).query(
+            mirror_trunk.vertices, distance_upper_bound=thresholds.mirror_reach
+        )
+        both = np.isfinite(gap)
+        if int(both.sum()) < thresholds.min_points:
+            raise ComparisonRefusedError(
+                f"visit {visit.label or '?'} has too little trunk seen alike on both sides "
+                f"for an asymmetry map ({int(both.sum())} points within "
+                f"{thresholds.mirror_reach:g} mm of their mirror image, at least "
+                f"{thresholds.min_points} needed)"
+            )
+        mirror_fit = submesh(mirror_trunk, both)
+    else:
+        mirror_fit = mirror_trunk
     mirror = replace(
         thresholds,
         coarse_distance=thresholds.mirror_distance,
@@ -242,7 +262,7 @@ def asymmetry_fit(
         robust_scale=None,
     )
     transform, fitness, rmse = icp(
-        mirror_trunk, trunk, np.eye(4), mirror, judge=thresholds.coarse_distance
+        mirror_fit, trunk, np.eye(4), mirror, judge=thresholds.coarse_distance
     )
     turn, shift = rotation_angle(transform[:3, :3]), float(np.linalg.norm(transform[:3, 3]))
     if fitness < thresholds.min_fitness or shift > thresholds.max_shift:

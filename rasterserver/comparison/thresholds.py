@@ -53,6 +53,13 @@ class Thresholds:
         their mean); None: every point.
     mirror_distance : float
         Correspondence distance (mm) of the asymmetry map's mirror fit, both passes.
+    mirror_reach : float or None
+        The mirror fit uses only the trunk points whose mirror image about the landmarks'
+        plane lies within this distance (mm) of the measured trunk: the points seen alike
+        on both sides. Arms held away, a hole on one side or clothing otherwise let the
+        fit slide into another minimum as its inliers change (tuning person 44: the plane
+        turned 5.7° and moved 7 mm between two acquisitions of one back). None: every
+        trunk point (asymmetry version 3).
     displaced_limit : float or None
         Difference (mm) beyond which a region of the distance map reaching the trunk's
         outline is not compared (:func:`~rasterserver.comparison.displaced_regions`: arms,
@@ -94,6 +101,7 @@ class Thresholds:
     robust_scale: float | None = 1.0
     voxel: float | None = 4.0
     mirror_distance: float = 10.0
+    mirror_reach: float | None = 10.0
     displaced_limit: float | None = 15.0
     displaced_slope: float = 0.2
     displaced_margin: float = 20.0
