@@ -25,8 +25,10 @@ trend flags on the noise-only pairs and on the progressions); and here, how ofte
 comparison was refused and why (a visit without a body frame cannot be registered: the
 safe answer), and how many progressions got no answer at all. Every pair is compared with
 the comparison's defaults, with version 1 (every vertex of the connected trunk: columns
-``body_v1``, ``back_v1``) and with version 3 (the distance map's hits through holes of the
-other surface kept: ``body_v3``, ``back_v3``) on the same acquisitions.
+``body_v1``, ``back_v1``), with version 3 (the distance map's hits through holes of the
+other surface kept, and asymmetry version 2: ``body_v3``, ``back_v3``) and with the defaults
+but asymmetry version 3 (the mirror fit on every trunk point: ``body_a3``, ``back_a3``) on
+the same acquisitions.
 
 Per person one JSON line (its scores for both kinds) is appended to ``--out`` once its 18
 acquisitions are done; a rerun resumes, and rows of other analysis or comparison code are
@@ -70,9 +72,10 @@ from _resume import read_rows  # noqa: E402
 
 KINDS = ("body", "back")
 #: The comparison's versions scored on the same acquisitions: the plugin's defaults,
-#: version 1 (every vertex of the connected trunk compared) and version 3 (the distance
-#: map's hits through holes kept).
-VERSIONS = ("", "_v1", "_v3")
+#: version 1 (every vertex of the connected trunk compared), version 3 (the distance
+#: map's hits through holes kept; asymmetry version 2) and the defaults with asymmetry
+#: version 3 (the mirror fit on every trunk point).
+VERSIONS = ("", "_v1", "_v3", "_a3")
 #: Pairs whose registration is counted: the re-pose, the progression in A's dress, the same
 #: posture, and one other visit (another dress).
 PAIRS = ("B", "C", "D", "E")
@@ -206,7 +209,7 @@ def _why(reason: str) -> str:
 
 def thresholds(version: str) -> Any:
     """The comparison's thresholds of ``version`` ("" the defaults, "_v1" version 1,
-    "_v3" version 3)."""
+    "_v3" version 3 with asymmetry version 2, "_a3" the defaults with asymmetry version 3)."""
     from rasterserver.comparison import THRESHOLDS
 
     if version == "_v1":
@@ -214,7 +217,9 @@ def thresholds(version: str) -> Any:
             THRESHOLDS, displaced_limit=None, axis_window=None, partial_frame=False
         )
     if version == "_v3":
-        return dataclasses.replace(THRESHOLDS, through_slack=None)
+        return dataclasses.replace(THRESHOLDS, through_slack=None, mirror_reach=None)
+    if version == "_a3":
+        return dataclasses.replace(THRESHOLDS, mirror_reach=None)
     return THRESHOLDS
 
 
