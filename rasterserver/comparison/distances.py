@@ -229,13 +229,6 @@ def asymmetry_fit(
     mirror_trunk = submesh(
         mirrored, trunk_mask(visit, mesh.vertices, margin=margin, window=thresholds.axis_window)
     )
-    # The landmark plane is within a few millimetres of the plane of best symmetry, so both
-    # passes use mirror_distance, whose cut-off already keeps the most asymmetric parts (a
-    # scoliotic back differs from its mirror image by up to a centimetre or two: that is what
-    # the map shows) out of the fit; for the same reason the fit is judged at the coarse
-    # distance. Least squares, not the robust kernel: with the back's broad asymmetry Tukey's
-    # weights keep changing and ICP runs to its iteration limit (4 times slower) for a plane
-    # that differs by a few hundredths of a millimetre in the map's median.
     if thresholds.mirror_reach:
         from scipy.spatial import cKDTree
 
@@ -245,16 +238,24 @@ def asymmetry_fit(
             mirror_trunk.vertices, distance_upper_bound=thresholds.mirror_reach
         )
         both = np.isfinite(gap)
-        if int(both.sum()) < thresholds.min_points:
+        seen = int(both.sum())
+        if seen < thresholds.min_points:
             raise ComparisonRefusedError(
                 f"visit {visit.label or '?'} has too little trunk seen alike on both sides "
-                f"for an asymmetry map ({int(both.sum())} points within "
+                f"for an asymmetry map ({seen} points within "
                 f"{thresholds.mirror_reach:g} mm of their mirror image, at least "
                 f"{thresholds.min_points} needed)"
             )
         mirror_fit = submesh(mirror_trunk, both)
     else:
         mirror_fit = mirror_trunk
+    # The landmark plane is within a few millimetres of the plane of best symmetry, so both
+    # passes use mirror_distance, whose cut-off already keeps the most asymmetric parts (a
+    # scoliotic back differs from its mirror image by up to a centimetre or two: that is what
+    # the map shows) out of the fit; for the same reason the fit is judged at the coarse
+    # distance. Least squares, not the robust kernel: with the back's broad asymmetry Tukey's
+    # weights keep changing and ICP runs to its iteration limit (4 times slower) for a plane
+    # that differs by a few hundredths of a millimetre in the map's median.
     mirror = replace(
         thresholds,
         coarse_distance=thresholds.mirror_distance,
