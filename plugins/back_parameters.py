@@ -466,5 +466,5 @@ def back_parameters(
         else:
             reasons["asymmetry_rms_mm"] = "too little of the trunk is measured on both sides"
     else:
-        reasons["asymmetry_rms_mm"] = "needs VP, DL and DR (the body frame)"
+        reasons["asymmetry_rms_mm"] = "needs VP, DL, DR and DM (the body frame)"
     return out, points, reasons

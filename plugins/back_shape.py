@@ -41,6 +41,7 @@ from .body_frame import body_frame
 from .curvature import surface_curvature
 from .landmarks import (
     PIT_RATIO,
+    REGION_BELOW,
     ROW_CONCAVITIES,
     TOP_DROP,
     Landmark,
@@ -74,6 +75,7 @@ def analyse_back(
     pit_ratio: float | None = PIT_RATIO,
     vp_top_drop: float | None = TOP_DROP,
     vp_max_imbalance: float | None = MAX_IMBALANCE,
+    vp_region_below: float = REGION_BELOW,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -100,6 +102,8 @@ def analyse_back(
     vp_max_imbalance : float or None, optional
         VP farther than this (mm) beside DM is refused (a shoulder's point, not C7); None
         does not check.
+    vp_region_below : float, optional
+        How far (in trunk half-widths) VP's search region reaches below the neck line.
 
     Returns
     -------
@@ -127,7 +131,7 @@ def analyse_back(
         )
 
     reasons: dict[str, str] = {}
-    vp = find_vertebra_prominens(grid, curv, trunk, top_drop=vp_top_drop)
+    vp = find_vertebra_prominens(grid, curv, trunk, top_drop=vp_top_drop, below=vp_region_below)
     # the candidate's height starts the dimples' search even when it is refused below: a
     # shoulder's convex point lies about as high as C7
     dl, dr = find_dimples(
@@ -147,12 +151,17 @@ def analyse_back(
             reasons[lm.name] = lm.reason
 
     frame = None
-    if vp.point is not None and dl.point is not None and dr.point is not None:
+    if (
+        vp.point is not None
+        and dl.point is not None
+        and dr.point is not None
+        and dm.point is not None
+    ):
         frame = body_frame(vp.point, dl.point, dr.point, dm.point)
         if frame is None:
             reasons["frame"] = "VP, DL and DR are degenerate (in line)"
     else:
-        reasons["frame"] = "needs VP, DL and DR"
+        reasons["frame"] = "needs VP, DL, DR and DM"
 
     line = midline = None
     top, bottom = vp.point, dm.point
@@ -250,7 +259,10 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    above C7) is kept when its curvature is seen to fall above it
     # 8: VP is refused when it lies farther beside DM than a trunk imbalance does (a scapula's
     #    convex point that the axis check of version 4 kept)
-    version: ClassVar[str] = "8"
+    # 9: VP's search region ends 0.45 trunk half-widths below the neck line, not 0.7 (a
+    #    convex point of the upper back below a shadowed nape is no candidate); DM is refused
+    #    where the skin between the dimples is not measured (version 8 failed there)
+    version: ClassVar[str] = "9"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -302,6 +314,13 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "a convex point farther off is a shoulder's or scapula's and is refused. Raise it "
             "for a patient this far out of balance. null does not check (version 7).",
         )
+        vp_region_below: float = Field(
+            REGION_BELOW,
+            gt=0.0,
+            le=1.5,
+            description="How far VP's search region reaches below the neck line (where the "
+            "neck widens into the shoulders), in trunk half-widths. 0.7 is version 8.",
+        )
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
@@ -315,4 +334,5 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             pit_ratio=params.dimple_pit_ratio,
             vp_top_drop=params.vp_top_drop,
             vp_max_imbalance=params.vp_max_imbalance,
+            vp_region_below=params.vp_region_below,
         )

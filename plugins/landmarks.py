@@ -57,6 +57,10 @@ MIN_LANDMARK_CURVATURE = 0.003
 #: Smallest mean curvature (1/mm) of a vertebra prominens (0.023 to 0.04 on the simulated
 #: backs).
 MIN_VP_CURVATURE = 0.008
+#: Least concavity (1/mm, −H) of the weaker dimple of the chosen pair. The dimples found
+#: on the clinic tuning scenes (0-299, bodies and backs alone) have 0.0074/mm and more
+#: (median 0.025); a pair of shallow pits above a lower back cut off by the image had 0.004.
+MIN_DIMPLE_CURVATURE = 0.005
 #: A runner-up this close (ratio of curvatures) to the best candidate makes the choice
 #: ambiguous: the landmark is refused.
 AMBIGUOUS_RATIO = 0.85
@@ -91,11 +95,28 @@ MIN_BALANCE = 0.4
 #: up its column and within the measured surface, below this share of its value: a maximum
 #: seen on both sides, not a rise into the edge (where hair or a shadow cuts the nape off).
 TOP_DROP = 0.9
+#: How far (in trunk half-widths W) VP's search region reaches below the neck line. The VPs
+#: found on the clinic tuning bodies lie from 0.20 W above to 0.28 W below it; the convex
+#: points of the upper back that a shadowed nape let win lay 0.66-0.68 W below it (0.7 W
+#: until analysis version 8).
+REGION_BELOW = 0.45
 #: Why a landmark next to an unmeasured cell is refused: its curvature extreme may be an
 #: artefact of the one-sided fits at the hole's rim, and the true one inside the hole.
 HOLE_REASON = (
     "a hole in the measured surface lies next to it (lost raster line pieces, a shadow): "
     "its position cannot be trusted"
+)
+#: Why DM is refused where the skin midway between the dimples is not measured.
+DM_HOLE_REASON = (
+    "the skin midway between the dimples is not measured (a hand, a shadow or lost raster "
+    "line pieces there): DM cannot be placed"
+)
+#: Why the dimples are refused where the skin midway between them is not measured: the
+#: lumbar spine lies there; two pits on either side of a hole (the gluteal cleft, a hand)
+#: may be the buttocks' (fresh held-out clinic scene 42596).
+BETWEEN_HOLE_REASON = (
+    "the skin midway between the pair of concavities is not measured (a hand, a shadow or "
+    "the gluteal cleft between them?): they are not to be trusted as the lumbar dimples"
 )
 #: Least share of a candidate's curvature window that must be measured: below it the fit
 #: extrapolates over a border or a hole, where curvature extremes are artefacts.
@@ -199,12 +220,17 @@ def _centre_cols(trunk: Trunk) -> np.ndarray:
 
 
 def find_vertebra_prominens(
-    grid: LevelGrid, curv: Curvature, trunk: Trunk, *, top_drop: float | None = TOP_DROP
+    grid: LevelGrid,
+    curv: Curvature,
+    trunk: Trunk,
+    *,
+    top_drop: float | None = TOP_DROP,
+    below: float = REGION_BELOW,
 ) -> Landmark:
     """The vertebra prominens: the convex maximum at the cervico-thoracic junction.
 
     Search region (derived from the trunk, ``W`` its median half-width): rows from
-    ``0.25 W`` above to ``0.7 W`` below the *neck line*, the first row from the top where
+    ``0.25 W`` above to ``below`` × ``W`` below the *neck line*, the first row from the top where
     the trunk is wider than ``0.6 W`` (the neck widening into the shoulders); columns within
     ``0.25 W`` of the trunk's centre line.
 
@@ -221,6 +247,9 @@ def find_vertebra_prominens(
         hole above it, is kept when its mean curvature falls up its column, inside the
         measured surface, below this share of its value (:data:`TOP_DROP`); None refuses
         every such candidate (analysis version 6).
+    below : float, optional
+        How far the search region reaches below the neck line, in ``W``
+        (:data:`REGION_BELOW`; 0.7 until analysis version 8).
 
     Returns
     -------
@@ -236,7 +265,7 @@ def find_vertebra_prominens(
     wide = rows[hw[rows] >= 0.6 * w]
     neck = int(wide[0]) if wide.size else trunk.top
     r0 = max(trunk.top, neck - round(0.25 * w / s))
-    r1 = min(trunk.bottom, neck + round(0.7 * w / s))
+    r1 = min(trunk.bottom, neck + round(below * w / s))
     centre = _centre_cols(trunk)
     region = _band(grid.shape, centre, r0, r1, 0.0, 0.25 * w / s)
     h = curv.mean
@@ -371,7 +400,10 @@ def find_dimples(
     within ``0.3 W`` of the centre line), :data:`DIMPLE_DISTANCE` apart (which keeps the
     midline furrow, a string of concave points, out of the pairs) and of comparable depth
     (the weaker at least a quarter of the stronger); the pair with the largest summed
-    concavity wins, unless another pair comes within :data:`AMBIGUOUS_RATIO` of it.
+    concavity wins, unless another pair comes within :data:`AMBIGUOUS_RATIO` of it. The
+    winner is refused where the skin midway between its dimples, DM's place, is not
+    measured (:data:`BETWEEN_HOLE_REASON`): a pair across a hole is not to be trusted, and
+    dropping it for the next pair could unmask a wrong one.
 
     Parameters
     ----------
@@ -473,6 +505,13 @@ def find_dimples(
             "edge of clothing, not dimples?)"
         )
         return _missing("DL", reason), _missing("DR", reason)
+    if min(pl.value, pr.value) < MIN_DIMPLE_CURVATURE:
+        reason = (
+            "the best pair of concavities in the lower back is too shallow to be the dimples "
+            f"(weaker {min(pl.value, pr.value):.4f}/mm, at least {MIN_DIMPLE_CURVATURE}/mm): "
+            "dimples not in view, covered or not measured?" + hint
+        )
+        return _missing("DL", reason), _missing("DR", reason)
     below = (trunk.bottom - max(pl.row, pr.row)) * s
     if below < 2.0 * curv.sigma:
         reason = "the dimples lie at the bottom edge of the measured surface (image cropped)"
@@ -480,6 +519,10 @@ def find_dimples(
     refined = [_refine(concave, peak) for peak in (pl, pr)]
     if any(_next_to_hole(grid, row, col, curv.sigma) for row, col in refined):
         return _missing("DL", HOLE_REASON), _missing("DR", HOLE_REASON)
+    (row_l, col_l), (row_r, col_r) = refined
+    between = _surface_point(grid, curv, 0.5 * (row_l + row_r), 0.5 * (col_l + col_r))
+    if not np.all(np.isfinite(between)):
+        return _missing("DL", BETWEEN_HOLE_REASON), _missing("DR", BETWEEN_HOLE_REASON)
     out = []
     for name, peak, (row, col) in zip(("DL", "DR"), (pl, pr), refined, strict=True):
         point = _surface_point(grid, curv, row, col)
@@ -550,4 +593,8 @@ def midpoint(grid: LevelGrid, curv: Curvature, dl: Landmark, dr: Landmark) -> La
         return _missing("DM", "needs both lumbar dimples")
     mid = 0.5 * (dl.point + dr.point)
     row, col = float(grid.row_of(mid[1])), float(grid.col_of(mid[0]))
-    return Landmark("DM", _surface_point(grid, curv, row, col), min(dl.confidence, dr.confidence))
+    point = _surface_point(grid, curv, row, col)
+    if not np.all(np.isfinite(point)):
+        # a hole too wide for the curvature fit to bridge: the skin's depth there is unknown
+        return _missing("DM", DM_HOLE_REASON)
+    return Landmark("DM", point, min(dl.confidence, dr.confidence))

@@ -16,7 +16,7 @@ Coordinates are millimetres, in one of two frames (:class:`ExportFrame`):
 * ``patient``: the body-fixed frame of the acquisition's back-shape analysis (origin DM, the
   midpoint of the lumbar dimples; X transverse towards the patient's right along DL→DR, Y up
   along DM→VP, Z posterior, right-handed; ``docs/analysis.md``), the frame in which visits are
-  compared. It needs VP, DL and DR; an acquisition without them is refused with the reason.
+  compared. It needs VP, DL, DR and DM; an acquisition without them is refused with the reason.
 
 Every file written by ``rasterserver export`` gets a sidecar ``<file>.json`` naming the
 acquisition, the stored result, the frame with its origin and axes, and the units.
@@ -212,10 +212,10 @@ def _in_patient_frame(pipeline: Pipeline, chosen: StoredExport) -> StoredExport:
         )
     origin, axes = np.asarray(shape.frame_origin), np.asarray(shape.frame_axes)
     if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
-        missing = {k: v for k, v in shape.reason_table().items() if k in ("VP", "DL", "DR")}
+        missing = {k: v for k, v in shape.reason_table().items() if k in ("VP", "DL", "DR", "DM")}
         why = "; ".join(f"{k}: {v}" for k, v in missing.items()) or shape.reason or "not found"
         raise InputError(
-            f"acquisition {chosen.uid} has no body-fixed frame (it needs VP, DL and DR): {why}"
+            f"acquisition {chosen.uid} has no body-fixed frame (it needs VP, DL, DR and DM): {why}"
         )
     return dataclasses.replace(
         chosen,

@@ -32,7 +32,7 @@ def landmark_frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray
     """Origin and axes of a visit's body frame; refused when its landmarks are missing."""
     origin, axes = shape.frame_origin, shape.frame_axes
     if shape.reason or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
-        missing = [n for n in ("VP", "DL", "DR") if shape.landmark(n) is None]
+        missing = [n for n in ("VP", "DL", "DR", "DM") if shape.landmark(n) is None]
         why = shape.reason or (
             f"landmark {', '.join(missing)} not found" if missing else "degenerate landmarks"
         )

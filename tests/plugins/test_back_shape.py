@@ -145,21 +145,22 @@ def test_gravity_defines_the_vertical() -> None:
     assert abs(naive["trunk_imbalance_mm"]["value"] - p["trunk_imbalance_mm"]["value"]) > 20.0
 
 
-def test_the_checks_of_versions_4_to_8_are_parameters_that_switch_them_off() -> None:
+def test_the_checks_of_versions_4_to_9_are_parameters_that_switch_them_off() -> None:
     from rasterserver_plugins.back_shape import BackShapeAnalysis
 
     default = BackShapeAnalysis.Params()
     assert default.vp_axis_offset == 15.0 and default.row_concavities == 3
     assert default.dimple_pit_ratio == 0.15 and default.vp_top_drop == 0.9
-    assert default.vp_max_imbalance == 50.0
+    assert default.vp_max_imbalance == 50.0 and default.vp_region_below == 0.45
     old = BackShapeAnalysis.Params(
         vp_axis_offset=0.0,
         row_concavities=0,
         dimple_pit_ratio=None,
         vp_top_drop=None,
         vp_max_imbalance=None,
+        vp_region_below=0.7,
     )
-    assert old.vp_max_imbalance is None
+    assert old.vp_max_imbalance is None and old.vp_region_below == 0.7
     assert old.vp_axis_offset == 0.0 and old.row_concavities == 0  # version 3
     assert old.dimple_pit_ratio is None and old.vp_top_drop is None
     bads = (
@@ -170,6 +171,8 @@ def test_the_checks_of_versions_4_to_8_are_parameters_that_switch_them_off() -> 
         {"vp_top_drop": 0.0},
         {"vp_top_drop": 1.0},
         {"vp_max_imbalance": 0.0},
+        {"vp_region_below": 0.0},
+        {"vp_region_below": 2.0},
     )
     for bad in bads:
         with pytest.raises(ValueError):
@@ -206,28 +209,28 @@ def test_a_waistband_groove_no_longer_hides_the_dimples_of_a_clinic_scene() -> N
 
 
 def test_vp_just_below_the_hair_of_a_clinic_scene_is_found() -> None:
-    # Clinic tuning scene 144 (hair down to just above C7): the measured surface ends a few
-    # millimetres above VP, whose convex maximum is seen on both sides; version 6 refused
-    # every candidate that close to the top, version 7 keeps it.
+    # Clinic tuning scene 24 (kept frame; hair down to just above C7): the measured surface
+    # ends a few millimetres above VP, whose convex maximum is seen on both sides; version 6
+    # refused every candidate that close to the top, version 7 keeps it. (Scene 144 showed
+    # it on the AMD EPYC this test was written on, not on an Intel Xeon: the renderer's
+    # frames differ in their last bits between processors, so the frame is kept.)
     from rasterserver.simulator.back_truth import truth
     from rasterserver.simulator.body import clinic_station, make_body, random_body
-    from rasterserver.simulator.render import RenderSettings, render
 
-    st = clinic_station(144)
+    kept = np.load(Path(__file__).parents[1] / "data" / "scenes" / "body-24.npz")
+    st = clinic_station(24, str(kept["code"]))
     context = StageContext(calibration=st, raster=st.raster_definition)
-    scene = make_body(random_body(144))
-    settings = RenderSettings(supersampling=1, threads=1)
-    image = render(scene, st, settings=settings, seed=144).image
-    surface = run_chain(image, context=context, until="surface")["surface"]
-    old = run_chain(
-        surface, context=context, until="analysis", params={"analysis": {"vp_top_drop": None}}
-    )["analysis"]
+    surface = run_chain(kept["image"], context=context, until="surface")["surface"]
+    version6 = {"vp_top_drop": None, "vp_region_below": 0.7}
+    old = run_chain(surface, context=context, until="analysis", params={"analysis": version6})[
+        "analysis"
+    ]
     assert old.landmark("VP") is None
     assert "top of the measured surface" in old.reason_table()["VP"]
     new = run_chain(surface, context=context, until="analysis")["analysis"]
     point = new.landmark("VP")
     assert point is not None, new.reason_table().get("VP")
-    assert np.linalg.norm(point - truth(scene)["landmarks"]["VP"]) < 3.0
+    assert np.linalg.norm(point - truth(make_body(random_body(24)))["landmarks"]["VP"]) < 3.0
 
 
 def test_a_scapulas_point_far_beside_dm_is_no_vp() -> None:
@@ -262,3 +265,26 @@ def test_a_scapulas_point_far_beside_dm_is_no_vp() -> None:
     assert new.landmark("VP") is None
     assert "beside DM" in new.reason_table()["VP"]
     assert new.landmark("DM") is not None  # the rest of the analysis stands
+
+
+def test_dimples_across_a_hole_are_refused_and_dm_is_never_placed_in_one() -> None:
+    # Fresh held-out clinic scene 42596 (benchmarks/clinic_analysis.py, kept frame; hands on
+    # the hips, a waistband): two pits of the buttocks, 10 cm below the dimples, outscored
+    # them with the skin midway between them unmeasured; DM there had no depth and version 8
+    # failed on it. Version 9 refuses such a pair with its reason, and keeps the rest.
+    from rasterserver.simulator.back_truth import truth
+    from rasterserver.simulator.body import clinic_station, make_body, random_body
+
+    kept = np.load(Path(__file__).parents[1] / "data" / "scenes" / "body-42596.npz")
+    st = clinic_station(42596, str(kept["code"]))
+    context = StageContext(calibration=st, raster=st.raster_definition)
+    shape = run_chain(kept["image"], context=context, until="analysis")["analysis"]
+    assert isinstance(shape, BackShape) and shape.reason == ""
+    reasons = shape.reason_table()
+    for name in ("DL", "DR", "DM"):
+        assert shape.landmark(name) is None and name in reasons
+    assert "midway between the pair" in reasons["DL"]
+    assert reasons["frame"] == "needs VP, DL, DR and DM"
+    point = shape.landmark("VP")
+    assert point is not None
+    assert np.linalg.norm(point - truth(make_body(random_body(42596)))["landmarks"]["VP"]) < 3

@@ -7,6 +7,8 @@ import pytest
 from back_surfaces import back, with_z
 from rasterserver_plugins.curvature import Curvature, surface_curvature
 from rasterserver_plugins.landmarks import (
+    BETWEEN_HOLE_REASON,
+    DM_HOLE_REASON,
     PIT_RATIO,
     TOP_DROP,
     Landmark,
@@ -118,6 +120,49 @@ def test_vp_cut_through_its_bump_stays_refused(cut: float) -> None:
     for name in ("normal", "moderate", "severe"):
         lm, _ = _vp_cut_above(name, cut, TOP_DROP)
         assert not lm.found and lm.reason
+
+
+def test_a_convex_point_of_the_upper_back_below_the_neck_is_no_vp() -> None:
+    # A convex bump on the spine 0.6 trunk half-widths below the neck line, stronger than C7
+    # (where hair or the head's shadow hides the nape, the upper back's convex point wins):
+    # the search region reaching 0.7 W below the neck line (version 8) took it for VP.
+    surface, truth = back("normal")
+    vp = truth["landmarks"]["VP"]
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, surface.z)
+    trunk = find_trunk(grid.z, grid.spacing)
+    w, s = trunk.reference_half_width(), grid.spacing
+    rows = np.arange(trunk.top, trunk.bottom + 1)
+    neck = int(rows[trunk.half_width[rows] >= 0.6 * w][0])
+    assert abs(grid.row_of(vp[1]) - neck) * s < 0.28 * w  # C7 near the neck line
+    xs, ys = surface.coordinates()
+    y = grid.y_of(neck + 0.6 * w / s)
+    bump = 8.0 * np.exp(-((xs[None, :] - vp[0]) ** 2 + (ys[:, None] - y) ** 2) / (2 * 8.0**2))
+    grid = LevelGrid(grid.x0, grid.y0, s, grid.z - bump)
+    curv, trunk = surface_curvature(grid.z, s, sigma=5.0), find_trunk(grid.z, s)
+    old = find_vertebra_prominens(grid, curv, trunk, below=0.7)
+    assert old.point is not None and abs(old.point[1] - y) < 5.0
+    new = find_vertebra_prominens(grid, curv, trunk)
+    assert new.point is not None and float(np.linalg.norm(new.point - vp)) < 2.0
+
+
+def test_dm_in_a_hole_is_refused_not_given_without_depth() -> None:
+    # The skin midway between the dimples unmeasured over 40 mm: no depth to give DM.
+    surface, truth = back("normal")
+    xs, ys = surface.coordinates()
+    dm = truth["landmarks"]["DM"]
+    keep = (xs[None, :] - dm[0]) ** 2 + (ys[:, None] - dm[1]) ** 2 > 20.0**2
+    grid = LevelGrid(surface.x0, surface.y0, surface.spacing, np.where(keep, surface.z, np.nan))
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    dl = Landmark("DL", truth["landmarks"]["DL"], 1.0)
+    dr = Landmark("DR", truth["landmarks"]["DR"], 1.0)
+    found = midpoint(grid, curv, dl, dr)
+    assert not found.found and found.point is None and found.reason == DM_HOLE_REASON
+    # and the dimples on either side of the hole are refused, not paired across it
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    left, right = find_dimples(grid, curv, trunk, vp)
+    assert not left.found and not right.found
+    assert left.reason == right.reason == BETWEEN_HOLE_REASON
 
 
 def test_sacrum_point_refused_when_the_cleft_is_not_in_view() -> None:
