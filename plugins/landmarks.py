@@ -202,6 +202,13 @@ def _surface_point(grid: LevelGrid, curv: Curvature, row: float, col: float) -> 
     return point
 
 
+def _measured_point(grid: LevelGrid, curv: Curvature, row: float, col: float) -> np.ndarray | None:
+    """:func:`_surface_point`, or None inside a hole too wide for the curvature fit to
+    bridge (the skin's depth there is unknown)."""
+    point = _surface_point(grid, curv, row, col)
+    return point if np.all(np.isfinite(point)) else None
+
+
 def _confidence(value: float, runner_up: float, minimum: float) -> float:
     strength = min(1.0, value / (2.0 * minimum))
     distinct = min(1.0, max(0.0, 1.0 - runner_up / value) / 0.5) if value > 0 else 0.0
@@ -520,8 +527,7 @@ def find_dimples(
     if any(_next_to_hole(grid, row, col, curv.sigma) for row, col in refined):
         return _missing("DL", HOLE_REASON), _missing("DR", HOLE_REASON)
     (row_l, col_l), (row_r, col_r) = refined
-    between = _surface_point(grid, curv, 0.5 * (row_l + row_r), 0.5 * (col_l + col_r))
-    if not np.all(np.isfinite(between)):
+    if _measured_point(grid, curv, 0.5 * (row_l + row_r), 0.5 * (col_l + col_r)) is None:
         return _missing("DL", BETWEEN_HOLE_REASON), _missing("DR", BETWEEN_HOLE_REASON)
     out = []
     for name, peak, (row, col) in zip(("DL", "DR"), (pl, pr), refined, strict=True):
@@ -593,8 +599,7 @@ def midpoint(grid: LevelGrid, curv: Curvature, dl: Landmark, dr: Landmark) -> La
         return _missing("DM", "needs both lumbar dimples")
     mid = 0.5 * (dl.point + dr.point)
     row, col = float(grid.row_of(mid[1])), float(grid.col_of(mid[0]))
-    point = _surface_point(grid, curv, row, col)
-    if not np.all(np.isfinite(point)):
-        # a hole too wide for the curvature fit to bridge: the skin's depth there is unknown
+    point = _measured_point(grid, curv, row, col)
+    if point is None:
         return _missing("DM", DM_HOLE_REASON)
     return Landmark("DM", point, min(dl.confidence, dr.confidence))

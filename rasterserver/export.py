@@ -199,7 +199,7 @@ def select_export(
 
 def _in_patient_frame(pipeline: Pipeline, chosen: StoredExport) -> StoredExport:
     """``chosen`` moved into the body-fixed frame of its frame's newest analysis."""
-    from rasterserver.records_analysis import BackShape
+    from rasterserver.records_analysis import FRAME_LANDMARKS, BackShape
 
     a_row, shape = pipeline.result(chosen.uid, "analysis")
     if not isinstance(shape, BackShape):
@@ -212,7 +212,7 @@ def _in_patient_frame(pipeline: Pipeline, chosen: StoredExport) -> StoredExport:
         )
     origin, axes = np.asarray(shape.frame_origin), np.asarray(shape.frame_axes)
     if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
-        missing = {k: v for k, v in shape.reason_table().items() if k in ("VP", "DL", "DR", "DM")}
+        missing = {k: v for k, v in shape.reason_table().items() if k in FRAME_LANDMARKS}
         why = "; ".join(f"{k}: {v}" for k, v in missing.items()) or shape.reason or "not found"
         raise InputError(
             f"acquisition {chosen.uid} has no body-fixed frame (it needs VP, DL, DR and DM): {why}"

@@ -21,11 +21,14 @@ import numpy as np
 from rasterserver.errors import InputError
 from rasterserver.records import Record
 
-__all__ = ["LANDMARKS", "SAGITTAL_POINTS", "BackShape", "combine", "landmark_in"]
+__all__ = ["FRAME_LANDMARKS", "LANDMARKS", "SAGITTAL_POINTS", "BackShape", "combine", "landmark_in"]
 
 LANDMARKS: tuple[str, ...] = ("VP", "DL", "DR", "DM", "SP")
 """Landmark order in :attr:`BackShape.landmarks`: vertebra prominens, left and right lumbar
 dimple, their midpoint, sacrum point (top of the rima ani)."""
+
+FRAME_LANDMARKS: tuple[str, ...] = LANDMARKS[:4]
+"""The landmarks the body-fixed frame is built from (origin DM, axes from VP, DL → DR)."""
 
 SAGITTAL_POINTS: tuple[str, ...] = ("ICT", "KA", "ITL", "LA", "ILS")
 """Order in :attr:`BackShape.sagittal_points`: the inflection points of the symmetry line's

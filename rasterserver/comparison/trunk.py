@@ -9,7 +9,7 @@ import numpy as np
 
 from rasterserver.comparison.thresholds import AXIS_WINDOW, EDGE_MARGIN, ComparisonRefusedError
 from rasterserver.comparison.visits import BodyFrame, Visit
-from rasterserver.records_analysis import BackShape
+from rasterserver.records_analysis import FRAME_LANDMARKS, BackShape
 from rasterserver.records_surface import MeshRecord, Surface
 
 #: Below the measured trunk's top (or its neck) the compared trunk of two visits without VP
@@ -32,7 +32,7 @@ def landmark_frame(shape: BackShape | BodyFrame, label: str) -> tuple[np.ndarray
     """Origin and axes of a visit's body frame; refused when its landmarks are missing."""
     origin, axes = shape.frame_origin, shape.frame_axes
     if shape.reason or not (np.all(np.isfinite(origin)) and np.all(np.isfinite(axes))):
-        missing = [n for n in ("VP", "DL", "DR", "DM") if shape.landmark(n) is None]
+        missing = [n for n in FRAME_LANDMARKS if shape.landmark(n) is None]
         why = shape.reason or (
             f"landmark {', '.join(missing)} not found" if missing else "degenerate landmarks"
         )
