@@ -27,10 +27,10 @@ Definitions, units and signs: ``docs/analysis.md``. Tuned on simulated backs (pr
 from __future__ import annotations
 
 import json
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, SerializerFunctionWrapHandler, model_serializer
 
 from rasterserver.records_analysis import LANDMARKS, SAGITTAL_POINTS, BackShape
 from rasterserver.records_surface import Surface
@@ -45,6 +45,7 @@ from .landmarks import (
     ROW_CONCAVITIES,
     TOP_DROP,
     Landmark,
+    carried_landmark,
     find_dimples,
     find_vertebra_prominens,
     midpoint,
@@ -56,12 +57,34 @@ from .symmetry_line import find_symmetry_line
 from .trunk import find_trunk
 from .vp_axis import MAX_IMBALANCE, MAX_OFFSET, check_imbalance, check_vertebra_prominens
 
-__all__ = ["NO_VERTICAL", "BackShapeAnalysis", "analyse_back"]
+__all__ = ["CARRIED", "NO_VERTICAL", "VP_POSITION", "BackShapeAnalysis", "analyse_back"]
 
 #: The reason of an analysis refused for want of gravity in the calibration.
 NO_VERTICAL = (
     "the calibration has no vertical (gravity): clinical heights, inclinations and "
     "horizontal profiles cannot be defined; add the gravity direction to the calibration"
+)
+
+
+#: The reason given for what a VP carried from another visit does not measure.
+CARRIED = (
+    "VP was carried from another visit through their registration: what measures VP's own "
+    "position (trunk length, inclination and imbalance, the sagittal profile, the body frame) "
+    "is not measured"
+)
+
+#: Parameters that measure VP's own position, not given with a carried VP.
+VP_POSITION = (
+    "trunk_length",
+    "trunk_inclination_mm",
+    "trunk_inclination_deg",
+    "trunk_imbalance_mm",
+    "trunk_imbalance_deg",
+    "kyphotic_angle_deg",
+    "lordotic_angle_deg",
+    "fleche_cervicale_mm",
+    "fleche_lombaire_mm",
+    "asymmetry_rms_mm",
 )
 
 
@@ -76,6 +99,7 @@ def analyse_back(
     vp_top_drop: float | None = TOP_DROP,
     vp_max_imbalance: float | None = MAX_IMBALANCE,
     vp_region_below: float = REGION_BELOW,
+    vp_carried: np.ndarray | None = None,
 ) -> BackShape:
     """Analyse one smoothed surface.
 
@@ -104,6 +128,10 @@ def analyse_back(
         does not check.
     vp_region_below : float, optional
         How far (in trunk half-widths) VP's search region reaches below the neck line.
+    vp_carried : numpy.ndarray or None, optional
+        ``(3,)`` world position of VP carried from another visit of the patient through their
+        registration (:func:`rasterserver.comparison.carry_vp`), used only where this
+        surface's own VP is refused; its depth is read from the surface where measured.
 
     Returns
     -------
@@ -144,6 +172,9 @@ def analyse_back(
     dm = midpoint(grid, curv, dl, dr)
     if vp_max_imbalance is not None:
         vp = check_imbalance(vp, dm, max_imbalance=vp_max_imbalance)
+    carried = vp_carried is not None and not vp.found
+    if carried:
+        vp = carried_landmark(grid, curv, level.to_level(np.asarray(vp_carried, dtype=float)))
     sp = find_sacrum_point(grid, curv, trunk, dl, dr)
     found: dict[str, Landmark] = {lm.name: lm for lm in (vp, dl, dr, dm, sp)}
     for lm in found.values():
@@ -151,7 +182,9 @@ def analyse_back(
             reasons[lm.name] = lm.reason
 
     frame = None
-    if (
+    if carried:
+        reasons["frame"] = CARRIED
+    elif (
         vp.point is not None
         and dl.point is not None
         and dr.point is not None
@@ -187,6 +220,11 @@ def analyse_back(
         None if frame is None else frame[1][0],
     )
     reasons.update(why)
+    if carried:  # what measures VP's own position is not measured by a carried VP
+        for name in VP_POSITION:
+            values.pop(name, None)
+            reasons[name] = CARRIED
+        sagittal = {}
     parameters = {
         name: {"value": float(values[name]), "unit": unit, "spread": None}
         for name, unit in PARAMETER_UNITS.items()
@@ -321,6 +359,22 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             description="How far VP's search region reaches below the neck line (where the "
             "neck widens into the shoulders), in trunk half-widths. 0.7 is version 8.",
         )
+        vp_carried: tuple[float, float, float] | None = Field(
+            None,
+            description="World position (mm) of VP carried from another visit of the patient "
+            "through their registration (the comparison of visits sets it); used only when "
+            "this acquisition's own VP is refused, and then only for the symmetry line and "
+            "what is measured along it. null: none.",
+        )
+
+        @model_serializer(mode="wrap")
+        def _without_unset_carry(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+            # Without a carried VP the parameters serialise (and hash) as before the field
+            # existed: the archive's stored analyses stay current.
+            data = handler(self)
+            if data.get("vp_carried") is None:
+                data.pop("vp_carried", None)
+            return data
 
     def run(self, data: Surface, params: Params, context: StageContext) -> BackShape:
         """Analyse ``data`` with the vertical of ``context.calibration``."""
@@ -335,4 +389,5 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             vp_top_drop=params.vp_top_drop,
             vp_max_imbalance=params.vp_max_imbalance,
             vp_region_below=params.vp_region_below,
+            vp_carried=None if params.vp_carried is None else np.asarray(params.vp_carried),
         )

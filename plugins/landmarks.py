@@ -603,3 +603,12 @@ def midpoint(grid: LevelGrid, curv: Curvature, dl: Landmark, dr: Landmark) -> La
     if point is None:
         return _missing("DM", DM_HOLE_REASON)
     return Landmark("DM", point, min(dl.confidence, dr.confidence))
+
+
+def carried_landmark(grid: LevelGrid, curv: Curvature, point: np.ndarray) -> Landmark:
+    """VP carried from another visit (``point``, level mm): on this surface where it is
+    measured there (its depth is read), as carried where hair or a shadow hides it."""
+    row, col = float(grid.row_of(point[1])), float(grid.col_of(point[0]))
+    inside = 0 <= round(row) < grid.shape[0] and 0 <= round(col) < grid.shape[1]
+    measured = _measured_point(grid, curv, row, col) if inside else None
+    return Landmark("VP", point.copy() if measured is None else measured, 0.5)

@@ -91,8 +91,10 @@ def write_report(
     pairs: list[dict[str, Any]],
     table: list[dict[str, Any]],
     asymmetry: dict[str, Any],
+    carried: dict[str, Any] | None = None,
 ) -> None:
-    """``report.html`` in ``folder``: the timeline, the frames, the trends and the maps."""
+    """``report.html`` in ``folder``: the timeline, the frames, the trends and the maps
+    (``carried``: :func:`rasterserver.carried_analysis.carried_parameters`)."""
     e = html.escape
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>Comparison of visits</title>",
@@ -107,6 +109,11 @@ def write_report(
     ]
     for k, v in enumerate(visits):
         state = "analysed" if v.visit is not None else e(v.reason)
+        got = (carried or {}).get(v.uid, {})
+        if "from" in got:
+            state += f"; VP carried from {e(got['from'])}"
+        elif "refused" in got:
+            state += f"; VP not found, not carried: {e(got['refused'])}"
         parts.append(
             f"<tr><td>{k + 1}</td><td>{v.acquired_at:%Y-%m-%d}</td><td>{e(v.uid)}</td>"
             f"<td>{state}</td></tr>"
@@ -122,6 +129,7 @@ def write_report(
         cells = "".join(
             f"<td class='{'flag' if c['flagged'] else ''}'>"
             + ("–" if c["value"] is None else f"{c['value']:.1f}")
+            + ("*" if c.get("vp_carried_from") else "")
             + "</td>"
             for c in row["visits"]
         )
@@ -129,6 +137,12 @@ def write_report(
         parts.append(
             f"<tr><td style='text-align:left'>{e(parameter_label(row['parameter']))}</td>"
             f"{cells}<td>{limit}</td><td>{e(row['unit'])}</td></tr>"
+        )
+    if any(c.get("vp_carried_from") for row in table for c in row["visits"]):
+        parts.append(
+            "</table><p>* measured along the symmetry line from VP carried from another "
+            "visit through their registration (this visit's own VP was not found); what "
+            "measures VP's own position is not given with it.</p><table>"
         )
     parts.append("</table><h2>Distance maps</h2>")
     for p in pairs:

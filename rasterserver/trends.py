@@ -103,6 +103,13 @@ class TrendVisit:
     parameters: Mapping[str, Mapping[str, Any]] | None
 
 
+def _carried_from(visit: TrendVisit, name: str) -> str | None:
+    """The visit whose VP a value was measured with, when not the visit's own."""
+    entry = (visit.parameters or {}).get(name) or {}
+    source = entry.get("vp_carried_from")
+    return str(source) if source else None
+
+
 def _value(visit: TrendVisit, name: str) -> float | None:
     entry = (visit.parameters or {}).get(name)
     value = entry.get("value") if entry else None
@@ -128,8 +135,9 @@ def trends(
     list of dict
         One per parameter (clinical order): ``parameter``, ``unit``, ``sd``, ``sdc``,
         ``visits`` (per visit: ``label``, ``date``, ``value``, ``change`` from the previous
-        visit with a value, ``flagged``: ``|change| > sdc``), ``first_to_last`` (``change``,
-        ``flagged``) and ``flagged`` (any).
+        visit with a value, ``flagged``: ``|change| > sdc``, ``vp_carried_from``: the visit
+        whose VP the value was measured with when it is not the visit's own, else None),
+        ``first_to_last`` (``change``, ``flagged``) and ``flagged`` (any).
     """
     from rasterserver.analysis import ordered_parameters
 
@@ -153,6 +161,7 @@ def trends(
                     "flagged": bool(
                         limit is not None and change is not None and abs(change) > limit
                     ),
+                    "vp_carried_from": _carried_from(v, name),
                 }
             )
             if value is not None:
@@ -179,10 +188,22 @@ def trends(
 
 def trends_csv(table: Sequence[Mapping[str, Any]]) -> str:
     """The trends as CSV: one row per parameter and visit (``parameter, unit, visit, date,
-    value, change, sdc, flagged``); empty cells for missing values."""
+    value, change, sdc, flagged, vp_carried_from``); empty cells for missing values."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["parameter", "unit", "visit", "date", "value", "change", "sdc", "flagged"])
+    writer.writerow(
+        [
+            "parameter",
+            "unit",
+            "visit",
+            "date",
+            "value",
+            "change",
+            "sdc",
+            "flagged",
+            "vp_carried_from",
+        ]
+    )
 
     def cell(value: float | None) -> str:
         return "" if value is None else f"{value:.4g}"
@@ -199,6 +220,7 @@ def trends_csv(table: Sequence[Mapping[str, Any]]) -> str:
                     cell(v["change"]),
                     cell(row["sdc"]),
                     "yes" if v["flagged"] else "",
+                    v.get("vp_carried_from") or "",
                 ]
             )
     return buffer.getvalue()

@@ -12,7 +12,9 @@ Files (``A-B`` are the two acquisitions' uids):
 * ``asymmetry_UID.png``: each visit's asymmetry map;
 * ``comparison.json`` (``rasterserver.comparison/1``): per pair the registration
   (transform, fitness, rmse) and the distance-map and asymmetry-change statistics, or the
-  reason it was refused; per visit the asymmetry statistics;
+  reason it was refused; per visit the asymmetry statistics; per visit without its own VP
+  the visit VP was carried from (``carried_vp``: :mod:`rasterserver.carried_analysis`), or
+  why it was not;
 * ``trends.csv``, ``trends.json``, ``trends.png``;
 * ``report.html``: timeline of the visits, parameter trends, the maps.
 The report and the trends plot are written by :mod:`rasterserver.comparison_report`.
@@ -33,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rasterserver.analysis import acquisition_analysis
+from rasterserver.carried_analysis import carried_parameters
 from rasterserver.comparison import (
     ComparisonRefusedError,
     DistanceMap,
@@ -472,12 +475,27 @@ def compare_visits(
             name = f"asymmetry_{v.uid}.png"
             write_distance_png(amap, temp / name, title=f"asymmetry {v.acquired_at:%Y-%m-%d}")
             asymmetry[v.uid]["file"] = name
+        carried = carried_parameters(pipeline, visits, entries)
+        if carried:
+            log(
+                f"VP carried to {sum('from' in c for c in carried.values())} of {len(carried)} "
+                "visits without their own"
+            )
         for entry in entries:
             kept = entry.pop("_stored", None)
             if kept is not None and entry["a"] in maps and entry["b"] in maps:
                 change = _asymmetry_change(maps[entry["a"]], maps[entry["b"]], kept[1], kept[2])
                 entry["asymmetry_change"] = change.statistics()
-        table = trends([TrendVisit(v.uid, v.acquired_at, v.parameters) for v in visits])
+        table = trends(
+            [
+                TrendVisit(
+                    v.uid,
+                    v.acquired_at,
+                    carried.get(v.uid, {}).get("parameters") or v.parameters,
+                )
+                for v in visits
+            ]
+        )
         write_trends(table, temp)
         write_trends_plot(table, temp / "trends.png")
         document = {
@@ -489,11 +507,14 @@ def compare_visits(
             ],
             "pairs": entries,
             "asymmetry": asymmetry,
+            "carried_vp": {
+                uid: {k: v for k, v in c.items() if k != "parameters"} for uid, c in carried.items()
+            },
         }
         (temp / "comparison.json").write_text(
             json.dumps(document, indent=2, allow_nan=False) + "\n", encoding="utf-8"
         )
-        write_report(temp, visits, entries, table, asymmetry)
+        write_report(temp, visits, entries, table, asymmetry, carried)
         for path in temp.iterdir():
             fsync_file(path)
         if out.exists():

@@ -72,9 +72,22 @@ def test_missing_visits_and_unknown_parameters() -> None:
 def test_files(tmp_path) -> None:
     table = trends(visits([10.0, 14.0]))
     text = trends_csv(table)
-    assert text.splitlines()[0] == "parameter,unit,visit,date,value,change,sdc,flagged"
-    assert text.splitlines()[2].endswith(",yes")
+    assert text.splitlines()[0] == (
+        "parameter,unit,visit,date,value,change,sdc,flagged,vp_carried_from"
+    )
+    assert text.splitlines()[2].endswith(",yes,")
     csv_path, json_path = write_trends(table, tmp_path)
     document = json.loads(json_path.read_text())
     assert document["format"] == "rasterserver.trends/1" and "benchmarks" in document["sd_source"]
     assert csv_path.read_text() == text
+
+
+def test_a_value_measured_with_another_visits_vp_says_so() -> None:
+    first, second = visits([10.0, 14.0])
+    assert second.parameters is not None
+    entry = dict(second.parameters["lateral_deviation_max_mm"], vp_carried_from="uid-1")
+    carried = TrendVisit(second.label, second.when, {"lateral_deviation_max_mm": entry})
+    (row,) = trends([first, carried])
+    assert [v["vp_carried_from"] for v in row["visits"]] == [None, "uid-1"]
+    assert row["visits"][1]["flagged"]  # a carried value is compared like any other
+    assert trends_csv([row]).splitlines()[2].endswith(",yes,uid-1")

@@ -59,7 +59,11 @@ def compare(
     at all. With --patient, consecutive visits and the first with the last are compared.
     Each comparison is stored in the archive (a result of the comparison stage, plugin
     comparison.landmark-icp, keyed by the analyses and meshes compared) and reused when asked
-    again. Details: docs/comparison.md.
+    again. Where a visit's analysis did not find VP (hair or a shadow over the nape), the VP
+    of the nearest registered visit that found it is carried across, and the parameters
+    measured along the symmetry line (lateral deviation, surface rotation, scoliosis angle)
+    are given for it, marked with the visit the VP came from (trends.csv's vp_carried_from);
+    the stored analysis is not changed. Details: docs/comparison.md.
 
     Exits 2 when the visits cannot be compared (a landmark frame missing, no overlap, ICP not
     converging: the reason is given) or the folder cannot be written, 3 for an unknown or
@@ -94,6 +98,14 @@ def compare(
             f"{r['rmse_mm']:.2f} mm); distance rms {s['rms_mm']:.2f} mm, largest "
             f"{s['max_abs_mm']:+.1f} mm; {_stored(pair.get('provenance'))}"
         )
+    for uid, carried in document.get("carried_vp", {}).items():
+        if "from" in carried:
+            typer.echo(
+                f"{uid}: VP not found; the midline's parameters measured with VP carried from "
+                f"{carried['from']}"
+            )
+        else:
+            typer.echo(f"{uid}: VP not found, none carried: {carried['refused']}")
     typer.echo(f"written to {out} (report.html)")
 
 

@@ -28,15 +28,20 @@ the world frame of visit A's calibration (mm); visit B is moved onto it.
     mirror (the hump side), negative on the other side.
 :func:`asymmetry_change`
     B's asymmetry map minus A's, on A's vertices (through the registration).
+:func:`carry_vp`
+    A visit's VP carried through the registration to a visit whose analysis refused its
+    own (hair or a shadow over the nape), for the symmetry line and what is measured along it.
 
 The package by concept: :mod:`.thresholds` (what is accepted, the refusal), :mod:`.visits`
-(the records compared and produced), :mod:`.geometry`, :mod:`.trunk` (landmark frame and
-trunk), :mod:`.registration`, :mod:`.distances` and :mod:`.displaced` (regions where the
-visits' arms, hands or clothing lie otherwise: not compared).
+(the records compared and produced), :mod:`.carried` (VP carried), :mod:`.geometry`,
+:mod:`.trunk` (landmark frame and trunk), :mod:`.registration`, :mod:`.distances` and
+:mod:`.displaced` (regions where the visits' arms, hands or clothing lie otherwise: not
+compared).
 """
 
 from __future__ import annotations
 
+from rasterserver.comparison.carried import CARRY_REACH, CarriedVP, carry_vp
 from rasterserver.comparison.displaced import displaced_regions
 from rasterserver.comparison.distances import (
     asymmetry_change,
@@ -72,11 +77,13 @@ from rasterserver.comparison.visits import BodyFrame, DistanceMap, Registration,
 
 __all__ = [
     "AXIS_WINDOW",
+    "CARRY_REACH",
     "EDGE_MARGIN",
     "MAX_DISTANCE",
     "THRESHOLDS",
     "TOP_MARGIN",
     "BodyFrame",
+    "CarriedVP",
     "ComparisonRefusedError",
     "DistanceMap",
     "Registration",
@@ -86,6 +93,7 @@ __all__ = [
     "asymmetry_change",
     "asymmetry_fit",
     "asymmetry_map",
+    "carry_vp",
     "displaced_regions",
     "distance_map",
     "frame_transform",

@@ -145,3 +145,66 @@ def test_stage_options_name_the_comparison_plugins(patient, tmp_path: Path) -> N
         assert bad.returncode == 2, describe(bad)
         assert message in bad.stderr and TRACEBACK not in bad.stderr
         assert not (tmp_path / "bad").exists()
+
+
+@pytest.fixture(scope="module")
+def hidden_nape(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]:
+    """Two processed clinic visits of one patient (kept frames of clinic tuning person 1):
+    at the first hair hides the nape and the analysis refuses VP, at the second (another
+    day's dress) it finds it. Returns the archive and the uids, first visit first."""
+    import numpy as np
+
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
+    from rasterserver.simulator.body import clinic_station, random_body
+
+    root = tmp_path_factory.mktemp("carried") / "archive"
+    assert run_installed("db", "upgrade", archive=root).returncode == 0
+    kept = [
+        np.load(Path(__file__).parents[1] / "data" / "scenes" / f"person-1-{role}.npz")
+        for role in "AE"
+    ]
+    station = clinic_station(int(kept[0]["seed"]), str(kept[0]["code"]))
+    back = random_body(1).back
+    with Archive(Settings(archive=root, database_url=sqlite_url(root))) as archive:
+        visits = [SimulatedVisit(back, k["image"]) for k in kept]
+        rows = archive_visits(
+            archive, visits, station=station, patient="P-NAPE", station_name="clinic"
+        )
+        for row in rows:
+            for target in ("mesh", "analysis"):
+                Pipeline(archive).process(row.uid, until=target)
+    return root, [row.uid for row in rows]
+
+
+def test_vp_carried_to_the_visit_whose_nape_is_hidden(hidden_nape, tmp_path: Path) -> None:
+    root, (first, second) = hidden_nape
+    out = tmp_path / "out"
+    done = run_installed("compare", "--patient", "P-NAPE", "-o", str(out), archive=root)
+    assert done.returncode == 0, describe(done)
+    assert "VP carried to 1 of 1 visits without their own" in done.stderr
+    assert (
+        f"{first}: VP not found; the midline's parameters measured with VP carried from "
+        f"{second}" in done.stdout
+    )
+    document = json.loads((out / "comparison.json").read_text())
+    carried = document["carried_vp"]
+    assert list(carried) == [first] and carried[first]["from"] == second
+    assert carried[first]["surface_distance_mm"] <= 20.0
+    rows = {}
+    for line in (out / "trends.csv").read_text().splitlines()[1:]:
+        cells = line.split(",")
+        rows[(cells[0], cells[2])] = cells
+    # the midline's parameters at the first visit, measured with the second visit's VP ...
+    for name in ("lateral_deviation_rms_mm", "surface_rotation_rms_deg", "scoliosis_angle_deg"):
+        cells = rows[(name, first)]
+        assert cells[4] != "" and cells[8] == second, cells
+        assert rows[(name, second)][8] == ""
+    # ... and what measures VP's own position not at all
+    assert rows[("trunk_length", first)][4] == "" and rows[("trunk_length", second)][4] != ""
+    report = (out / "report.html").read_text()
+    assert f"VP carried from {second}" in report
+    # the first visit's own stored analysis is as it was: nothing stored by the comparison
+    shown = run_installed("show", first, "--json", archive=root)
+    assert shown.returncode == 0, describe(shown)
+    assert "lateral_deviation_rms_mm" not in json.loads(shown.stdout)["parameters"]
