@@ -285,6 +285,17 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         entry["refused_pairs"] = {y: sum(y in s["refused"] for s in scores) for y in PAIRS}
         entry["refusals"] = dict(why.most_common(10))
         entry["no_frame"] = sum(len(s["no_frame"]) for s in scores)
+        moved = [c for s in scores for c in s.get("carried", [])]
+        errors = [c["vp_error_mm"] for c in moved if "vp_error_mm" in c]
+        entry["carried"] = {
+            "pairs": len(moved),
+            "carried": sum("refused" not in c for c in moved),
+            "refused": dict(Counter(c["refused"] for c in moved if "refused" in c)),
+            "vp_error_mm": {
+                "median": float(np.median(errors)) if errors else math.nan,
+                "max": float(np.max(errors)) if errors else math.nan,
+            },
+        }
         entry["acquisitions"] = 9 * len(scores)
         for name, key in (
             ("deviation", "lateral_deviation_max_mm"),
@@ -385,6 +396,19 @@ def markdown(s: dict[str, Any]) -> str:
                 f"{s[k]['trends']['rotation_unanswered']}/{s[k]['trends']['rotation_pairs']}"
                 for k in kinds
             ],
+        ),
+        (
+            "pairs with VP at one visit only: VP carried / pairs (refused: reach, registration)",
+            [
+                f"{s[k]['carried']['carried']}/{s[k]['carried']['pairs']} "
+                f"({s[k]['carried']['refused'].get('reach', 0)}, "
+                f"{s[k]['carried']['refused'].get('registration', 0)})"
+                for k in kinds
+            ],
+        ),
+        (
+            "  carried VP's distance from the true VP (mm), median / max",
+            med_max(("carried", "vp_error_mm")),
         ),
         ("one comparison (s), median / max", med_max(("pair_s",))),
     ]

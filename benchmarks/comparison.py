@@ -55,6 +55,7 @@ import tempfile  # noqa: E402
 import textwrap  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -303,10 +304,12 @@ def _truth_distance(dmap: Any, mesh: tuple[np.ndarray, np.ndarray]) -> np.ndarra
 def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[str, Any]:
     """Registration, distance maps and trend flags of one back's acquisitions (``thresholds``:
     the comparison's, :data:`~rasterserver.comparison.THRESHOLDS` by default)."""
+    from rasterserver.carried_analysis import with_carried
     from rasterserver.comparison import (
         THRESHOLDS,
         ComparisonRefusedError,
         Registration,
+        carry_vp,
         distance_map,
         pair_frames,
         trunk_mesh,
@@ -320,8 +323,12 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         registration_of,
         visit_asymmetry,
     )
+    from rasterserver.registry import get_registry
+    from rasterserver.stage import StageContext, run_stage
     from rasterserver.trends import TrendVisit, trends
     from rasterserver.visit_comparison import _asymmetry_change
+
+    registry = get_registry()
 
     th = thresholds or THRESHOLDS
     out: dict[str, Any] = {"times_s": [], "asymmetry_times_s": []}
@@ -433,11 +440,45 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
         maps[y] = entry
     out["maps"] = maps
 
-    # Trend flags.
-    def flags(x: str, y: str) -> dict[str, bool | None]:
-        table = trends(
-            [TrendVisit(x, None, rows[x]["parameters"]), TrendVisit(y, None, rows[y]["parameters"])]
+    # Trend flags: a visit without its own VP is given the midline's parameters with the
+    # other visit's VP carried through their registration, as `rasterserver compare` does.
+    carried: dict[tuple[str, str], dict[str, Any]] = {}
+
+    def parameters(x: str, y: str) -> tuple[Any, Any]:
+        px, py = rows[x]["parameters"], rows[y]["parameters"]
+        has = [rows[r]["visit"].shape.landmark("VP") is not None for r in (x, y)]
+        if has[0] == has[1]:
+            return px, py
+        source, target = (x, y) if has[0] else (y, x)
+        record = compare_pair(pack(rows[x]["visit"], rows[y]["visit"]), thresholds=th)
+        try:
+            reg = registration_of(record)
+        except ComparisonRefusedError:
+            carried[(x, y)] = {"refused": "registration"}
+            return px, py
+        got = carry_vp(rows[source]["visit"], rows[target]["visit"], reg, source_is_a=source == x)
+        entry: dict[str, Any] = {"surface_distance_mm": got.surface_distance}
+        carried[(x, y)] = entry
+        if got.point is None:
+            entry["refused"] = "reach"
+            return px, py
+        truth_vp = rows[target]["landmarks"].get("vertebra_prominens")
+        if truth_vp is not None:
+            entry["vp_error_mm"] = float(np.linalg.norm(got.point - np.asarray(truth_vp)))
+        shape = run_stage(
+            registry.get("analysis.back-shape"),
+            rows[target]["visit"].surface,
+            {"vp_carried": [float(c) for c in got.point]},
+            StageContext(
+                calibration=SimpleNamespace(gravity=rows[target]["visit"].shape.level_axes[1])
+            ),
         )
+        merged = with_carried(rows[target]["parameters"], shape.parameter_table(), source)
+        return (px, merged) if target == y else (merged, py)
+
+    def flags(x: str, y: str) -> dict[str, bool | None]:
+        px, py = parameters(x, y)
+        table = trends([TrendVisit(x, None, px), TrendVisit(y, None, py)])
         return {
             r["parameter"]: (
                 None
@@ -451,6 +492,7 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
     out["noise_flags"] = noise
     out["deviation_flags"] = [flags(x, "F") for x in UNCHANGED]
     out["rotation_flags"] = [flags(x, y) for y in ("C", "G") for x in UNCHANGED]
+    out["carried"] = [{"pair": f"{x}{y}", **v} for (x, y), v in carried.items()]
     tr = {r: rows[r]["truth"] for r in rows}
     out["true_deviation_change_mm"] = float(
         np.median(

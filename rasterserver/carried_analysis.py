@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from rasterserver.pipeline import Pipeline
     from rasterserver.visit_comparison import ArchivedVisit
 
-__all__ = ["carried_parameters"]
+__all__ = ["carried_parameters", "with_carried"]
 
 
 def _has_vp(visit: ArchivedVisit) -> bool:
@@ -76,6 +76,18 @@ def _reanalysed(pipeline: Pipeline, visit: ArchivedVisit, point: Any) -> dict[st
     if shape.reason:
         raise InputError(f"its analysis with the carried VP found nothing: {shape.reason}")
     return shape.parameter_table()
+
+
+def with_carried(
+    own: Mapping[str, Any] | None, carried: Mapping[str, Any], source: str
+) -> dict[str, Any]:
+    """A visit's own parameters, and those only the carried VP gave, marked with the visit it
+    came from (``vp_carried_from``): a value of the visit's own is never replaced."""
+    merged = dict(own or {})
+    for name, value in carried.items():
+        if name not in merged:
+            merged[name] = {**value, "vp_carried_from": source}
+    return merged
 
 
 def carried_parameters(
@@ -135,10 +147,7 @@ def carried_parameters(
             except InputError as exc:
                 reasons.append(f"VP of visit {source.uid}: {exc}")
                 continue
-            merged = dict(target.parameters or {})
-            for name, value in values.items():
-                if name not in merged:
-                    merged[name] = {**value, "vp_carried_from": source.uid}
+            merged = with_carried(target.parameters, values, source.uid)
             out[target.uid] = {
                 "from": source.uid,
                 "vp": [float(c) for c in carried.point],
