@@ -445,21 +445,9 @@ def test_too_little_trunk_seen_on_both_sides_refuses_the_asymmetry_map() -> None
 
 def _clinic_visit(role: str) -> Visit:
     """Clinic tuning person 44's acquisition ``role`` (kept frame, chain run here)."""
-    from pathlib import Path
+    from kept_visits import kept_visit
 
-    from rasterserver.pipeline import run_chain
-    from rasterserver.simulator.body import clinic_station
-    from rasterserver.stage import StageContext
-
-    kept = np.load(Path(__file__).parent / "data" / "scenes" / f"person-44-{role}.npz")
-    station = clinic_station(int(kept["seed"]), str(kept["code"]))
-    context = StageContext(calibration=station, raster=station.raster_definition)
-    records = run_chain(kept["image"], context=context, until="analysis")
-    mesh = run_chain(records["surface"], context=context, until="mesh")["mesh"]
-    surface, shape = records["surface"], records["analysis"]
-    assert isinstance(surface, Surface) and isinstance(shape, BackShape)
-    assert isinstance(mesh, MeshRecord)
-    return Visit(surface, mesh, shape, label=f"44:{role}")
+    return kept_visit(f"person-44-{role}", f"44:{role}")[0]
 
 
 def test_an_unchanged_clinic_back_keeps_its_asymmetry_map_between_acquisitions() -> None:

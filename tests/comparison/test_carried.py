@@ -8,39 +8,18 @@ frames are kept (``tests/data/scenes/person-1-{A,E}.npz``) so that every process
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
+from kept_visits import kept_visit
 
-from rasterserver.comparison import CARRY_REACH, Registration, Visit, carry_vp, register
-from rasterserver.records_analysis import BackShape
-from rasterserver.records_surface import MeshRecord, Surface
-
-KEPT = Path(__file__).parents[1] / "data" / "scenes"
-
-
-def kept_visit(person: int, role: str) -> tuple[Visit, object]:
-    """The kept frame's Visit (chain run here) and its station."""
-    from rasterserver.pipeline import run_chain
-    from rasterserver.simulator.body import clinic_station
-    from rasterserver.stage import StageContext
-
-    kept = np.load(KEPT / f"person-{person}-{role}.npz")
-    station = clinic_station(int(kept["seed"]), str(kept["code"]))
-    context = StageContext(calibration=station, raster=station.raster_definition)
-    records = run_chain(kept["image"], context=context, until="analysis")
-    mesh = run_chain(records["surface"], context=context, until="mesh")["mesh"]
-    surface, shape = records["surface"], records["analysis"]
-    assert isinstance(surface, Surface) and isinstance(shape, BackShape)
-    assert isinstance(mesh, MeshRecord)
-    return Visit(surface, mesh, shape, label=f"{person}:{role}"), station
+from rasterserver.comparison import CARRY_REACH, Registration, carry_vp, register
 
 
 @pytest.fixture(scope="module")
 def person_1() -> dict[str, object]:
-    a, station = kept_visit(1, "A")
-    e, _ = kept_visit(1, "E")
+    a, station = kept_visit("person-1-A", "1:A")
+    e, _ = kept_visit("person-1-E", "1:E")
     return {"A": a, "E": e, "station": station, "registration": register(a, e)}
 
 
