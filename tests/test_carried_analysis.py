@@ -1,0 +1,58 @@
+"""VP carried between archived visits (:mod:`rasterserver.carried_analysis`), in process; the
+installed command's view is in ``tests/commands/test_compare.py`` (SQLite and PostgreSQL
+catalogues, real HDF5 files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rasterserver.archive import Archive
+from rasterserver.carried_analysis import carried_parameters, with_carried
+from rasterserver.config import Settings
+
+KEPT = Path(__file__).parent / "data" / "scenes"
+
+
+def test_a_visits_own_values_are_never_replaced() -> None:
+    own = {"pelvic_tilt_mm": {"value": 1.0, "unit": "mm", "spread": None}}
+    carried = {
+        "pelvic_tilt_mm": {"value": 9.0, "unit": "mm", "spread": None},
+        "surface_rotation_rms_deg": {"value": 2.5, "unit": "deg", "spread": None},
+    }
+    merged = with_carried(own, carried, "uid-2")
+    assert merged["pelvic_tilt_mm"] == own["pelvic_tilt_mm"]
+    assert merged["surface_rotation_rms_deg"]["vp_carried_from"] == "uid-2"
+    assert with_carried(None, {}, "uid-2") == {}
+
+
+@pytest.fixture
+def archive(settings: Settings):
+    with Archive.create(settings) as archive:
+        yield archive
+
+
+def test_two_visits_without_vp_carry_nothing_and_say_why(archive, tmp_path: Path) -> None:
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
+    from rasterserver.simulator.body import clinic_station, random_body
+    from rasterserver.visit_comparison import compare_visits
+
+    kept = np.load(KEPT / "person-1-A.npz")  # hair over the nape: no VP
+    station = clinic_station(int(kept["seed"]), str(kept["code"]))
+    twice = [SimulatedVisit(random_body(1).back, kept["image"])] * 2
+    rows = archive_visits(archive, twice, station=station, patient="P-1", station_name="clinic")
+    pipeline = Pipeline(archive)
+    for row in rows:
+        pipeline.process(row.uid, until="mesh")
+        pipeline.process(row.uid, until="analysis")
+    lines: list[str] = []
+    document = compare_visits(pipeline, [r.uid for r in rows], tmp_path / "out", log=lines.append)
+    assert "refused" not in document["pairs"][0]  # registered from the dimples alone
+    assert document["carried_vp"] == {
+        r.uid: {"refused": "no registered visit found its VP"} for r in rows
+    }
+    assert "VP carried to 0 of 2 visits without their own" in lines
+    assert carried_parameters(pipeline, [], []) == {}
