@@ -63,6 +63,10 @@ __all__ = [
     "trend_visits",
 ]
 
+#: How many of the nearest visits with VP a patient's trends try to carry it from, in turn
+#: (each try registers two visits: a comparison computed and stored when new).
+CARRY_FROM = 3
+
 #: ``format`` of ``comparison.json``.
 COMPARISON_FORMAT = "rasterserver.comparison/1"
 
@@ -203,7 +207,7 @@ def _landmarks(visit: Visit) -> dict[str, Any]:
     return {n: visit.shape.landmark(n) for n in ("VP", "DL", "DR", "DM")}
 
 
-def _compared(
+def stored_pair(
     pipeline: Pipeline, a: ArchivedVisit, b: ArchivedVisit, plugins: Mapping[str, str]
 ) -> tuple[StoredComparison, Registration, DistanceMap]:
     """The stored comparison of B onto A (computed and stored when new), its registration and
@@ -241,7 +245,7 @@ def _pair(
 
     entry: dict[str, Any] = {"a": a.uid, "b": b.uid}
     try:
-        stored, reg, dmap = _compared(pipeline, a, b, plugins)
+        stored, reg, dmap = stored_pair(pipeline, a, b, plugins)
     except ComparisonRefusedError as exc:
         return entry | {"refused": str(exc)}
     assert a.visit is not None
@@ -328,7 +332,7 @@ def compare_two(pipeline: Pipeline, uid_a: str, uid_b: str) -> TwoVisits:
     if infos[0].patient_id is None or infos[0].patient_id != infos[1].patient_id:
         raise InputError("the acquisitions belong to different patients")
     a, b = (load_visit(pipeline, i.uid) for i in infos)
-    stored, reg, dmap = _compared(pipeline, a, b, {})
+    stored, reg, dmap = stored_pair(pipeline, a, b, {})
     (map_a, entry_a), (map_b, entry_b) = _asymmetry(pipeline, a, {}), _asymmetry(pipeline, b, {})
     change = None
     if map_a is not None and map_b is not None:
@@ -351,7 +355,11 @@ def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetim
     """Each stored acquisition of ``patient``, oldest first, with its analysis parameters
     (None when the analysis found nothing, when the acquisition is not analysed yet, or has no
     raster frame: a gap in the trends, not a reason to show none): ``(uid, acquired_at,
-    parameters)``, what :class:`~rasterserver.trends.TrendVisit` takes. Nothing is processed.
+    parameters)``, what :class:`~rasterserver.trends.TrendVisit` takes. Nothing is processed;
+    an acquisition whose analysis refused VP gets the parameters measured along the symmetry
+    line with VP carried from the nearest visit that found it
+    (:func:`~rasterserver.carried_analysis.carried_parameters`: their comparison is
+    computed and stored when new, as :func:`compare_two` does).
 
     Raises
     ------
@@ -363,6 +371,7 @@ def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetim
     pipeline.archive.patient(patient)
     found = sorted(pipeline.archive.find(patient=patient), key=lambda i: i.acquired_at)
     out: list[tuple[str, dt.datetime, Any]] = []
+    with_vp: set[str] = set()
     analysed = 0
     for info in found:
         try:
@@ -372,15 +381,74 @@ def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetim
             continue
         analysed += 1
         try:
-            parameters = analysis.check().document()["parameters"]
+            document = analysis.check().document()
         except AnalysisRefusedError:
-            parameters = None
-        out.append((info.uid, info.acquired_at, parameters))
+            out.append((info.uid, info.acquired_at, None))
+            continue
+        out.append((info.uid, info.acquired_at, document["parameters"]))
+        if document["landmarks"].get("VP") is not None:
+            with_vp.add(info.uid)
     if found and not analysed:
         raise NotFoundError(
             "none of the patient's acquisitions has a stored analysis yet: process them first "
             "(`rasterserver process --patient ID`, or over HTTP a job)"
         )
+    return _carried_trends(pipeline, out, with_vp)
+
+
+def _carried_trends(
+    pipeline: Pipeline,
+    visits: Sequence[tuple[str, dt.datetime, Any]],
+    with_vp: set[str],
+) -> list[tuple[str, dt.datetime, Any]]:
+    """A patient's trend rows, the visits without VP given the parameters a carried VP gives.
+
+    Parameters
+    ----------
+    pipeline : Pipeline
+        The archive's pipeline.
+    visits : sequence of (uid, acquired_at, parameters)
+        :func:`~rasterserver.visit_comparison.trend_visits`'s rows (parameters None: a gap).
+    with_vp : set of str
+        The uids whose analysis found VP.
+
+    Returns
+    -------
+    list of (uid, acquired_at, parameters)
+        The rows, where a visit without VP takes VP from the nearest visit in time that found
+        it (the next of the :data:`CARRY_FROM` when their comparison is refused or the VP is not
+        carried): its own parameters and those along the symmetry line, marked
+        ``vp_carried_from``. The comparison of the two is computed and stored when new (a
+        stage result), reused after.
+    """
+    sources = [(uid, at) for uid, at, _ in visits if uid in with_vp]
+    loaded: dict[str, ArchivedVisit] = {}
+
+    def visit(uid: str) -> ArchivedVisit:
+        if uid not in loaded:
+            loaded[uid] = load_visit(pipeline, uid)
+        return loaded[uid]
+
+    out = []
+    for uid, at, parameters in visits:
+        if parameters is None or uid in with_vp or not sources:
+            out.append((uid, at, parameters))
+            continue
+        target = visit(uid)
+        nearest = sorted(sources, key=lambda s: (abs(s[1] - at), s[1]))[:CARRY_FROM]
+        for source_uid, source_at in nearest:
+            source = visit(source_uid)
+            a, b = (source, target) if source_at <= at else (target, source)
+            try:
+                stored = stored_pair(pipeline, a, b, {})
+            except ComparisonRefusedError:
+                continue
+            entry = {"a": a.uid, "b": b.uid, "_stored": stored}
+            got = carried_parameters(pipeline, [a, b], [entry]).get(uid, {})
+            if "parameters" in got:
+                parameters = got["parameters"]
+                break
+        out.append((uid, at, parameters))
     return out
 
 

@@ -56,3 +56,50 @@ def test_two_visits_without_vp_carry_nothing_and_say_why(archive, tmp_path: Path
     }
     assert "VP carried to 0 of 2 visits without their own" in lines
     assert carried_parameters(pipeline, [], []) == {}
+
+
+def test_a_patients_trends_carry_vp_to_the_visit_without(archive) -> None:
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
+    from rasterserver.simulator.body import clinic_station, random_body
+    from rasterserver.trends import TrendVisit, trends
+    from rasterserver.visit_comparison import trend_visits
+
+    kept = [np.load(KEPT / f"person-1-{role}.npz") for role in "AE"]  # A: no VP, E: VP
+    station = clinic_station(int(kept[0]["seed"]), str(kept[0]["code"]))
+    back = random_body(1).back
+    rows = archive_visits(
+        archive,
+        [SimulatedVisit(back, k["image"]) for k in kept],
+        station=station,
+        patient="P-1",
+        station_name="clinic",
+    )
+    pipeline = Pipeline(archive)
+    for row in rows:
+        pipeline.process(row.uid, until="mesh")
+        pipeline.process(row.uid, until="analysis")
+    first, second = (r.uid for r in rows)
+    visits = trend_visits(pipeline, "P-1")
+    assert [v[0] for v in visits] == [first, second]
+    carried = visits[0][2]["lateral_deviation_rms_mm"]
+    assert carried["vp_carried_from"] == second
+    assert "trunk_length" not in visits[0][2] and "trunk_length" in visits[1][2]
+    table = {r["parameter"]: r for r in trends([TrendVisit(*v) for v in visits])}
+    row = table["surface_rotation_rms_deg"]["visits"]
+    assert row[0]["vp_carried_from"] == second and row[1]["vp_carried_from"] is None
+    assert row[1]["change"] is not None
+    # asked again, the comparison the carrying needed is reused, not stored twice
+    from sqlalchemy import func, select
+
+    from rasterserver.catalog.models import StageResult
+
+    def comparisons() -> int:
+        with archive.session() as s:
+            query = select(func.count()).where(StageResult.stage == "comparison")
+            return int(s.scalar(query) or 0)
+
+    stored = comparisons()
+    assert stored == 1
+    assert trend_visits(pipeline, "P-1") == visits
+    assert comparisons() == stored

@@ -96,7 +96,8 @@ def test_comparison_and_trends(live: LiveServer, two_backs) -> None:
     row = rows["scoliosis_angle_deg"]
     assert [v["label"] for v in row["visits"]] == [first, second]
     assert row["visits"][0]["date"] == "2024-03-01T09:15:00+00:00"
-    assert {"flagged", "change", "value"} <= set(row["visits"][1])
+    assert {"flagged", "change", "value", "vp_carried_from"} <= set(row["visits"][1])
+    assert row["visits"][1]["vp_carried_from"] is None  # both visits found their own VP
     lines = list(csv.DictReader(io.StringIO(table.text)))
     assert len(lines) == 2 * len(rows) and lines[0]["visit"] == first
 

@@ -56,6 +56,12 @@ class TrendVisitOut(BaseModel):
     value: float | None
     change: float | None = Field(description="From the previous visit with a value.")
     flagged: bool = Field(description="|change| > sdc.")
+    vp_carried_from: str | None = Field(
+        None,
+        description="The acquisition whose VP the value was measured with, carried through "
+        "their registration because this acquisition's analysis did not find its own; null: "
+        "its own.",
+    )
 
 
 class TrendOut(BaseModel):
