@@ -184,6 +184,7 @@ def analyse_back(
     frame = None
     if carried:
         reasons["frame"] = CARRIED
+        reasons["VP"] = "not found on this surface: carried from another visit (vp_carried)"
     elif (
         vp.point is not None
         and dl.point is not None

@@ -77,6 +77,7 @@ def test_the_midline_is_measured_with_a_carried_vp_and_vps_own_position_is_not(p
     for name in VP_POSITION:
         assert name not in got and reasons[name] == CARRIED
     assert reasons["frame"] == CARRIED and not np.isfinite(shape.frame_origin).any()
+    assert "carried from another visit" in reasons["VP"]  # said, though VP is given
     # the dimples and the pelvis are this visit's own, unchanged
     for name in ("pelvic_tilt_mm", "pelvic_rotation_deg"):
         assert got[name] == own[name]
