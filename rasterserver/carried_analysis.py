@@ -26,7 +26,11 @@ if TYPE_CHECKING:
     from rasterserver.pipeline import Pipeline
     from rasterserver.visit_comparison import ArchivedVisit
 
-__all__ = ["carried_parameters", "with_carried"]
+__all__ = ["NO_PARTNER", "carried_parameters", "with_carried"]
+
+#: Why :func:`carried_parameters` carries nothing to a visit none of whose registered
+#: partners found VP.
+NO_PARTNER = "no registered visit found its VP"
 
 
 def _has_vp(visit: ArchivedVisit) -> bool:
@@ -128,7 +132,7 @@ def carried_parameters(
                 gap = abs(source.acquired_at - target.acquired_at)
                 candidates.append((gap, source.acquired_at, source, entry))
         if not candidates:
-            out[target.uid] = {"refused": "no registered visit found its VP"}
+            out[target.uid] = {"refused": NO_PARTNER}
             continue
         reasons = []
         for _, _, source, entry in sorted(candidates, key=lambda c: (c[0], c[1])):

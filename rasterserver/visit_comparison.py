@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rasterserver.analysis import acquisition_analysis
-from rasterserver.carried_analysis import carried_parameters
+from rasterserver.carried_analysis import NO_PARTNER, carried_parameters
 from rasterserver.comparison import (
     ComparisonRefusedError,
     DistanceMap,
@@ -56,6 +56,7 @@ if TYPE_CHECKING:
 __all__ = [
     "ArchivedVisit",
     "TwoVisits",
+    "carry_from_nearest",
     "compare_two",
     "compare_visits",
     "load_visit",
@@ -396,58 +397,59 @@ def trend_visits(pipeline: Pipeline, patient: str) -> list[tuple[str, dt.datetim
     return _carried_trends(pipeline, out, with_vp)
 
 
+def carry_from_nearest(
+    pipeline: Pipeline,
+    target: ArchivedVisit,
+    sources: Sequence[ArchivedVisit],
+    plugins: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
+    """VP carried to ``target`` (a visit without its own) from the nearest of ``sources``.
+
+    The :data:`CARRY_FROM` visits of ``sources`` nearest in time that found VP are tried in
+    turn: the two registered (their comparison computed and stored when new, reused after),
+    then :func:`~rasterserver.carried_analysis.carried_parameters`.
+
+    Returns
+    -------
+    dict
+        ``carried_parameters``'s entry for ``target``: ``from``, ``vp``,
+        ``surface_distance_mm`` and ``parameters``; or ``refused`` (every reason).
+    """
+    found = [s for s in sources if s.visit is not None and s.visit.shape.landmark("VP") is not None]
+    if not found:
+        return {"refused": "no other visit found its VP"}
+    when = target.acquired_at
+    reasons = []
+    for source in sorted(found, key=lambda s: (abs(s.acquired_at - when), s.acquired_at))[
+        :CARRY_FROM
+    ]:
+        a, b = (source, target) if source.acquired_at <= when else (target, source)
+        try:
+            stored = stored_pair(pipeline, a, b, dict(plugins or {}))
+        except ComparisonRefusedError as exc:
+            reasons.append(str(exc))
+            continue
+        entry = {"a": a.uid, "b": b.uid, "_stored": stored}
+        got = carried_parameters(pipeline, [a, b], [entry]).get(target.uid, {})
+        if "parameters" in got:
+            return got
+        reasons.append(got.get("refused", "not carried"))
+    return {"refused": "; ".join(reasons)}
+
+
 def _carried_trends(
     pipeline: Pipeline,
     visits: Sequence[tuple[str, dt.datetime, Any]],
     with_vp: set[str],
 ) -> list[tuple[str, dt.datetime, Any]]:
-    """A patient's trend rows, the visits without VP given the parameters a carried VP gives.
-
-    Parameters
-    ----------
-    pipeline : Pipeline
-        The archive's pipeline.
-    visits : sequence of (uid, acquired_at, parameters)
-        :func:`~rasterserver.visit_comparison.trend_visits`'s rows (parameters None: a gap).
-    with_vp : set of str
-        The uids whose analysis found VP.
-
-    Returns
-    -------
-    list of (uid, acquired_at, parameters)
-        The rows, where a visit without VP takes VP from the nearest visit in time that found
-        it (the next of the :data:`CARRY_FROM` when their comparison is refused or the VP is not
-        carried): its own parameters and those along the symmetry line, marked
-        ``vp_carried_from``. The comparison of the two is computed and stored when new (a
-        stage result), reused after.
-    """
-    sources = [(uid, at) for uid, at, _ in visits if uid in with_vp]
-    loaded: dict[str, ArchivedVisit] = {}
-
-    def visit(uid: str) -> ArchivedVisit:
-        if uid not in loaded:
-            loaded[uid] = load_visit(pipeline, uid)
-        return loaded[uid]
-
+    """A patient's trend rows (uid, acquired_at, parameters), a visit without VP given its
+    parameters with VP carried (:func:`carry_from_nearest`) from the visits that found it."""
+    sources = [load_visit(pipeline, uid) for uid, _, _ in visits if uid in with_vp]
     out = []
     for uid, at, parameters in visits:
-        if parameters is None or uid in with_vp or not sources:
-            out.append((uid, at, parameters))
-            continue
-        target = visit(uid)
-        nearest = sorted(sources, key=lambda s: (abs(s[1] - at), s[1]))[:CARRY_FROM]
-        for source_uid, source_at in nearest:
-            source = visit(source_uid)
-            a, b = (source, target) if source_at <= at else (target, source)
-            try:
-                stored = stored_pair(pipeline, a, b, {})
-            except ComparisonRefusedError:
-                continue
-            entry = {"a": a.uid, "b": b.uid, "_stored": stored}
-            got = carried_parameters(pipeline, [a, b], [entry]).get(uid, {})
-            if "parameters" in got:
-                parameters = got["parameters"]
-                break
+        if parameters is not None and uid not in with_vp and sources:
+            got = carry_from_nearest(pipeline, load_visit(pipeline, uid), sources)
+            parameters = got.get("parameters", parameters)
         out.append((uid, at, parameters))
     return out
 
@@ -544,6 +546,9 @@ def compare_visits(
             write_distance_png(amap, temp / name, title=f"asymmetry {v.acquired_at:%Y-%m-%d}")
             asymmetry[v.uid]["file"] = name
         carried = carried_parameters(pipeline, visits, entries)
+        for v in visits:  # none of its registered partners found VP: the nearest that did
+            if carried.get(v.uid, {}).get("refused") == NO_PARTNER:
+                carried[v.uid] = carry_from_nearest(pipeline, v, visits, plugins)
         if carried:
             log(
                 f"VP carried to {sum('from' in c for c in carried.values())} of {len(carried)} "

@@ -52,7 +52,7 @@ def test_two_visits_without_vp_carry_nothing_and_say_why(archive, tmp_path: Path
     document = compare_visits(pipeline, [r.uid for r in rows], tmp_path / "out", log=lines.append)
     assert "refused" not in document["pairs"][0]  # registered from the dimples alone
     assert document["carried_vp"] == {
-        r.uid: {"refused": "no registered visit found its VP"} for r in rows
+        r.uid: {"refused": "no other visit found its VP"} for r in rows
     }
     assert "VP carried to 0 of 2 visits without their own" in lines
     assert carried_parameters(pipeline, [], []) == {}
@@ -103,3 +103,38 @@ def test_a_patients_trends_carry_vp_to_the_visit_without(archive) -> None:
     assert stored == 1
     assert trend_visits(pipeline, "P-1") == visits
     assert comparisons() == stored
+
+
+def test_compare_carries_past_partners_without_vp_from_the_nearest_that_found_it(
+    archive, tmp_path: Path
+) -> None:
+    # E (VP) then A three times (no VP): the pairs are E-A1, A1-A2, A2-A3 and E-A3; A2's
+    # partners found no VP, so it is registered with E, the nearest visit that did
+    from rasterserver.catalog.models import StageResult
+    from rasterserver.pipeline import Pipeline
+    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
+    from rasterserver.simulator.body import clinic_station, random_body
+    from rasterserver.visit_comparison import compare_visits
+
+    kept = {role: np.load(KEPT / f"person-1-{role}.npz") for role in "AE"}
+    station = clinic_station(int(kept["A"]["seed"]), str(kept["A"]["code"]))
+    back = random_body(1).back
+    rows = archive_visits(
+        archive,
+        [SimulatedVisit(back, kept[r]["image"]) for r in "EAAA"],
+        station=station,
+        patient="P-1",
+        station_name="clinic",
+    )
+    pipeline = Pipeline(archive)
+    for row in rows:
+        pipeline.process(row.uid, until="mesh")
+        pipeline.process(row.uid, until="analysis")
+    uids = [r.uid for r in rows]
+    document = compare_visits(pipeline, uids, tmp_path / "out")
+    assert len(document["pairs"]) == 4
+    carried = document["carried_vp"]
+    assert {uid: c.get("from") for uid, c in carried.items()} == dict.fromkeys(uids[1:], uids[0])
+    with archive.session() as s:
+        stored = s.query(StageResult).filter(StageResult.stage == "comparison").count()
+    assert stored == 5  # the four pairs and E-A2, made for the carrying

@@ -60,7 +60,7 @@ def compare(
     Each comparison is stored in the archive (a result of the comparison stage, plugin
     comparison.landmark-icp, keyed by the analyses and meshes compared) and reused when asked
     again. Where a visit's analysis did not find VP (hair or a shadow over the nape), the VP
-    of the nearest registered visit that found it is carried across, and the parameters
+    of the nearest compared visit that found it is carried across, and the parameters
     measured along the symmetry line (lateral deviation, surface rotation, scoliosis angle)
     are given for it, marked with the visit the VP came from (trends.csv's vp_carried_from);
     the stored analysis is not changed. Details: docs/comparison.md.
