@@ -12,6 +12,7 @@ import pytest
 from rasterserver.archive import Archive
 from rasterserver.carried_analysis import carried_parameters, with_carried
 from rasterserver.config import Settings
+from rasterserver.pipeline import Pipeline
 
 KEPT = Path(__file__).parent / "data" / "scenes"
 
@@ -34,43 +35,19 @@ def archive(settings: Settings):
         yield archive
 
 
-def test_two_visits_without_vp_carry_nothing_and_say_why(archive, tmp_path: Path) -> None:
-    from rasterserver.pipeline import Pipeline
+def processed(archive: Archive, roles: str) -> tuple[Pipeline, list[str]]:
+    """Processed acquisitions of one patient, oldest first, from the kept frames of clinic
+    tuning person 1 (``A``: hair over the nape, no VP; ``E``: VP found)."""
     from rasterserver.simulated_visits import SimulatedVisit, archive_visits
     from rasterserver.simulator.body import clinic_station, random_body
-    from rasterserver.visit_comparison import compare_visits
 
-    kept = np.load(KEPT / "person-1-A.npz")  # hair over the nape: no VP
-    station = clinic_station(int(kept["seed"]), str(kept["code"]))
-    twice = [SimulatedVisit(random_body(1).back, kept["image"])] * 2
-    rows = archive_visits(archive, twice, station=station, patient="P-1", station_name="clinic")
-    pipeline = Pipeline(archive)
-    for row in rows:
-        pipeline.process(row.uid, until="mesh")
-        pipeline.process(row.uid, until="analysis")
-    lines: list[str] = []
-    document = compare_visits(pipeline, [r.uid for r in rows], tmp_path / "out", log=lines.append)
-    assert "refused" not in document["pairs"][0]  # registered from the dimples alone
-    assert document["carried_vp"] == {
-        r.uid: {"refused": "no other visit found its VP"} for r in rows
-    }
-    assert "VP carried to 0 of 2 visits without their own" in lines
-    assert carried_parameters(pipeline, [], []) == {}
-
-
-def test_a_patients_trends_carry_vp_to_the_visit_without(archive) -> None:
-    from rasterserver.pipeline import Pipeline
-    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
-    from rasterserver.simulator.body import clinic_station, random_body
-    from rasterserver.trends import TrendVisit, trends
-    from rasterserver.visit_comparison import trend_visits
-
-    kept = [np.load(KEPT / f"person-1-{role}.npz") for role in "AE"]  # A: no VP, E: VP
-    station = clinic_station(int(kept[0]["seed"]), str(kept[0]["code"]))
+    kept = {role: np.load(KEPT / f"person-1-{role}.npz") for role in set(roles)}
+    first = kept[roles[0]]
+    station = clinic_station(int(first["seed"]), str(first["code"]))
     back = random_body(1).back
     rows = archive_visits(
         archive,
-        [SimulatedVisit(back, k["image"]) for k in kept],
+        [SimulatedVisit(back, kept[r]["image"]) for r in roles],
         station=station,
         patient="P-1",
         station_name="clinic",
@@ -79,7 +56,28 @@ def test_a_patients_trends_carry_vp_to_the_visit_without(archive) -> None:
     for row in rows:
         pipeline.process(row.uid, until="mesh")
         pipeline.process(row.uid, until="analysis")
-    first, second = (r.uid for r in rows)
+    return pipeline, [r.uid for r in rows]
+
+
+def test_two_visits_without_vp_carry_nothing_and_say_why(archive, tmp_path: Path) -> None:
+    from rasterserver.visit_comparison import compare_visits
+
+    pipeline, uids = processed(archive, "AA")
+    lines: list[str] = []
+    document = compare_visits(pipeline, uids, tmp_path / "out", log=lines.append)
+    assert "refused" not in document["pairs"][0]  # registered from the dimples alone
+    assert document["carried_vp"] == {
+        uid: {"refused": "no other visit found its VP"} for uid in uids
+    }
+    assert "VP carried to 0 of 2 visits without their own" in lines
+    assert carried_parameters(pipeline, [], []) == {}
+
+
+def test_a_patients_trends_carry_vp_to_the_visit_without(archive) -> None:
+    from rasterserver.trends import TrendVisit, trends
+    from rasterserver.visit_comparison import trend_visits
+
+    pipeline, (first, second) = processed(archive, "AE")
     visits = trend_visits(pipeline, "P-1")
     assert [v[0] for v in visits] == [first, second]
     carried = visits[0][2]["lateral_deviation_rms_mm"]
@@ -111,26 +109,9 @@ def test_compare_carries_past_partners_without_vp_from_the_nearest_that_found_it
     # E (VP) then A three times (no VP): the pairs are E-A1, A1-A2, A2-A3 and E-A3; A2's
     # partners found no VP, so it is registered with E, the nearest visit that did
     from rasterserver.catalog.models import StageResult
-    from rasterserver.pipeline import Pipeline
-    from rasterserver.simulated_visits import SimulatedVisit, archive_visits
-    from rasterserver.simulator.body import clinic_station, random_body
     from rasterserver.visit_comparison import compare_visits
 
-    kept = {role: np.load(KEPT / f"person-1-{role}.npz") for role in "AE"}
-    station = clinic_station(int(kept["A"]["seed"]), str(kept["A"]["code"]))
-    back = random_body(1).back
-    rows = archive_visits(
-        archive,
-        [SimulatedVisit(back, kept[r]["image"]) for r in "EAAA"],
-        station=station,
-        patient="P-1",
-        station_name="clinic",
-    )
-    pipeline = Pipeline(archive)
-    for row in rows:
-        pipeline.process(row.uid, until="mesh")
-        pipeline.process(row.uid, until="analysis")
-    uids = [r.uid for r in rows]
+    pipeline, uids = processed(archive, "EAAA")
     document = compare_visits(pipeline, uids, tmp_path / "out")
     assert len(document["pairs"]) == 4
     carried = document["carried_vp"]
