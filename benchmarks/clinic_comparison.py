@@ -285,17 +285,18 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         entry["refused_pairs"] = {y: sum(y in s["refused"] for s in scores) for y in PAIRS}
         entry["refusals"] = dict(why.most_common(10))
         entry["no_frame"] = sum(len(s["no_frame"]) for s in scores)
-        moved = [c for s in scores for c in s.get("carried", [])]
-        errors = [c["vp_error_mm"] for c in moved if "vp_error_mm" in c]
-        entry["carried"] = {
-            "pairs": len(moved),
-            "carried": sum("refused" not in c for c in moved),
-            "refused": dict(Counter(c["refused"] for c in moved if "refused" in c)),
-            "vp_error_mm": {
-                "median": float(np.median(errors)) if errors else math.nan,
-                "max": float(np.max(errors)) if errors else math.nan,
-            },
-        }
+        for name, third in (("carried", False), ("carried_third", True)):
+            moved = [c for s in scores for c in s.get("carried", []) if ("third" in c) == third]
+            errors = [c["vp_error_mm"] for c in moved if "vp_error_mm" in c]
+            entry[name] = {
+                "pairs": len(moved),
+                "carried": sum("refused" not in c for c in moved),
+                "refused": dict(Counter(c["refused"] for c in moved if "refused" in c)),
+                "vp_error_mm": {
+                    "median": float(np.median(errors)) if errors else math.nan,
+                    "max": float(np.max(errors)) if errors else math.nan,
+                },
+            }
         entry["acquisitions"] = 9 * len(scores)
         for name, key in (
             ("deviation", "lateral_deviation_max_mm"),
@@ -409,6 +410,14 @@ def markdown(s: dict[str, Any]) -> str:
         (
             "  carried VP's distance from the true VP (mm), median / max",
             med_max(("carried", "vp_error_mm")),
+        ),
+        (
+            "pairs with VP at neither visit: VP carried to both from a third / pairs",
+            [f"{s[k]['carried_third']['carried']}/{s[k]['carried_third']['pairs']}" for k in kinds],
+        ),
+        (
+            "  carried VP's distance from the true VP (mm), median / max (worse of the two)",
+            med_max(("carried_third", "vp_error_mm")),
         ),
         ("one comparison (s), median / max", med_max(("pair_s",))),
     ]

@@ -444,24 +444,22 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
     # other visit's VP carried through their registration, as `rasterserver compare` does.
     carried: dict[tuple[str, str], dict[str, Any]] = {}
 
-    def parameters(x: str, y: str) -> tuple[Any, Any]:
-        px, py = rows[x]["parameters"], rows[y]["parameters"]
-        has = [rows[r]["visit"].shape.landmark("VP") is not None for r in (x, y)]
-        if has[0] == has[1]:
-            return px, py
-        source, target = (x, y) if has[0] else (y, x)
-        record = compare_pair(pack(rows[x]["visit"], rows[y]["visit"]), thresholds=th)
+    def has_vp(role: str) -> bool:
+        return rows[role]["visit"].shape.landmark("VP") is not None
+
+    def carry(source: str, target: str, a: str) -> tuple[Any, dict[str, Any]]:
+        """``target``'s parameters with ``source``'s VP carried (the pair registered with
+        ``a`` as its visit A), or None; what happened."""
+        b = target if a == source else source
+        record = compare_pair(pack(rows[a]["visit"], rows[b]["visit"]), thresholds=th)
         try:
             reg = registration_of(record)
         except ComparisonRefusedError:
-            carried[(x, y)] = {"refused": "registration"}
-            return px, py
-        got = carry_vp(rows[source]["visit"], rows[target]["visit"], reg, source_is_a=source == x)
+            return None, {"refused": "registration"}
+        got = carry_vp(rows[source]["visit"], rows[target]["visit"], reg, source_is_a=source == a)
         entry: dict[str, Any] = {"surface_distance_mm": got.surface_distance}
-        carried[(x, y)] = entry
         if got.point is None:
-            entry["refused"] = "reach"
-            return px, py
+            return None, entry | {"refused": "reach"}
         truth_vp = rows[target]["landmarks"].get("vertebra_prominens")
         if truth_vp is not None:
             entry["vp_error_mm"] = float(np.linalg.norm(got.point - np.asarray(truth_vp)))
@@ -473,8 +471,31 @@ def score_back(rows: dict[str, dict[str, Any]], thresholds: Any = None) -> dict[
                 calibration=SimpleNamespace(gravity=rows[target]["visit"].shape.level_axes[1])
             ),
         )
-        merged = with_carried(rows[target]["parameters"], shape.parameter_table(), source)
-        return (px, merged) if target == y else (merged, py)
+        return with_carried(rows[target]["parameters"], shape.parameter_table(), source), entry
+
+    def parameters(x: str, y: str) -> tuple[Any, Any]:
+        px, py = rows[x]["parameters"], rows[y]["parameters"]
+        if has_vp(x) and has_vp(y):
+            return px, py
+        if has_vp(x) or has_vp(y):
+            source, target = (x, y) if has_vp(x) else (y, x)
+            merged, carried[(x, y)] = carry(source, target, x)
+            if merged is None:
+                return px, py
+            return (px, merged) if target == y else (merged, py)
+        # neither: both from the first other visit that found VP, as a patient's trends take
+        # VP from another visit of the patient
+        third = next((r for r in UNCHANGED + ROLES if r not in (x, y) and has_vp(r)), None)
+        if third is None:
+            return px, py
+        (mx, ex), (my, ey) = carry(third, x, third), carry(third, y, third)
+        entry = {"third": third, **(ex if "refused" in ex else ey)}
+        if "vp_error_mm" in ex and "vp_error_mm" in ey:
+            entry["vp_error_mm"] = max(ex["vp_error_mm"], ey["vp_error_mm"])
+        carried[(x, y)] = entry
+        if mx is None or my is None:
+            return px, py
+        return mx, my
 
     def flags(x: str, y: str) -> dict[str, bool | None]:
         px, py = parameters(x, y)
