@@ -26,14 +26,15 @@ if TYPE_CHECKING:
     from rasterserver.pipeline import Pipeline
     from rasterserver.visit_comparison import ArchivedVisit
 
-__all__ = ["NO_PARTNER", "carried_parameters", "with_carried"]
+__all__ = ["NO_PARTNER", "carried_parameters", "has_vp", "with_carried"]
 
 #: Why :func:`carried_parameters` carries nothing to a visit none of whose registered
 #: partners found VP.
 NO_PARTNER = "no registered visit found its VP"
 
 
-def _has_vp(visit: ArchivedVisit) -> bool:
+def has_vp(visit: ArchivedVisit) -> bool:
+    """Whether the visit's analysis found VP."""
     return visit.visit is not None and visit.visit.shape.landmark("VP") is not None
 
 
@@ -121,14 +122,14 @@ def carried_parameters(
     by_uid = {v.uid: v for v in visits}
     out: dict[str, dict[str, Any]] = {}
     for target in visits:
-        if target.visit is None or _has_vp(target):
+        if target.visit is None or has_vp(target):
             continue
         candidates = []
         for entry in pairs:
             if entry.get("_stored") is None or target.uid not in (entry["a"], entry["b"]):
                 continue
             source = by_uid[entry["b"] if entry["a"] == target.uid else entry["a"]]
-            if _has_vp(source):
+            if has_vp(source):
                 gap = abs(source.acquired_at - target.acquired_at)
                 candidates.append((gap, source.acquired_at, source, entry))
         if not candidates:

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rasterserver.analysis import acquisition_analysis
-from rasterserver.carried_analysis import NO_PARTNER, carried_parameters
+from rasterserver.carried_analysis import NO_PARTNER, carried_parameters, has_vp
 from rasterserver.comparison import (
     ComparisonRefusedError,
     DistanceMap,
@@ -415,7 +415,7 @@ def carry_from_nearest(
         ``carried_parameters``'s entry for ``target``: ``from``, ``vp``,
         ``surface_distance_mm`` and ``parameters``; or ``refused`` (every reason).
     """
-    found = [s for s in sources if s.visit is not None and s.visit.shape.landmark("VP") is not None]
+    found = [s for s in sources if has_vp(s)]
     if not found:
         return {"refused": "no other visit found its VP"}
     when = target.acquired_at
@@ -444,11 +444,22 @@ def _carried_trends(
 ) -> list[tuple[str, dt.datetime, Any]]:
     """A patient's trend rows (uid, acquired_at, parameters), a visit without VP given its
     parameters with VP carried (:func:`carry_from_nearest`) from the visits that found it."""
-    sources = [load_visit(pipeline, uid) for uid, _, _ in visits if uid in with_vp]
+    targets = {uid for uid, _, p in visits if p is not None and uid not in with_vp}
+    if not targets or not with_vp:  # nothing to carry: no visit read from the store
+        return list(visits)
+    loaded: dict[str, ArchivedVisit] = {}
+
+    def visit(uid: str) -> ArchivedVisit:
+        if uid not in loaded:
+            loaded[uid] = load_visit(pipeline, uid)
+        return loaded[uid]
+
+    sources = [(uid, at) for uid, at, _ in visits if uid in with_vp]
     out = []
     for uid, at, parameters in visits:
-        if parameters is not None and uid not in with_vp and sources:
-            got = carry_from_nearest(pipeline, load_visit(pipeline, uid), sources)
+        if uid in targets:
+            nearest = sorted(sources, key=lambda s: (abs(s[1] - at), s[1]))[:CARRY_FROM]
+            got = carry_from_nearest(pipeline, visit(uid), [visit(u) for u, _ in nearest])
             parameters = got.get("parameters", parameters)
         out.append((uid, at, parameters))
     return out
