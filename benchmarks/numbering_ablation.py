@@ -63,6 +63,7 @@ STEPS: dict[str, tuple[str, dict[str, Any]]] = {
     "column-reading": ("19", {"reading_run": 0}),
     "column-blocks": ("20", {"block_least": 0}),
     "one-sided-lines": ("21", {"one_sided_peaks": 0}),
+    "shifted-blocks": ("22", {"pair_shift": False, "shift_block": 0}),
 }
 
 

@@ -46,6 +46,7 @@ from .code_evidence import (
 )
 from .code_tiles import CodeBands
 from .component_groups import component_groups, group_placement
+from .contradicted_pairs import PairRule, pair_refusal
 from .numbering_checks import (
     by_line,
     contact_votes,
@@ -57,7 +58,6 @@ from .numbering_refusals import (
     edge_doubts,
     least_pair_departure,
     refusal,
-    refuse_contradicted_pairs,
     refuse_peaks,
     settle_last,
     summarise,
@@ -90,8 +90,7 @@ def number_lines(
     station: Any = None,
     max_depth: float = 600.0,
     pair_check: bool = True,
-    pair_agreement: float = 0.4,
-    pair_departure: float = 0.75,
+    pair_rule: PairRule = PairRule(),
     min_contact_share: float = 0.2,
     tile_check: bool = True,
     tile_band: int = 64,
@@ -152,10 +151,10 @@ def number_lines(
     pair_check : bool
         Refuse the shorter line of numbered column neighbours whose intensity ratio
         contradicts the code at their numbers (:func:`.numbering_checks.pair_contradictions`).
-    pair_agreement, pair_departure : float
-        Spare such a line where the code confirms its other pair; the least departure from
-        the code, in log ratios, that contradicts (``max_agreement``, ``min_departure`` of
-        :func:`.numbering_refusals.refuse_contradicted_pairs`).
+    pair_rule : PairRule
+        How the pair check judges and spares (:class:`.contradicted_pairs.PairRule`: the
+        agreement that spares a line confirmed on its other side, the least departure that
+        contradicts, in log ratios, and the blocks placed a line off: version 22).
     min_contact_share : float
         Least contact weight, as a share of a component's column extent, for it to inherit
         a number: a wide component touching numbered lines at a corner only (across a
@@ -490,24 +489,9 @@ def number_lines(
             )
         )
     if pair_check:
-        refused = refuse_contradicted_pairs(
-            data,
-            raster,
-            lam,
-            line_number,
-            peaks_per_line,
-            max_agreement=pair_agreement,
-            min_departure=pair_departure,
-        )
-        if refused:
-            results.append(
-                refusal(
-                    refused,
-                    f"{refused} line(s) whose intensity ratio with a column neighbour "
-                    "contradicts the code at their numbers (a piece placed a level off, as "
-                    "across a waistband) left unnumbered",
-                )
-            )
+        entry = pair_refusal(data, raster, lam, line_number, peaks_per_line, pair_rule)
+        if entry is not None:
+            results.append(entry)
     return line_number, kind, results
 
 
@@ -528,12 +512,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     12 :mod:`.frame_edges`; 13 :mod:`.end_surroundings`; 14 :mod:`.skipped_lines`; 15
     :mod:`.detached_pieces`; 16, 17 faint codes (:func:`.numbering_refusals.edge_doubts`,
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
-    peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`.
+    peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`;
+    22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "21"
+    version: ClassVar[str] = "22"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -571,8 +556,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             station=station,
             max_depth=params.max_depth,
             min_contact_share=params.min_contact_share,
-            pair_agreement=params.pair_agreement,
-            pair_departure=least_pair_departure(params, raster),
+            pair_rule=PairRule(
+                params.pair_agreement,
+                least_pair_departure(params, raster),
+                params.pair_shift,
+                params.shift_block,
+            ),
             tile_check=params.tile_check,
             tile_band=params.tile_band,
             tile_gain=params.tile_gain,

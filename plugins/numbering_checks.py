@@ -215,7 +215,8 @@ def pair_judgements(
     min_z: float = 3.0,
     min_departure: float = 0.75,
     correlation: float = 4.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    shifted: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Every pair of numbered lines, direct column neighbours numbered as consecutive raster
     lines, judged: does their intensity ratio contradict the kinds the code gives them?
 
@@ -243,6 +244,8 @@ def pair_judgements(
         Least departure, in units of ``lam``, that contradicts.
     correlation : float
         Columns over which the albedo texture is correlated (for the standard error).
+    shifted : bool
+        Also return ``moved``.
 
     Returns
     -------
@@ -254,11 +257,15 @@ def pair_judgements(
         standard errors of the ratio's centre.
     contradicts : numpy.ndarray
         Bool: the pair contradicts the code (judged over ``min_columns`` columns or more).
+    moved : numpy.ndarray
+        ``(P, 2)`` the departure (units of ``lam``) were both lines numbered one less, one
+        more (NaN beyond the code); only with ``shifted``.
     """
     empty = np.zeros(0, dtype=np.int64)
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
-        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
+        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
+        return (*none, np.zeros((0, 2))) if shifted else none
     # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
     # ~0.3 s, hence here
     from .column_pairs import grouped_pairs, raster_pair_ratios
@@ -272,13 +279,15 @@ def pair_judgements(
     # consecutive raster lines are two lines (a line has one number)
     a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
     if a.size == 0:
-        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
+        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
+        return (*none, np.zeros((0, 2))) if shifted else none
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(ratio)
     good = np.isfinite(lr)
     a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
-        return empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
+        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
+        return (*none, np.zeros((0, 2))) if shifted else none
     b = a + 1
     code = raster.code.astype(np.float64)
     upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
@@ -293,7 +302,18 @@ def pair_judgements(
     departure = np.abs(centre - exp_pair)
     bad = (counts >= min_columns) & (departure >= min_departure * lam) & (departure >= min_z * se)
     span = int(lid.max()) + 1
-    return keys // span, keys % span, counts, departure / lam, departure / se, bad
+    if not shifted:
+        return keys // span, keys % span, counts, departure / lam, departure / se, bad
+    # the departures were both lines numbered one less / one more (a block placed off)
+    up_pair = np.zeros(keys.size, dtype=np.int64)
+    up_pair[inv] = upper
+    moved = np.full((keys.size, 2), np.nan)
+    for k, s in enumerate((-1, 1)):
+        p = up_pair + s
+        ok = (p >= 0) & (p + 1 < code.size)
+        q = np.clip(p, 0, code.size - 2)
+        moved[:, k] = np.where(ok, np.abs(centre - (code[q] - code[q + 1]) * lam) / lam, np.nan)
+    return keys // span, keys % span, counts, departure / lam, departure / se, bad, moved
 
 
 def pair_contradictions(

@@ -81,6 +81,20 @@ class CodeWindowParams(StageParams):
         "with its other column neighbours agree with the code (depart by less than this, in "
         "units of the log heavy/light ratio) over more columns; 0 always refuses it.",
     )
+    pair_shift: bool = Field(
+        True,
+        description="Where a contradicting pair would agree with the code were both its "
+        "lines numbered one off (a block placed off behind an albedo edge), spare its "
+        "shorter line only by agreeing pairs that the same shift would contradict "
+        "(false: any agreeing pair; version 21).",
+    )
+    shift_block: int = Field(
+        20,
+        ge=0,
+        description="With pair_shift, refuse with such a line the lines of up to this many "
+        "peaks tied to it by pairs that agree under the shift too (its block, placed off "
+        "with it; 0: none; version 21: 0).",
+    )
     tile_check: bool = Field(
         True,
         description="Refuse lines where the code read in their own columns contradicts "

@@ -21,7 +21,7 @@ from .column_reading import misread_columns
 from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
-from .numbering_checks import column_order_conflicts, local_spacing, pair_judgements
+from .numbering_checks import column_order_conflicts, local_spacing
 from .numbering_params import CodeWindowParams
 from .one_sided_lines import one_sided_lines
 from .peak_checks import (
@@ -39,7 +39,6 @@ __all__ = [
     "faint_code",
     "least_pair_departure",
     "refusal",
-    "refuse_contradicted_pairs",
     "refuse_ends",
     "refuse_peaks",
     "settle_last",
@@ -50,79 +49,6 @@ __all__ = [
 def refusal(count: int, reason: str) -> ComponentNumbering:
     """The entry counting ``count`` lines refused inside numbered components."""
     return ComponentNumbering(-1, count, -1, float("nan"), 0.0, np.zeros(0, np.int8), reason)
-
-
-def refuse_contradicted_pairs(
-    data: OrderedLines,
-    raster: Raster,
-    lam: float,
-    line_number: np.ndarray,
-    peaks_per_line: np.ndarray,
-    *,
-    max_agreement: float = 0.0,
-    min_departure: float = 0.75,
-) -> int:
-    """Unnumber (in place) the shorter line of every pair of column neighbours whose
-    intensity ratio contradicts the code at their numbers.
-
-    Parameters
-    ----------
-    data : OrderedLines
-        The ordered lines.
-    raster : Raster
-        The diapositive's code.
-    lam : float
-        Log area ratio of a heavy to a light line.
-    line_number : numpy.ndarray
-        ``(L,)`` absolute numbers, -1 when unnumbered; changed in place.
-    peaks_per_line : numpy.ndarray
-        ``(L,)`` peak count of every line.
-    max_agreement : float
-        When positive, the shorter line is spared where its pairs with its other column
-        neighbours that agree with the code (judged over five columns or more, departing
-        from it by less than this in units of ``lam`` and by less than three standard
-        errors; the neighbour agreeing with another line as well) span more columns than
-        its contradicting pairs: the contradiction is then the longer line's doing or the
-        intensities' (an albedo edge, a shadow), not a piece placed off. 0 refuses the
-        shorter line always.
-    min_departure : float
-        Least departure of a pair's ratio from the code's, in units of ``lam``, that
-        contradicts (:func:`.numbering_checks.pair_judgements`).
-
-    Returns
-    -------
-    int
-        The number of lines refused.
-    """
-    upper, lower, columns, departure, z, bad = pair_judgements(
-        data.col, data.area, data.line_id, line_number, raster, lam, min_departure=min_departure
-    )
-    if not np.any(bad):
-        return 0
-    # The image cannot tell which of the two is off; the shorter is the piece (a whole line
-    # misread as the other kind loses one of its neighbours or itself, never a number).
-    bu, bl = upper[bad], lower[bad]
-    short_is_upper = peaks_per_line[bu] <= peaks_per_line[bl]
-    shorter = np.where(short_is_upper, bu, bl)
-    if max_agreement > 0:
-        # Spared: a shorter line that the code confirms on its other side over more
-        # columns than it contradicts it, through neighbours the code confirms on their
-        # own other side too (a lone confirming pair may be a block placed off agreeing
-        # with itself; its lines beyond then show the contradiction).
-        n = line_number.size
-        # judged like a contradiction (five columns or more), close to the code and not
-        # significantly off it (a ratio half a kind off over many columns is no agreement)
-        ok = (columns >= 5) & (departure < max_agreement) & (z < 3.0)
-        agreeing = np.bincount(upper[ok], minlength=n) + np.bincount(lower[ok], minlength=n)
-        support = np.zeros(n)
-        for x, y in ((upper[ok], lower[ok]), (lower[ok], upper[ok])):
-            confirmed = agreeing[y] >= 2
-            np.add.at(support, x[confirmed], columns[ok][confirmed])
-        against = np.bincount(bu, columns[bad], n) + np.bincount(bl, columns[bad], n)
-        shorter = shorter[support[shorter] <= against[shorter]]
-    shorter = np.unique(shorter)
-    line_number[shorter] = -1
-    return int(shorter.size)
 
 
 def summarise(results: list[ComponentNumbering], sizes: np.ndarray) -> tuple[float, str]:
@@ -324,7 +250,7 @@ def faint_code(raster: Raster, params: CodeWindowParams) -> bool:
 
 def least_pair_departure(params: CodeWindowParams, raster: Raster) -> float:
     """The least departure, in units of the code's log ratio, of a pair's intensity ratio
-    from the code's that contradicts it (:func:`refuse_contradicted_pairs`).
+    from the code's that contradicts it (:func:`.contradicted_pairs.refuse_contradicted_pairs`).
 
     0.75, but ``faint_departure`` (1.5) for a faint code (:func:`faint_code`; version 17):
     there a pair one kind off the code departs by one unit, 0.2 in log, within the scatter

@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
 from rasterserver_plugins.code_evidence import area_ratio_of
+from rasterserver_plugins.contradicted_pairs import refuse_contradicted_pairs
 from rasterserver_plugins.numbering_params import CodeWindowParams
 from rasterserver_plugins.numbering_refusals import (
     edge_doubts,
     faint_code,
     least_pair_departure,
-    refuse_contradicted_pairs,
     settle_last,
 )
 
@@ -29,10 +30,13 @@ def _stack(
     raster: Raster,
     seed: int = 3,
     heavy: float = 200.0,
+    first: int = 0,
+    shown: list[int] | None = None,
 ) -> tuple[OrderedLines, np.ndarray]:
-    """Line ``i`` (raster line ``i``, row ``10 i``) over the columns ``extents[i]``, its
-    areas those of its kind (light 100, ``heavy``) times ``gains[i]`` (an albedo edge, a
-    shadow) with 3 % noise; one component, numbered right. Returns the lines and their
+    """Line ``i`` (raster line ``first + i``, row ``10 i``) over the columns ``extents[i]``,
+    its areas those of its kind (light 100, ``heavy``) times ``gains[i]`` (an albedo edge, a
+    shadow) with 3 % noise; one component, numbered ``first + i``. ``shown[i]``: the raster
+    line whose kind line ``i`` shows (a line numbered off). Returns the lines and their
     numbers."""
     rng = np.random.default_rng(seed)
     cols, rows, lids, areas = [], [], [], []
@@ -41,7 +45,7 @@ def _stack(
         cols.append(c)
         rows.append(np.full(c.size, 10.0 * i))
         lids.append(np.full(c.size, i))
-        kind_area = heavy if raster.code[i] else 100.0
+        kind_area = heavy if raster.code[first + i if shown is None else shown[i]] else 100.0
         areas.append(gain * kind_area * (1.0 + 0.03 * rng.standard_normal(c.size)))
     col, row, lid, area = (np.concatenate(a) for a in (cols, rows, lids, areas))
     order = np.lexsort((row, col))
@@ -59,14 +63,22 @@ def _stack(
         line_order=line_order,
         line_component=np.zeros(n, np.int32),
     )
-    return data, raster.numbers[:n].astype(np.int32)
+    return data, raster.numbers[first : first + n].astype(np.int32)
 
 
-def _refused(data: OrderedLines, numbers: np.ndarray, max_agreement: float) -> set[int]:
+def _refused(
+    data: OrderedLines, numbers: np.ndarray, max_agreement: float, **shifts: Any
+) -> set[int]:
     line_number = numbers.copy()
     per_line = np.bincount(data.line_id, minlength=numbers.size)
     refuse_contradicted_pairs(
-        data, get_raster("w8-1to2"), LAM, line_number, per_line, max_agreement=max_agreement
+        data,
+        get_raster("w8-1to2"),
+        LAM,
+        line_number,
+        per_line,
+        max_agreement=max_agreement,
+        **shifts,
     )
     return set(np.flatnonzero(line_number < 0).tolist())
 
@@ -98,6 +110,40 @@ def test_a_confirmation_from_an_unconfirmed_neighbour_does_not_count() -> None:
     assert 1 in _refused(block, numbers, 0.4)
     last, numbers = _stack(extents[:3], [3.0, 1.0, 1.0], raster)
     assert _refused(last, numbers, 0.4) == {1}
+
+
+def test_a_block_placed_a_line_off_does_not_confirm_itself() -> None:
+    """Scene 7728 of the twin raster: behind a waistband the cloth's lines (twice as bright
+    as the skin) are numbered one less than they are, their first line under the skin's
+    last (line 18) agreeing with it by the albedo edge. The block's own pairs agree with the
+    code at either placement but one: the pair of its first two lines, which would agree
+    were both one more. The shorter line of that pair, confirmed below only by pairs that
+    agree at either placement, is refused (version 22; version 21 spared it), and with
+    ``shift_block`` the block's lines tied to it by such pairs go with it."""
+    raster = get_raster("w8-1to2")
+    extents = [(0, 40), (0, 28), (18, 40), (10, 40), (0, 40)]
+    data, numbers = _stack(
+        extents, [1.0, 2.0, 2.0, 2.0, 2.0], raster, first=18, shown=[18, 20, 21, 22, 23]
+    )
+    assert _refused(data, numbers, 0.4) == set()
+    assert _refused(data, numbers, 0.4, shift_support=True) == {2}
+    assert _refused(data, numbers, 0.4, shift_support=True, shift_block=40) == {2, 3, 4}
+    # lines longer than shift_block stay; without shift_support there is no block
+    assert _refused(data, numbers, 0.4, shift_support=True, shift_block=25) == {2}
+    assert _refused(data, numbers, 0.4, shift_block=40) == set()
+
+
+def test_a_right_block_keeps_its_confirmation() -> None:
+    """The cloth's lines numbered right, twice as bright as the skin: their first line's
+    pair with the skin's last contradicts the code (the albedo edge), and would agree were
+    both one less; but the cloth's own pairs would contradict under that shift, so they
+    confirm the line, which is kept as in version 21."""
+    raster = get_raster("w8-1to2")
+    extents = [(20, 60), (0, 30), (0, 60), (0, 60), (0, 60)]
+    data, numbers = _stack(extents, [1.0, 2.0, 2.0, 2.0, 2.0], raster, first=18)
+    assert _refused(data, numbers, 0.0) == {1}
+    assert _refused(data, numbers, 0.4) == set()
+    assert _refused(data, numbers, 0.4, shift_support=True, shift_block=40) == set()
 
 
 def test_no_contradiction_refuses_nothing() -> None:
