@@ -110,6 +110,9 @@ def refuse_contradicted_pairs(
         under the skin's); its shorter line's agreeing pairs then spare it only where they
         would no longer agree under that shift (a run of lines of one kind agrees under
         either).
+    shift_block : int
+        With ``shift_support``, the lines of at most this many peaks tied to a refused line
+        by pairs that agree under its shift too (its block) are refused with it (0: none).
 
     Returns
     -------

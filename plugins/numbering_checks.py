@@ -262,10 +262,11 @@ def pair_judgements(
         more (NaN beyond the code); only with ``shifted``.
     """
     empty = np.zeros(0, dtype=np.int64)
+    nothing: tuple[np.ndarray, ...] = (empty, empty, empty, np.zeros(0), np.zeros(0))
+    nothing += (np.zeros(0, dtype=bool),) + (np.zeros((0, 2)),) * shifted
     n = col.size
     if n < 2 or line_number.size == 0 or raster.n_lines < 2:
-        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
-        return (*none, np.zeros((0, 2))) if shifted else none
+        return nothing
     # the pairs and their grouping in compiled loops (column_pairs); the numba import costs
     # ~0.3 s, hence here
     from .column_pairs import grouped_pairs, raster_pair_ratios
@@ -279,15 +280,13 @@ def pair_judgements(
     # consecutive raster lines are two lines (a line has one number)
     a, ratio = raster_pair_ratios(col, area, line_id, pos_line)
     if a.size == 0:
-        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
-        return (*none, np.zeros((0, 2))) if shifted else none
+        return nothing
     with np.errstate(divide="ignore", invalid="ignore"):
         lr = np.log(ratio)
     good = np.isfinite(lr)
     a, lr = a[good], np.clip(lr[good], -1.0, 1.0)
     if a.size == 0:
-        none = (empty, empty, empty, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool))
-        return (*none, np.zeros((0, 2))) if shifted else none
+        return nothing
     b = a + 1
     code = raster.code.astype(np.float64)
     upper = pos_line[lid[a]]  # the lower peak's line is the next raster line
