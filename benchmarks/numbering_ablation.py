@@ -99,16 +99,7 @@ def ablate_scene(seed: int) -> dict[str, Any]:
     from rasterserver.stage import StageContext, run_stage
 
     bench = _real_bodies()
-    if _CACHE is None:
-        frame = bench.render_scene(seed, _RASTER)
-    else:
-        name = f"scene-{seed}-{_RASTER}.npz" if _RASTER else f"scene-{seed}.npz"
-        path = _CACHE / name
-        if path.exists():
-            frame = bench.Frame.load(path)
-        else:
-            frame = bench.render_scene(seed, _RASTER)
-            frame.save(path)
+    frame = bench.cached_frame(seed, _RASTER, _CACHE)
     station = clinic_station(frame.seed, frame.code)
     ctx = StageContext(calibration=station, raster=station.raster_definition)
     peaks = run_stage(FirstMomentPeaks, Image(frame.image))

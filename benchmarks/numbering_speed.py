@@ -72,14 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         args.cache.mkdir(parents=True, exist_ok=True)
     inputs = []
     for seed in seeds:
-        name = f"scene-{seed}-{args.raster}.npz" if args.raster else f"scene-{seed}.npz"
-        path = args.cache / name if args.cache is not None else None
-        if path is not None and path.exists():
-            frame = bench.Frame.load(path)
-        else:
-            frame = bench.render_scene(seed, args.raster)
-            if path is not None:
-                frame.save(path)
+        frame = bench.cached_frame(seed, args.raster, args.cache)
         station = clinic_station(frame.seed, frame.code)
         ctx = StageContext(calibration=station, raster=station.raster_definition)
         peaks = run_stage(FirstMomentPeaks, Image(frame.image))

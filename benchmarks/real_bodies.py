@@ -228,8 +228,11 @@ def covered_crossings(
     return covered
 
 
-def score_frame(frame: Frame) -> dict[str, Any]:
-    """Run stages 1-4 on ``frame`` and score them against its truth."""
+def run_stages(
+    frame: Frame, params: dict[str, dict[str, Any]] | None = None
+) -> tuple[Any, dict[str, float]]:
+    """Stages 1-4 on ``frame`` with its station and raster (``params``: per-stage parameters,
+    ``{"peaks": {...}, "numbers": {...}}``): the numbered lines and each stage's time (ms)."""
     from rasterserver_plugins.line_numbering import CodeWindowNumbering
     from rasterserver_plugins.line_search import HierarchicalLineSearch
     from rasterserver_plugins.line_sequence import HierarchicalLineOrder
@@ -239,24 +242,30 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     from rasterserver.simulator.body import clinic_station
     from rasterserver.stage import StageContext, run_stage
 
+    params = params or {}
     station = clinic_station(frame.seed, frame.code)
     ctx = StageContext(calibration=station, raster=station.raster_definition)
+    ms: dict[str, float] = {}
+    data: Any = Image(frame.image)
+    for name, stage, kw in (
+        ("peaks", FirstMomentPeaks, {}),
+        ("lines", HierarchicalLineSearch, {}),
+        ("order", HierarchicalLineOrder, {}),
+        ("numbers", CodeWindowNumbering, {"context": ctx}),
+    ):
+        t = time.perf_counter()
+        data = run_stage(stage, data, params=params.get(name), **kw)
+        ms[name] = round(1e3 * (time.perf_counter() - t), 3)
+    return data, ms
+
+
+def score_frame(frame: Frame) -> dict[str, Any]:
+    """Run stages 1-4 on ``frame`` and score them against its truth."""
+    result, ms = run_stages(frame, _PARAMS)
     image = frame.image
-    t = time.perf_counter()
-    peaks = run_stage(FirstMomentPeaks, Image(image), params=_PARAMS.get("peaks"))
-    t_peaks = time.perf_counter() - t
     t = time.perf_counter()
     g_col, g_row = generic_peaks(image)
     t_generic = time.perf_counter() - t
-    t = time.perf_counter()
-    lines = run_stage(HierarchicalLineSearch, peaks, params=_PARAMS.get("lines"))
-    t_lines = time.perf_counter() - t
-    t = time.perf_counter()
-    ordered = run_stage(HierarchicalLineOrder, lines, params=_PARAMS.get("order"))
-    t_order = time.perf_counter() - t
-    t = time.perf_counter()
-    result = run_stage(CodeWindowNumbering, ordered, params=_PARAMS.get("numbers"), context=ctx)
-    t_numbers = time.perf_counter() - t
 
     lr = frame.line_rows
     names = frame.names
@@ -318,13 +327,7 @@ def score_frame(frame: Frame) -> dict[str, Any]:
         "generic_peaks": int(g_col.size),
         "rec_by_object": by_obj,
         "reason": result.reason[:400],
-        "ms": {
-            "peaks": round(1e3 * t_peaks, 3),
-            "generic": round(1e3 * t_generic, 3),
-            "lines": round(1e3 * t_lines, 3),
-            "order": round(1e3 * t_order, 3),
-            "numbers": round(1e3 * t_numbers, 3),
-        },
+        "ms": {**ms, "generic": round(1e3 * t_generic, 3)},
         "render_s": frame.render_s,
     }
 
@@ -336,17 +339,22 @@ _RASTER: str | None = None
 _PARAMS: dict[str, dict[str, Any]] = {}
 
 
+def cached_frame(seed: int, raster: str | None = None, cache: Path | None = None) -> Frame:
+    """Scene ``seed`` (through ``raster``) read from the frame folder ``cache``, or rendered
+    and, with a folder, kept there (``scene-<seed>[-<raster>].npz``)."""
+    if cache is None:
+        return render_scene(seed, raster)
+    path = cache / (f"scene-{seed}-{raster}.npz" if raster else f"scene-{seed}.npz")
+    if path.exists():
+        return Frame.load(path)
+    frame = render_scene(seed, raster)
+    frame.save(path)
+    return frame
+
+
 def run_scene(seed: int) -> dict[str, Any]:
     """Render scene ``seed`` (or read it from the frame cache), run stages 1-4, score."""
-    if _CACHE is None:
-        return score_frame(render_scene(seed, _RASTER))
-    path = _CACHE / (f"scene-{seed}-{_RASTER}.npz" if _RASTER else f"scene-{seed}.npz")
-    if path.exists():
-        frame = Frame.load(path)
-    else:
-        frame = render_scene(seed, _RASTER)
-        frame.save(path)
-    return score_frame(frame)
+    return score_frame(cached_frame(seed, _RASTER, _CACHE))
 
 
 def _init(

@@ -154,8 +154,7 @@ def signed_extremes(values: np.ndarray) -> tuple[float, float, float, float]:
     )
 
 
-def undecided_sign(extremes: tuple[float, float, float, float], margin: float,
-                   unit: str) -> str:
+def undecided_sign(extremes: tuple[float, float, float, float], margin: float, unit: str) -> str:
     """Why the signed maximum of :func:`signed_extremes` is refused, or "" when it is not.
 
     Parameters
@@ -176,9 +175,11 @@ def undecided_sign(extremes: tuple[float, float, float, float], margin: float,
     _rms, _peak, pos, neg = extremes
     if not (math.isfinite(pos) and math.isfinite(neg)) or abs(pos + neg) >= margin:
         return ""
-    return (f"the largest values to either side ({pos:+.1f} and {neg:+.1f} {unit}) are within "
-            f"{margin:g} {unit} of each other: which is larger, and so the sign, is not decided "
-            "by the measurement; see the positive and negative maxima")
+    return (
+        f"the largest values to either side ({pos:+.1f} and {neg:+.1f} {unit}) are within "
+        f"{margin:g} {unit} of each other: which is larger, and so the sign, is not decided "
+        "by the measurement; see the positive and negative maxima"
+    )
 
 
 def _turning_points(values: np.ndarray, tolerance: float) -> list[int]:
@@ -448,8 +449,7 @@ def back_parameters(
     if midline is None:
         missing([*rotation, *deviation, "scoliosis_angle_deg"], "needs the symmetry line")
     else:
-        for names, values in ((rotation, midline.rotation),
-                              (deviation, midline.lateral_deviation)):
+        for names, values in ((rotation, midline.rotation), (deviation, midline.lateral_deviation)):
             extremes = signed_extremes(values)
             out.update(zip(names, extremes, strict=True))
             why = undecided_sign(extremes, SIGN_MARGIN[names[1]], PARAMETER_UNITS[names[1]])
