@@ -190,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         parts = args.box.split(",")
         if len(parts) != 4 or not all(p.strip().lstrip("-").isdigit() for p in parts):
             ap.error("--box takes four integers: c0,c1,r0,r1")
+    if args.cache is not None:
+        args.cache.mkdir(parents=True, exist_ok=True)
     frame = real_bodies.cached_frame(args.seed, args.raster, args.cache)
     seen, before = look(frame, params), look(frame, against)
     back = frame.lr_on_back

@@ -39,3 +39,15 @@ def test_parameters_that_are_not_stage_maps_are_refused(tmp_path: Path) -> None:
         assert done.returncode == 2 and why in done.stderr, done.stderr
     done = run_script("scene_look", "--seed", "7728", "--box", "1,2,3")
     assert done.returncode == 2 and "four integers" in done.stderr
+
+
+def test_a_scene_rendered_once_is_kept_in_a_new_frame_folder(tmp_path: Path) -> None:
+    folder = tmp_path / "frames" / "new"
+    first = run_script("scene_look", "--seed", "7044", "--cache", str(folder))
+    assert first.returncode == 0, first.stderr[-2000:]
+    kept = folder / "scene-7044.npz"
+    assert kept.is_file()
+    stamp = kept.stat().st_mtime_ns
+    again = run_script("scene_look", "--seed", "7044", "--cache", str(folder))
+    assert again.returncode == 0 and again.stdout == first.stdout  # read, not rendered anew
+    assert kept.stat().st_mtime_ns == stamp
