@@ -90,26 +90,18 @@ def ablate_scene(seed: int) -> dict[str, Any]:
         ``seed``, ``back_crossings`` and per variant ``[wrong peaks, back covered]``.
     """
     from rasterserver_plugins.line_numbering import CodeWindowNumbering
-    from rasterserver_plugins.line_search import HierarchicalLineSearch
-    from rasterserver_plugins.line_sequence import HierarchicalLineOrder
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks
 
-    from rasterserver.records import Image
-    from rasterserver.simulator.body import clinic_station
-    from rasterserver.stage import StageContext, run_stage
+    from rasterserver.stage import run_stage
 
     bench = _real_bodies()
     frame = bench.cached_frame(seed, _RASTER, _CACHE)
-    station = clinic_station(frame.seed, frame.code)
-    ctx = StageContext(calibration=station, raster=station.raster_definition)
-    peaks = run_stage(FirstMomentPeaks, Image(frame.image))
-    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+    ordered, ctx, _ = bench.ordered_lines(frame)
     row: dict[str, Any] = {"seed": seed, "back_crossings": int(frame.lr_on_back.sum())}
     for name in ["installed", *_STEPS]:
         params = STEPS[name][1] if name in STEPS else None
         result = run_stage(CodeWindowNumbering, ordered, params=params, context=ctx)
         truth, _ = bench.peak_truth(frame, result)
-        wrong = (result.number >= 0) & (truth >= 0) & (result.number != truth)
+        wrong = bench.wrong_peaks(result.number, truth)
         covered = bench.covered_crossings(frame, result, truth)
         row[name] = [int(wrong.sum()), int((covered & frame.lr_on_back).sum())]
     return row

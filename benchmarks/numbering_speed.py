@@ -53,13 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from rasterserver_plugins import end_surroundings
     from rasterserver_plugins.line_numbering import CodeWindowNumbering
-    from rasterserver_plugins.line_search import HierarchicalLineSearch
-    from rasterserver_plugins.line_sequence import HierarchicalLineOrder
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks
 
-    from rasterserver.records import Image
-    from rasterserver.simulator.body import clinic_station
-    from rasterserver.stage import StageContext, run_stage
+    from rasterserver.stage import run_stage
 
     bench = _real_bodies()
     codes = bench.CODES
@@ -72,11 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         args.cache.mkdir(parents=True, exist_ok=True)
     inputs = []
     for seed in seeds:
-        frame = bench.cached_frame(seed, args.raster, args.cache)
-        station = clinic_station(frame.seed, frame.code)
-        ctx = StageContext(calibration=station, raster=station.raster_definition)
-        peaks = run_stage(FirstMomentPeaks, Image(frame.image))
-        ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+        ordered, ctx, _ = bench.ordered_lines(bench.cached_frame(seed, args.raster, args.cache))
         inputs.append((ordered, ctx))
     fast = end_surroundings._one_pass
 

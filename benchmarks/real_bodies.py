@@ -228,12 +228,12 @@ def covered_crossings(
     return covered
 
 
-def run_stages(
+def ordered_lines(
     frame: Frame, params: dict[str, dict[str, Any]] | None = None
-) -> tuple[Any, dict[str, float]]:
-    """Stages 1-4 on ``frame`` with its station and raster (``params``: per-stage parameters,
-    ``{"peaks": {...}, "numbers": {...}}``): the numbered lines and each stage's time (ms)."""
-    from rasterserver_plugins.line_numbering import CodeWindowNumbering
+) -> tuple[Any, Any, dict[str, float]]:
+    """Stages 1-3 on ``frame`` (``params``: per-stage parameters, ``{"peaks": {...}}``):
+    the ordered lines, the stage context of the scene's station and raster (for the
+    numbering), and each stage's time (ms)."""
     from rasterserver_plugins.line_search import HierarchicalLineSearch
     from rasterserver_plugins.line_sequence import HierarchicalLineOrder
     from rasterserver_plugins.peak_detection import FirstMomentPeaks
@@ -247,16 +247,37 @@ def run_stages(
     ctx = StageContext(calibration=station, raster=station.raster_definition)
     ms: dict[str, float] = {}
     data: Any = Image(frame.image)
-    for name, stage, kw in (
-        ("peaks", FirstMomentPeaks, {}),
-        ("lines", HierarchicalLineSearch, {}),
-        ("order", HierarchicalLineOrder, {}),
-        ("numbers", CodeWindowNumbering, {"context": ctx}),
+    for name, stage in (
+        ("peaks", FirstMomentPeaks),
+        ("lines", HierarchicalLineSearch),
+        ("order", HierarchicalLineOrder),
     ):
         t = time.perf_counter()
-        data = run_stage(stage, data, params=params.get(name), **kw)
+        data = run_stage(stage, data, params=params.get(name))
         ms[name] = round(1e3 * (time.perf_counter() - t), 3)
-    return data, ms
+    return data, ctx, ms
+
+
+def run_stages(
+    frame: Frame, params: dict[str, dict[str, Any]] | None = None
+) -> tuple[Any, dict[str, float]]:
+    """Stages 1-4 on ``frame`` with its station and raster (``params``: per-stage parameters,
+    ``{"peaks": {...}, "numbers": {...}}``): the numbered lines and each stage's time (ms)."""
+    from rasterserver_plugins.line_numbering import CodeWindowNumbering
+
+    from rasterserver.stage import run_stage
+
+    ordered, ctx, ms = ordered_lines(frame, params)
+    t = time.perf_counter()
+    numbers = (params or {}).get("numbers")
+    result = run_stage(CodeWindowNumbering, ordered, params=numbers, context=ctx)
+    ms["numbers"] = round(1e3 * (time.perf_counter() - t), 3)
+    return result, ms
+
+
+def wrong_peaks(number: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per peak: numbered, with a true number (:func:`peak_truth`), and not that one."""
+    return (number >= 0) & (truth >= 0) & (number != truth)
 
 
 def score_frame(frame: Frame) -> dict[str, Any]:
@@ -272,7 +293,7 @@ def score_frame(frame: Frame) -> dict[str, Any]:
     truth, obj = peak_truth(frame, result)
     on_line = truth >= 0
     numbered = result.number >= 0
-    wrong = numbered & on_line & (result.number != truth)
+    wrong = wrong_peaks(result.number, truth)
     numbered_off = numbered & ~on_line
     wrong_lines = 0
     for line in np.unique(result.line_id[wrong]):

@@ -51,8 +51,7 @@ class Look:
     @property
     def wrong(self) -> np.ndarray:
         """Per peak: numbered, with a true number, and not that one."""
-        n = self.result.number
-        return (n >= 0) & (self.truth >= 0) & (n != self.truth)
+        return real_bodies.wrong_peaks(self.result.number, self.truth)
 
 
 def look(frame: real_bodies.Frame, params: dict[str, dict[str, Any]]) -> Look:
@@ -84,11 +83,13 @@ def wrong_lines(frame: real_bodies.Frame, seen: Look) -> list[dict[str, Any]]:
     return out
 
 
-def _box(frame: real_bodies.Frame, seen: Look, box: str | None, pad: int) -> tuple[int, ...]:
-    """``c0, c1, r0, r1`` from ``--box``, else around the wrong peaks, else the frame."""
+def _box(
+    frame: real_bodies.Frame, seen: Look, box: tuple[int, ...] | None, pad: int
+) -> tuple[int, ...]:
+    """``c0, c1, r0, r1``: ``box``, else around the wrong peaks, else the frame."""
     h, w = frame.image.shape
     if box:
-        c0, c1, r0, r1 = (int(v) for v in box.split(","))
+        c0, c1, r0, r1 = box
     elif np.any(seen.wrong):
         res, wrong = seen.result, seen.wrong
         c0, c1 = int(res.col[wrong].min()) - pad, int(res.col[wrong].max()) + pad
@@ -186,10 +187,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     params = _params(args.params, "--params", ap)
     against = _params(args.against, "--against", ap)
+    box = None
     if args.box is not None:
         parts = args.box.split(",")
         if len(parts) != 4 or not all(p.strip().lstrip("-").isdigit() for p in parts):
             ap.error("--box takes four integers: c0,c1,r0,r1")
+        box = tuple(int(p) for p in parts)
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
     frame = real_bodies.cached_frame(args.seed, args.raster, args.cache)
@@ -210,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(report, indent=2))
     if args.png is not None:
-        draw(frame, seen, before, _box(frame, seen, args.box, args.pad), args.png)
+        draw(frame, seen, before, _box(frame, seen, box, args.pad), args.png)
     return 0
 
 
