@@ -513,12 +513,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     :mod:`.detached_pieces`; 16, 17 faint codes (:func:`.numbering_refusals.edge_doubts`,
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
     peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`;
-    22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``).
+    22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``); 23
+    inherited components touched from one side only (``linked_one_sided``).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "22"
+    version: ClassVar[str] = "23"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)
@@ -595,8 +596,10 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
             min_run=params.min_run,
             spacing=spacing,
         )
+        linked = np.zeros(n_comp, dtype=bool)
+        linked[[r.component for r in results if r.how == "linked" and r.component >= 0]] = True
         # the spacing of the numbers before the refusals: the geometry they measured
-        number, last = settle_last(data, number, spacing, params, raster)
+        number, last = settle_last(data, number, spacing, params, raster, linked)
         notes += last
         reason = "; ".join([reason, *notes]) if reason else "; ".join(notes)
         return NumberedLines.extend(

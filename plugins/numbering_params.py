@@ -326,6 +326,13 @@ class CodeWindowParams(StageParams):
         description="Largest departure, per ratio (natural log), of that shifted reading "
         "from the code (block_least).",
     )
+    linked_one_sided: int = Field(
+        50,
+        ge=0,
+        description="Last, refuse components of at most this many numbered peaks that "
+        "inherited their numbers and are touched by numbered lines on one side only (0: "
+        "none; version 22: 0).",
+    )
     one_sided_peaks: int = Field(
         5,
         ge=0,

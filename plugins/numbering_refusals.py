@@ -23,7 +23,7 @@ from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .numbering_checks import column_order_conflicts, local_spacing
 from .numbering_params import CodeWindowParams
-from .one_sided_lines import one_sided_lines
+from .one_sided_lines import one_sided_components, one_sided_lines
 from .peak_checks import (
     beside_doubtful,
     column_islands,
@@ -373,6 +373,7 @@ def settle_last(
     spacing: np.ndarray | None,
     params: CodeWindowParams,
     raster: Raster,
+    linked: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """The last steps after the peak checks: bracketed peaks numbered
     (:func:`.bracketed_peaks.fill_brackets`), the blocks at lines' ends that their own
@@ -387,8 +388,10 @@ def settle_last(
     line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
     column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
     ``one_sided_peaks``), and last the peaks those steps left with no numbered column
-    neighbour (:func:`.peak_checks.isolated_peaks`, ``final_isolated``); the notes of those
-    that changed anything.
+    neighbour (:func:`.peak_checks.isolated_peaks`, ``final_isolated``) and, with
+    ``linked``, the small inherited components touched from one side only
+    (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``); the notes of
+    those that changed anything.
 
     Parameters
     ----------
@@ -406,9 +409,12 @@ def settle_last(
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
         ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``column_check``,
-        ``final_isolated``.
+        ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
+    linked : numpy.ndarray, optional
+        ``(C,)`` bool per component of ``data``: numbered by inheritance from the
+        components it touches.
 
     Returns
     -------
@@ -505,5 +511,15 @@ def settle_last(
         number = _unnumber(
             number, isolated_peaks(col, number), notes, "with no numbered peak above or "
             "below them once the last steps refused their column neighbours",
+        )  # fmt: skip
+    if linked is not None and params.linked_one_sided > 0:
+        one_sided = one_sided_components(
+            col, line_id, number, data.line_component, linked,
+            max_peaks=params.linked_one_sided,
+        )  # fmt: skip
+        number = _unnumber(
+            number, one_sided, notes, f"in components of at most {params.linked_one_sided} "
+            "numbered peaks that inherited their numbers from lines touching them on one side "
+            "only (the count rests on one boundary, as a cloth's below a waistband)",
         )  # fmt: skip
     return number, notes

@@ -1,4 +1,5 @@
-"""Short numbered lines that no column confirms from both sides: refused."""
+"""Short numbered lines that no column confirms from both sides, and small inherited
+components touched from one side only: refused."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 from rasterserver_plugins.numbering_params import CodeWindowParams
-from rasterserver_plugins.one_sided_lines import one_sided_lines
+from rasterserver_plugins.one_sided_lines import one_sided_components, one_sided_lines
 
 
 def _frame(pieces: list[tuple[int, range, float, bool]]) -> tuple[np.ndarray, ...]:
@@ -88,3 +89,58 @@ def test_the_parameter_is_validated() -> None:
     assert CodeWindowParams(one_sided_peaks=0).one_sided_peaks == 0
     with pytest.raises(ValidationError):
         CodeWindowParams(one_sided_peaks=-1)
+
+
+def test_an_inherited_component_touched_from_above_only_is_refused() -> None:
+    """Lines 0-2 (component 0) of a back; lines 3 and 4 (component 1, inherited) below line
+    2 over columns 10-19, with an unnumbered cloth line below them: touched from above
+    only, as a cloth's lines below a waistband. Inherited from above and below (component
+    2 between lines 0 and 1's ends, and line 5 below it), it stays."""
+    col, lid, num = _frame(
+        [(0, range(40), 0.0, True), (1, range(40), 10.0, True), (2, range(40), 20.0, True),
+         (3, range(10, 20), 30.0, True), (4, range(10, 20), 40.0, True),
+         (6, range(8, 22), 50.0, False)]
+    )  # fmt: skip
+    comps = np.array([0, 0, 0, 1, 1, 9, 9], dtype=np.int32)
+    linked = np.zeros(10, dtype=bool)
+    linked[1] = True
+    refused = one_sided_components(col, lid, num, comps, linked)
+    assert np.array_equal(refused, np.isin(lid, [3, 4]))
+    # a component the code placed (not linked) is not judged
+    assert not np.any(one_sided_components(col, lid, num, comps, np.zeros(10, dtype=bool)))
+    # larger than max_peaks (20 numbered peaks): kept
+    assert not np.any(one_sided_components(col, lid, num, comps, linked, max_peaks=19))
+    assert np.any(one_sided_components(col, lid, num, comps, linked, max_peaks=20))
+    assert not np.any(one_sided_components(col, lid, num, comps, linked, max_peaks=0))
+    # numbered line 5 below line 4 in one column (another component): touched from both
+    col, lid, num = _frame(
+        [(0, range(40), 0.0, True), (1, range(40), 10.0, True), (2, range(40), 20.0, True),
+         (3, range(10, 20), 30.0, True), (4, range(10, 20), 40.0, True),
+         (5, range(19, 30), 50.0, True)]
+    )  # fmt: skip
+    comps = np.array([0, 0, 0, 1, 1, 0], dtype=np.int32)
+    assert not np.any(one_sided_components(col, lid, num, comps, linked[:2]))
+
+
+def test_an_inherited_component_touching_nothing_numbered_is_refused() -> None:
+    # its contacts were refused since: nothing numbered confirms its count on either side
+    col, lid, num = _frame([(0, range(40), 0.0, False), (1, range(10, 20), 10.0, True)])
+    comps = np.array([0, 1], dtype=np.int32)
+    refused = one_sided_components(col, lid, num, comps, np.array([False, True]))
+    assert np.array_equal(refused, lid == 1)
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_components_of_degenerate_inputs(n: int) -> None:
+    col = np.zeros(n, dtype=np.int32)
+    lid = np.full(n, -1, dtype=np.int32)
+    num = np.full(n, 100, dtype=np.int32)
+    comps = np.zeros(0, dtype=np.int32)
+    got = one_sided_components(col, lid, num, comps, np.zeros(0, dtype=bool))
+    assert got.shape == (n,) and not np.any(got)
+    if n:  # a numbered peak of no line is never judged
+        got = one_sided_components(col, lid, num, np.array([0]), np.array([True]))
+        assert not np.any(got)
+    assert CodeWindowParams().linked_one_sided == 50
+    with pytest.raises(ValidationError):
+        CodeWindowParams(linked_one_sided=-1)
