@@ -33,9 +33,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import importlib  # noqa: E402
 import json  # noqa: E402
-import multiprocessing as mp  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -200,21 +198,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.scenes))
-    rows: list[dict[str, Any]] = []
-    start = time.time()
-    with mp.get_context("spawn").Pool(
-        max(1, args.workers), initializer=_init, initargs=(args.cache, args.raster, steps),
-        maxtasksperchild=40,
-    ) as pool:  # fmt: skip
-        for i, row in enumerate(pool.imap_unordered(_safe, seeds, chunksize=1), 1):
-            rows.append(row)
-            if i % 20 == 0 or i == len(seeds) or "error" in row:
-                print(
-                    f"{i}/{len(seeds)} scenes, {(time.time() - start) / i:.2f} s/scene"
-                    + (f"; seed {row['seed']}: {row['error']}" if "error" in row else ""),
-                    file=sys.stderr,
-                    flush=True,
-                )
+    from _scene_pool import scene_rows  # beside this script
+
+    rows = scene_rows(
+        _safe,
+        seeds,
+        workers=args.workers,
+        initializer=_init,
+        initargs=(args.cache, args.raster, steps),
+    )
     summary = summarise(rows, steps)
     summary["range"] = {"first_seed": args.first_seed, "scenes": args.scenes, "raster": args.raster}
     print(_table(summary))
