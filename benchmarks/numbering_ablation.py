@@ -32,7 +32,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import importlib  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
@@ -174,46 +173,26 @@ def _table(summary: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line entry point."""
+    from _scene_pool import add_scene_arguments, report, scene_rows, scene_seeds  # beside
+
     ap = argparse.ArgumentParser(
         description=(__doc__ or "").splitlines()[0],
         epilog="steps: " + ", ".join(STEPS),
     )
-    ap.add_argument("--first-seed", type=int, default=7600)
-    ap.add_argument("--scenes", type=int, default=100)
-    ap.add_argument("--raster", default=None, help="see every scene through this raster")
-    ap.add_argument("--cache", type=Path, default=None, help="folder of rendered frames")
-    ap.add_argument("--workers", type=int, default=2)
+    add_scene_arguments(ap)
     ap.add_argument("--only", default=None, help="comma-separated steps (default: all)")
-    ap.add_argument("--out", type=Path, default=None, help="write the summary here (JSON)")
     args = ap.parse_args(argv)
     steps = list(STEPS) if args.only is None else [s.strip() for s in args.only.split(",")]
     unknown = [s for s in steps if s not in STEPS]
     if unknown:
         ap.error(f"unknown step(s) {', '.join(unknown)}; the steps: {', '.join(STEPS)}")
-    names = _real_bodies()._raster_names()
-    if args.raster is not None and args.raster not in names:
-        ap.error(f"unknown raster {args.raster!r}; built in: {', '.join(names)}")
-    if args.scenes < 1:
-        ap.error("--scenes must be at least 1")
-    if args.cache is not None:
-        args.cache.mkdir(parents=True, exist_ok=True)
-    seeds = list(range(args.first_seed, args.first_seed + args.scenes))
-    from _scene_pool import scene_rows  # beside this script
-
+    seeds = scene_seeds(ap, args, _real_bodies()._raster_names())
     rows = scene_rows(
-        _safe,
-        seeds,
-        workers=args.workers,
-        initializer=_init,
+        _safe, seeds, workers=args.workers, initializer=_init,
         initargs=(args.cache, args.raster, steps),
-    )
+    )  # fmt: skip
     summary = summarise(rows, steps)
-    summary["range"] = {"first_seed": args.first_seed, "scenes": args.scenes, "raster": args.raster}
-    print(_table(summary))
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(summary, indent=2) + "\n")
-    return 0 if not summary["error_seeds"] else 1
+    return report(summary, args, _table(summary))
 
 
 if __name__ == "__main__":
