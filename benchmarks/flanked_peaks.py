@@ -1,13 +1,13 @@
-"""Screening a peak-stage lead: dropped peaks flanked by trusted ones, kept.
+"""The flanked-peaks rule of the peak stage, scored with and without it on the same frames.
 
-The detector (:class:`~rasterserver_plugins.peak_detection.FirstMomentPeaks`) drops a peak
-whose first moment cannot be trusted; where only its bounding minima or flanks are unequal
-(a neighbouring line crowds it), a peak that trusted peaks flank in both adjacent columns
-(the same line on either side) is located about as well as the line around it
-(BENCHMARKS.md "Real bodies", 2026-11-30 (31)). This script keeps those peaks around the
-installed detector, without a new version of it, and scores stages 1-4 on the clinic
-scenes of :mod:`real_bodies` both ways on the same frames: the wrongly numbered peaks, the
-back's coverage and the reconstructed peaks' rms, as ``real_bodies.py`` counts them.
+The detector (:class:`~rasterserver_plugins.peak_detection.FirstMomentPeaks`, version 5)
+keeps a peak dropped only because a neighbouring line crowds it (unequal bounding minima or
+flanks) where trusted peaks of the same line flank it
+(:mod:`~rasterserver_plugins.flanked_peaks`; BENCHMARKS.md "Real bodies", 2026-11-30 (31)).
+This script scores stages 1-4 on the clinic scenes of :mod:`real_bodies` without the rule
+(``flank_tolerance`` 0: version 4's peaks) and with the thresholds given (by default the
+stage's), both on the same frames: the wrongly numbered peaks, the back's coverage and the
+reconstructed peaks' rms, as ``real_bodies.py`` counts them.
 
 A dropped peak is kept where both adjacent columns hold a trusted peak within 2.5 px of
 its row, the two within ``--span`` px of each other, their mean within ``--tolerance``
@@ -33,103 +33,38 @@ import argparse  # noqa: E402
 import importlib  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any, NamedTuple  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-REACH = 2.5  # px: a flanking peak's row from the dropped peak's
-
-
-class Rule(NamedTuple):
-    """The lead's thresholds (px; the area ratio unitless)."""
-
-    tolerance: float = 0.4
-    span: float = 1.5
-    area_ratio: float = 1.5
-    run_on: float = 1.0
 
 
 def _real_bodies() -> Any:
     return importlib.import_module("real_bodies")  # beside this script; once per process
 
 
-def _nearest(keys: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Index into sorted ``keys`` of the key nearest each of ``key``."""
-    j = np.clip(np.searchsorted(keys, key), 1, max(keys.size - 1, 1))
-    lo = np.clip(j - 1, 0, keys.size - 1)
-    hi = np.clip(j, 0, keys.size - 1)
-    return np.where(np.abs(keys[lo] - key) <= np.abs(keys[hi] - key), lo, hi)
+def _stage_rule() -> Any:
+    from rasterserver_plugins.flanked_peaks import FlankRule
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+    p = FirstMomentPeaks.Params()
+    return FlankRule(p.flank_tolerance, p.flank_span, p.flank_area_ratio, p.flank_run_on)
 
 
-def flanked(pixels: np.ndarray, rule: Rule, params: Any = None) -> Any:
-    """The installed detector's peaks of ``pixels`` plus the dropped peaks ``rule`` keeps.
+def peaks(pixels: np.ndarray, rule: Any) -> Any:
+    """The peak stage's record of ``pixels`` with the flanked-peaks thresholds ``rule``
+    (a :class:`~rasterserver_plugins.flanked_peaks.FlankRule`; tolerance 0: none kept)."""
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
 
-    Parameters
-    ----------
-    pixels : numpy.ndarray
-        ``(H, W)`` frame.
-    rule : Rule
-        The thresholds.
-    params : FirstMomentPeaks.Params, optional
-        The detector's parameters (its defaults).
+    from rasterserver.records import Image
+    from rasterserver.stage import run_stage
 
-    Returns
-    -------
-    PeakArrays
-        Sorted by ``(col, row)``; ``dropped`` less the peaks kept.
-    """
-    from rasterserver_plugins import peak_detection as pd
-
-    p = params or pd.FirstMomentPeaks.Params()
-    kw = {
-        name: getattr(p, name)
-        for name in ("min_height", "min_slope", "bias", "bias_fraction", "min_width",
-                     "max_width", "smooth", "min_trust_height", "clip_level", "narrow",
-                     "noise_factor")
-    }  # fmt: skip
-    kept = pd.detect_peaks(
-        pixels, max_base_step=p.max_base_step, max_flank_asymmetry=p.max_flank_asymmetry, **kw
-    )
-    # the peaks dropped for unequal minima or flanks only (not dim, not clipped)
-    loose = pd.detect_peaks(pixels, max_base_step=np.inf, max_flank_asymmetry=2**30, **kw)
-    stride = pixels.shape[0] + 10.0
-    kkey = kept.col * stride + kept.row
-    order = np.argsort(kkey)
-    ks, ka = kkey[order], kept.area[order]
-    lkey = loose.col * stride + loose.row
-    new = ~np.isin(np.round(lkey, 6), np.round(kkey, 6))
-    if ks.size < 2 or not np.any(new):
-        return kept
-
-    def flank(dc: int) -> tuple[np.ndarray, np.ndarray]:
-        key = (loose.col + dc) * stride + loose.row
-        i = _nearest(ks, key)
-        d = ks[i] - key
-        return np.where(np.abs(d) <= REACH, loose.row + d, np.nan), ka[i]
-
-    rl, al = flank(-1)
-    rr, ar = flank(+1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.maximum(al, ar) / np.minimum(al, ar)
-        keep = new & np.isfinite(rl) & np.isfinite(rr)
-        keep &= np.abs((rl + rr) / 2 - loose.row) <= rule.tolerance
-        keep &= (np.abs(rl - rr) <= rule.span) & (ratio <= rule.area_ratio)
-        if rule.run_on > 0:
-            lsort = np.sort(lkey)
-            for dc, r in ((-2, 2 * rl - loose.row), (2, 2 * rr - loose.row)):
-                key = (loose.col + dc) * stride + np.nan_to_num(r, nan=-1e6)
-                keep &= np.abs(lsort[_nearest(lsort, key)] - key) <= rule.run_on
-    col = np.concatenate([kept.col, loose.col[keep]])
-    row = np.concatenate([kept.row, loose.row[keep]])
-    o = np.lexsort((row, col))
-    return pd.PeakArrays(
-        col=col[o],
-        row=row[o],
-        area=np.concatenate([kept.area, loose.area[keep]])[o],
-        height=np.concatenate([kept.height, loose.height[keep]])[o],
-        width=np.concatenate([kept.width, loose.width[keep]])[o],
-        dropped=kept.dropped - int(keep.sum()),
-    )
+    params = {
+        "flank_tolerance": rule.tolerance,
+        "flank_span": rule.span,
+        "flank_area_ratio": rule.area_ratio,
+        "flank_run_on": rule.run_on,
+    }
+    return run_stage(FirstMomentPeaks, Image(pixels), params=params)
 
 
 def score(frame: Any, peaks: Any) -> dict[str, Any]:
@@ -161,30 +96,23 @@ def score(frame: Any, peaks: Any) -> dict[str, Any]:
 
 _CACHE: Path | None = None
 _RASTER: str | None = None
-_RULE = Rule()
+_RULE: Any = None
 
 
-def _init(cache: Path | None, raster: str | None, rule: Rule) -> None:
+def _init(cache: Path | None, raster: str | None, rule: Any) -> None:
     global _CACHE, _RASTER, _RULE
     _CACHE, _RASTER, _RULE = cache, raster, rule
 
 
 def screen_scene(seed: int) -> dict[str, Any]:
-    """Scene ``seed`` scored with the installed peaks and with the flanked ones kept."""
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks
-
-    from rasterserver.records import Image
-    from rasterserver.stage import run_stage
-
+    """Scene ``seed`` scored without the flanked peaks and with them kept by ``_RULE``."""
     frame = _real_bodies().cached_frame(seed, _RASTER, _CACHE)
-    shape = (int(frame.image.shape[0]), int(frame.image.shape[1]))
-    installed = run_stage(FirstMomentPeaks, Image(frame.image))
-    lead = flanked(frame.image, _RULE).to_record(shape)
+    rule = _RULE or _stage_rule()
     return {
         "seed": seed,
         "back_crossings": int(frame.lr_on_back.sum()),
-        "installed": score(frame, installed),
-        "flanked": score(frame, lead),
+        "unflanked": score(frame, peaks(frame.image, rule._replace(tolerance=0.0))),
+        "flanked": score(frame, peaks(frame.image, rule)),
     }
 
 
@@ -203,7 +131,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "scenes": len(ok),
         "error_seeds": sorted(r["seed"] for r in rows if "error" in r),
     }
-    for name in ("installed", "flanked"):
+    for name in ("unflanked", "flanked"):
         n = max(sum(r[name]["rec_n"] for r in ok), 1)
         out[name] = {
             "wrong_peaks": sum(r[name]["wrong_peaks"] for r in ok),
@@ -221,15 +149,16 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     add_scene_arguments(ap)
-    ap.add_argument("--tolerance", type=float, default=Rule().tolerance)
-    ap.add_argument("--span", type=float, default=Rule().span)
-    ap.add_argument("--area-ratio", type=float, default=Rule().area_ratio)
-    ap.add_argument("--run-on", type=float, default=Rule().run_on)
+    stage = _stage_rule()
+    ap.add_argument("--tolerance", type=float, default=stage.tolerance)
+    ap.add_argument("--span", type=float, default=stage.span)
+    ap.add_argument("--area-ratio", type=float, default=stage.area_ratio)
+    ap.add_argument("--run-on", type=float, default=stage.run_on)
     args = ap.parse_args(argv)
     seeds = scene_seeds(ap, args, _real_bodies()._raster_names())
     if min(args.tolerance, args.span, args.run_on) < 0 or args.area_ratio < 1:
         ap.error("the thresholds must be >= 0 and --area-ratio >= 1")
-    rule = Rule(args.tolerance, args.span, args.area_ratio, args.run_on)
+    rule = type(stage)(args.tolerance, args.span, args.area_ratio, args.run_on)
     rows = scene_rows(
         _safe, seeds, workers=args.workers, initializer=_init,
         initargs=(args.cache, args.raster, rule),
