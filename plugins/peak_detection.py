@@ -250,26 +250,19 @@ def detect_peaks(
             even &= flanks <= max_flank_asymmetry
         crowded = trusted & ~even  # bright and unclipped: only a neighbour crowds it
         trusted &= even
+    col = (m // h).astype(np.int32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        row = (m % h).astype(np.float64) + s1 / s0  # s0 > 0 wherever ok
+    area = s0.astype(np.float32)  # as stored: the area ratio is judged on these values
     if flank_rule is not None and np.any(crowded):
-        found = np.flatnonzero(trusted | crowded)
-        kept = flanked(
-            m[found] // h,
-            (m[found] % h).astype(np.float64) + s1[found] / s0[found],
-            s0[found],
-            trusted[found],
-            crowded[found],
-            flank_rule,
-            h,
-        )
-        trusted[found[kept]] = True
+        trusted |= flanked(col, row, area, trusted, crowded, flank_rule, h)
     dropped = int(np.count_nonzero(ok & ~trusted))
-    m, lo, hi = m[trusted], lo[trusted], hi[trusted]
-    s0, s1, height = s0[trusted], s1[trusted], height[trusted]
+    lo, hi = lo[trusted], hi[trusted]
     return PeakArrays(
-        col=(m // h).astype(np.int32),
-        row=(m % h).astype(np.float64) + s1 / s0,
-        area=s0.astype(np.float32),
-        height=height.astype(np.float32),
+        col=col[trusted],
+        row=row[trusted],
+        area=area[trusted],
+        height=height[trusted].astype(np.float32),
         width=(hi - lo + 1).astype(np.int16),
         dropped=dropped,
     )
