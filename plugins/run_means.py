@@ -19,7 +19,12 @@ from rasterserver.compiled import kernel
 
 @kernel()
 def run_centres(
-    number: np.ndarray, col: np.ndarray, jump: np.ndarray, window: int, step: int
+    number: np.ndarray,
+    col: np.ndarray,
+    jump: np.ndarray,
+    window: int,
+    step: int,
+    end_block: bool = False,
 ) -> np.ndarray:
     """Positions (in line, column order) of the centres of the kept runs.
 
@@ -31,6 +36,9 @@ def run_centres(
         ``(N - 1,)`` bool: the 3-D step from a peak to the next ends the run.
     window, step : int
         Peaks averaged (odd) and the distance of kept centres along a run.
+    end_block : bool
+        Add a last centre ``window // 2`` peaks before a run's end where the steps leave
+        its last peaks in no average (the block overlaps the one before it).
 
     Returns
     -------
@@ -50,8 +58,13 @@ def run_centres(
         ):
             end += 1
         length = end - first
+        last = -1
         for pos in range(half, length - half, step):
             out[m] = first + pos
+            m += 1
+            last = pos
+        if end_block and last >= 0 and last < length - 1 - half:
+            out[m] = first + length - 1 - half
             m += 1
         first = end
     return out[:m]

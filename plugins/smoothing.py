@@ -33,7 +33,12 @@ __all__ = ["LinearGridSurface", "grid_from_lines", "smooth_along_lines"]
 
 
 def smooth_along_lines(
-    points: Points, *, window: int = 3, step: int = 3, max_jump: float = 5.0
+    points: Points,
+    *,
+    window: int = 3,
+    step: int = 3,
+    max_jump: float = 5.0,
+    end_blocks: bool = False,
 ) -> Points:
     """Average runs of ``window`` neighbouring peaks along each line, keeping every ``step``-th.
 
@@ -48,6 +53,11 @@ def smooth_along_lines(
     max_jump : float, optional
         Largest 3-D distance (mm) between peaks of neighbouring columns averaged together;
         a larger step is a depth discontinuity (an arm in front of the trunk) and ends the run.
+    end_blocks : bool, optional
+        Where the steps leave a run's last peaks in no average, add one over its last
+        ``window`` peaks: a run's end is then never more than ``window // 2`` columns from a
+        point, whatever the run's length (without it, a gap filled by one peak can leave
+        the joined run's last columns without a point and open a hole in the grid).
 
     Returns
     -------
@@ -75,7 +85,7 @@ def smooth_along_lines(
     # numba import costs ~0.3 s, hence here)
     from .run_means import run_centres, window_means
 
-    idx = run_centres(number, col, jump, window, step)
+    idx = run_centres(number, col, jump, window, step, end_blocks)
     if idx.size == 0:
         return points.take(
             np.zeros(0, dtype=np.intp),
@@ -252,7 +262,7 @@ class LinearGridSurface(Stage[Points, Surface]):
 
     name: ClassVar[str] = "surface.linear-grid"
     stage: ClassVar[str] = "surface"
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     input_type = Points
     output_type = Surface
 
@@ -284,6 +294,9 @@ class LinearGridSurface(Stage[Points, Surface]):
             0.0, ge=0.0, le=50.0, description="Gaussian smoothing of the grid (mm); 0: none."
         )
         keep_samples: bool = Field(True, description="Store the smoothed points with the grid.")
+        end_blocks: bool = Field(
+            True, description="A last average over each run's last peaks the steps leave out."
+        )
 
         @field_validator("window")
         @classmethod
@@ -297,7 +310,11 @@ class LinearGridSurface(Stage[Points, Surface]):
         if len(data) == 0:
             return Surface.empty(_join("no points", data.reason), spacing=params.spacing)
         samples = smooth_along_lines(
-            data, window=params.window, step=params.step, max_jump=params.max_jump
+            data,
+            window=params.window,
+            step=params.step,
+            max_jump=params.max_jump,
+            end_blocks=params.end_blocks,
         )
         if len(samples) < 3:
             return Surface.empty(
