@@ -96,3 +96,25 @@ def test_one_point_and_runs_too_short() -> None:
     assert len(smooth_along_lines(points)) == 0
     short = _points(5)
     assert len(smooth_along_lines(short, window=401)) == 0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_end_blocks_only_add_points(seed: int) -> None:
+    # every point of the steps is kept, bit for bit; the end blocks come on top, one at most
+    # per run, each within window // 2 columns of its run's last peak
+    points = _points(seed)
+    for window, step in ((3, 3), (5, 2), (3, 1)):
+        plain = smooth_along_lines(points, window=window, step=step)
+        ends = smooth_along_lines(points, window=window, step=step, end_blocks=True)
+        key = {(int(n), int(c)) for n, c in zip(plain.number, plain.col, strict=True)}
+        extra = [
+            i
+            for i, (n, c) in enumerate(zip(ends.number, ends.col, strict=True))
+            if (int(n), int(c)) not in key
+        ]
+        kept = np.setdiff1d(np.arange(len(ends)), extra)
+        assert np.array_equal(ends.z[kept], plain.z)
+        if step == 1:
+            assert extra == []  # every peak with neighbours is a centre already
+        else:
+            assert 0 < len(extra) < len(plain)

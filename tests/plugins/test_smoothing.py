@@ -66,6 +66,49 @@ def test_block_means_of_three_peaks_reduce_to_a_third() -> None:
     assert len(smooth_along_lines(pts, window=3, step=1)) == n - 2
 
 
+def test_end_blocks_leave_no_runs_end_without_a_point() -> None:
+    # one line over columns 0-10: a run of 11 peaks gives blocks centred at 1, 4 and 7, and
+    # columns 9-10 make no point; the end block adds one centred at 9 (over 8-10)
+    n = 11
+    x = np.arange(n, dtype=float)
+    pts = _points(x, np.zeros(n), 0.1 * x**2, np.full(n, 3), np.arange(n))
+    np.testing.assert_array_equal(smooth_along_lines(pts).col, [1, 4, 7])
+    ends = smooth_along_lines(pts, end_blocks=True)
+    np.testing.assert_array_equal(ends.col, [1, 4, 7, 9])
+    np.testing.assert_allclose(ends.z[-1], np.mean(0.1 * x[8:11] ** 2))
+    # a run whose steps end on its last peak needs none; a run shorter than the window none
+    assert smooth_along_lines(pts.take(np.arange(9)), end_blocks=True).col.tolist() == [1, 4, 7]
+    assert len(smooth_along_lines(pts.take(np.arange(2)), end_blocks=True)) == 0
+    # a gap of one column filled (tuning body 10's line 28: runs 0-6 and 8-10 joined) no
+    # longer moves the last point away from the line's end
+    split = pts.take(np.flatnonzero(np.arange(n) != 7))
+    assert smooth_along_lines(split).col.max() == 9
+    assert smooth_along_lines(pts).col.max() == 7
+    assert smooth_along_lines(pts, end_blocks=True).col.max() == 9
+
+
+def test_version_2_makes_end_blocks() -> None:
+    # surfaces of version 1 in an archive are told from version 2's by the version
+    assert LinearGridSurface.version == "2"
+    assert LinearGridSurface.Params().end_blocks is True
+    n = 11
+    x = np.arange(n, dtype=float)
+    lines = [
+        _points(x, np.full(n, 10.0 * k), np.zeros(n), np.full(n, k), np.arange(n)) for k in range(3)
+    ]
+    pts = dataclasses.replace(
+        lines[0],
+        **{
+            f: np.concatenate([getattr(p, f) for p in lines])
+            for f in ("x", "y", "z", "number", "col", "row", "area")
+        },
+    )
+    v2 = _run(pts)
+    v1 = _run(pts, end_blocks=False)
+    assert len(v2.samples) == len(v1.samples) + 3  # one end block per line
+    assert v2.valid.sum() > v1.valid.sum()  # the grid reaches the lines' ends
+
+
 def test_runs_break_at_gaps_numbers_and_depth_jumps() -> None:
     # line 1: columns 0-3, then 5-8 with an arm in front from column 7; line 2: columns 9-13
     col = np.array([0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 11, 12, 13])
