@@ -57,7 +57,9 @@ def smooth_along_lines(
         Where the steps leave a run's last peaks in no average, add one over its last
         ``window`` peaks: a run's end is then never more than ``window // 2`` columns from a
         point, whatever the run's length (without it, a gap filled by one peak can leave
-        the joined run's last columns without a point and open a hole in the grid).
+        the joined run's last columns without a point and open a hole in the grid). Not
+        used by the stage: measured, not adopted (BENCHMARKS.md "Real bodies",
+        2026-11-30 (32): a pair of dimples 56 mm off on a tuning body).
 
     Returns
     -------
@@ -262,7 +264,7 @@ class LinearGridSurface(Stage[Points, Surface]):
 
     name: ClassVar[str] = "surface.linear-grid"
     stage: ClassVar[str] = "surface"
-    version: ClassVar[str] = "2"
+    version: ClassVar[str] = "1"
     input_type = Points
     output_type = Surface
 
@@ -294,9 +296,6 @@ class LinearGridSurface(Stage[Points, Surface]):
             0.0, ge=0.0, le=50.0, description="Gaussian smoothing of the grid (mm); 0: none."
         )
         keep_samples: bool = Field(True, description="Store the smoothed points with the grid.")
-        end_blocks: bool = Field(
-            True, description="A last average over each run's last peaks the steps leave out."
-        )
 
         @field_validator("window")
         @classmethod
@@ -314,7 +313,6 @@ class LinearGridSurface(Stage[Points, Surface]):
             window=params.window,
             step=params.step,
             max_jump=params.max_jump,
-            end_blocks=params.end_blocks,
         )
         if len(samples) < 3:
             return Surface.empty(
