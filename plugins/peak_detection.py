@@ -251,22 +251,30 @@ def detect_peaks(
             even &= flanks <= max_flank_asymmetry
         crowded = trusted & ~even  # bright and unclipped: only a neighbour crowds it
         trusted &= even
-    col = (m // h).astype(np.int32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        row = (m % h).astype(np.float64) + s1 / s0  # s0 > 0 wherever ok
-    area = s0.astype(np.float32)  # as stored: the area ratio is judged on these values
     if flank_rule is not None and np.any(crowded):
-        trusted |= flanked(col, row, area, trusted, crowded, flank_rule, h)
+        found = np.flatnonzero(trusted | crowded)
+        col, row, area = _located(m[found], s0[found], s1[found], h)
+        kept = flanked(col, row, area, trusted[found], crowded[found], flank_rule, h)
+        trusted[found[kept]] = True
     dropped = int(np.count_nonzero(ok & ~trusted))
+    col, row, area = _located(m[trusted], s0[trusted], s1[trusted], h)
     lo, hi = lo[trusted], hi[trusted]
     return PeakArrays(
-        col=col[trusted],
-        row=row[trusted],
-        area=area[trusted],
+        col=col,
+        row=row,
+        area=area,
         height=height[trusted].astype(np.float32),
         width=(hi - lo + 1).astype(np.int16),
         dropped=dropped,
     )
+
+
+def _located(
+    m: np.ndarray, s0: np.ndarray, s1: np.ndarray, h: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Column, first-moment row and area (float32, as stored) of the maxima at flat indices
+    ``m`` of the transposed frame."""
+    return (m // h).astype(np.int32), (m % h).astype(np.float64) + s1 / s0, s0.astype(np.float32)
 
 
 class FirstMomentPeaks(Stage[Image, Peaks]):
