@@ -108,6 +108,10 @@ COBB_TOLERANCE = 1.0
 #: +17.4 / -17.9 mm: "max" -17.9 against a truth of +18.4), and comparing visits would read a
 #: flip of sign as a change of twice the curve.
 SIGN_MARGIN = {"lateral_deviation_max_mm": 1.5, "surface_rotation_max_deg": 1.4}
+#: Least share of the symmetry line's levels (VP to DM) where the spinal midline is measured
+#: (:data:`rasterserver_plugins.spinal_midline.MIN_SUPPORT`) for the midline's parameters:
+#: with less, their extremes may lie where it is not.
+MIDLINE_MIN_MEASURED = 0.8
 #: Gaussian scale (mm) of the fit giving the surface normal at a dimple (wider than the
 #: dimple, so the normal is the surrounding surface's, not the dimple's wall's).
 DIMPLE_NORMAL_SCALE = 8.0
@@ -228,16 +232,33 @@ def cobb_angle(vertical: np.ndarray, lateral: np.ndarray, step: float) -> float:
     Only tangents with a centred window are read: within half a window of the line's ends the
     fit extrapolates its slope, several times noisier (a straight back read 4.3° from the
     tangent at its last sample alone). A curve's end vertebrae lie farther than that from VP
-    and DM.
+    and DM. Where the line has gaps (NaN samples, levels whose midline is refused), each
+    measured piece is read so, and pieces too short for a centred tangent are left out;
+    NaN when nothing is left.
     """
-    beta = _tangent_angle(vertical, lateral, FRONTAL_WINDOW, step)
     edge = round(FRONTAL_WINDOW / step) // 2
-    if beta.size > 2 * edge + 4:
-        beta = beta[edge : beta.size - edge]
+    ok = np.isfinite(vertical) & np.isfinite(lateral)
+    runs = _runs(ok)
+    betas = []
+    for lo, hi in runs:
+        beta = _tangent_angle(vertical[lo:hi], lateral[lo:hi], FRONTAL_WINDOW, step)
+        if beta.size > 2 * edge + 4:
+            betas.append(beta[edge : beta.size - edge])
+        elif len(runs) == 1:
+            betas.append(beta)
+    if not betas:
+        return math.nan
+    beta = np.concatenate(betas)
     tp = _turning_points(beta, COBB_TOLERANCE)
     if len(tp) < 2:
         return 0.0
     return float(np.abs(np.diff(beta[tp])).max())
+
+
+def _runs(ok: np.ndarray) -> list[tuple[int, int]]:
+    """``(start, stop)`` of each run of True in ``ok``."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 def sagittal_profile(
@@ -446,8 +467,16 @@ def back_parameters(
     rotation += ["surface_rotation_pos_max_deg", "surface_rotation_neg_max_deg"]
     deviation = ["lateral_deviation_rms_mm", "lateral_deviation_max_mm"]
     deviation += ["lateral_deviation_pos_max_mm", "lateral_deviation_neg_max_mm"]
+    measured = 0.0 if midline is None else float(np.isfinite(midline.rotation).mean())
     if midline is None:
         missing([*rotation, *deviation, "scoliosis_angle_deg"], "needs the symmetry line")
+    elif measured < MIDLINE_MIN_MEASURED:
+        missing(
+            [*rotation, *deviation, "scoliosis_angle_deg"],
+            f"the spinal midline is measured over {100 * measured:.0f} % of VP-DM only (less "
+            f"than {100 * MIDLINE_MIN_MEASURED:.0f} %: too little surface beside the symmetry "
+            "line); its extremes may lie where it is not measured",
+        )
     else:
         for names, values in ((rotation, midline.rotation), (deviation, midline.lateral_deviation)):
             extremes = signed_extremes(values)
@@ -456,9 +485,11 @@ def back_parameters(
             if why:
                 del out[names[1]]
                 reasons[names[1]] = why
-        out["scoliosis_angle_deg"] = cobb_angle(
-            midline.points[:, 1], midline.points[:, 0], grid.spacing
-        )
+        angle = cobb_angle(midline.points[:, 1], midline.points[:, 0], grid.spacing)
+        if math.isfinite(angle):
+            out["scoliosis_angle_deg"] = angle
+        else:
+            reasons["scoliosis_angle_deg"] = "no piece of the midline is long enough for a tangent"
     if vp is not None and dm is not None and transverse is not None:
         value = asymmetry_rms(grid, trunk, vp, dm, transverse)
         if math.isfinite(value):

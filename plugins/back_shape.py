@@ -52,7 +52,7 @@ from .landmarks import (
 )
 from .level_frame import LevelFrame
 from .sacrum_point import find_sacrum_point
-from .spinal_midline import line_normals, spinal_midline
+from .spinal_midline import MIN_SUPPORT, line_normals, spinal_midline
 from .symmetry_line import find_symmetry_line
 from .trunk import find_trunk
 from .vp_axis import MAX_IMBALANCE, MAX_OFFSET, check_imbalance, check_vertebra_prominens
@@ -99,6 +99,7 @@ def analyse_back(
     vp_top_drop: float | None = TOP_DROP,
     vp_max_imbalance: float | None = MAX_IMBALANCE,
     vp_region_below: float = REGION_BELOW,
+    midline_support: float = MIN_SUPPORT,
     vp_carried: np.ndarray | None = None,
 ) -> BackShape:
     """Analyse one smoothed surface.
@@ -128,6 +129,10 @@ def analyse_back(
         does not check.
     vp_region_below : float, optional
         How far (in trunk half-widths) VP's search region reaches below the neck line.
+    midline_support : float, optional
+        Least share of either side of the rotation's window on measured surface for the
+        midline to be measured at a level
+        (:data:`~rasterserver_plugins.spinal_midline.MIN_SUPPORT`).
     vp_carried : numpy.ndarray or None, optional
         ``(3,)`` world position of VP carried from another visit of the patient through their
         registration (:func:`rasterserver.comparison.carry_vp`), used only where this
@@ -207,8 +212,14 @@ def analyse_back(
     else:
         reasons["symmetry_line"] = "needs VP and DM"
     if line is not None and top is not None and bottom is not None:
-        normals = line_normals(grid, line, top, bottom)
+        normals = line_normals(grid, line, top, bottom, min_support=midline_support)
         midline = spinal_midline(line, normals, top, bottom)
+        refused = int(np.count_nonzero(~np.isfinite(midline.rotation)))
+        if refused:
+            reasons["midline"] = (
+                f"not measured at {refused} of {midline.rotation.size} levels of VP-DM: too "
+                "little surface on one side of the symmetry line there"
+            )
     else:
         reasons["midline"] = "needs the symmetry line"
 
@@ -301,7 +312,10 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     # 9: VP's search region ends 0.45 trunk half-widths below the neck line, not 0.7 (a
     #    convex point of the upper back below a shadowed nape is no candidate); DM is refused
     #    where the skin between the dimples is not measured (version 8 failed there)
-    version: ClassVar[str] = "9"
+    # 10: the spinal midline is refused (not bridged) at levels where either side of the
+    #    rotation's window lacks surface, and its parameters when it is refused over more
+    #    than a fifth of VP-DM (spinal_midline.MIN_SUPPORT, back_parameters.MIDLINE_MIN_MEASURED)
+    version: ClassVar[str] = "10"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -360,6 +374,14 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             description="How far VP's search region reaches below the neck line (where the "
             "neck widens into the shoulders), in trunk half-widths. 0.7 is version 8.",
         )
+        midline_support: float = Field(
+            MIN_SUPPORT,
+            ge=0.0,
+            le=1.0,
+            description="Least share of either side of the surface rotation's window that "
+            "must lie on measured surface for the spinal midline to be measured at a level "
+            "(refused there otherwise). 0 measures wherever the fit is possible.",
+        )
         vp_carried: tuple[float, float, float] | None = Field(
             None,
             description="World position (mm) of VP carried from another visit of the patient "
@@ -390,5 +412,6 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             vp_top_drop=params.vp_top_drop,
             vp_max_imbalance=params.vp_max_imbalance,
             vp_region_below=params.vp_region_below,
+            midline_support=params.midline_support,
             vp_carried=None if params.vp_carried is None else np.asarray(params.vp_carried),
         )

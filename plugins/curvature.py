@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Curvature", "fit_quadric_at", "surface_curvature"]
+__all__ = ["Curvature", "fit_quadric_at", "surface_curvature", "window_support"]
 
 # Monomials u^a v^b of the quadric's basis (1, u, v, u², uv, v²), as exponent pairs.
 _BASIS: tuple[tuple[int, int], ...] = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
@@ -298,6 +298,87 @@ def _differential_geometry(
     return {"mean": mean, "gaussian": gaussian, "k1": k1, "k2": k2, "direction": direction}
 
 
+def _window(
+    z: np.ndarray,
+    spacing: float,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    sigma: tuple[float, float],
+    angle: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cells of a turned Gaussian window (three sigmas) around each point.
+
+    Returns the depths, which of them are measured cells, the offsets ``u, v`` (mm) along the
+    window's turned axes and the Gaussian weights, each ``(n, rows, cols)`` (``u, v`` and the
+    weights broadcast against the others).
+    """
+    cols = np.atleast_1d(np.asarray(cols, dtype=float))
+    rows = np.atleast_1d(np.asarray(rows, dtype=float))
+    ny, nx = z.shape
+    ca, sa = float(np.cos(angle)), float(np.sin(angle))
+    # the bounding box of the turned 3-sigma window
+    kx = max(1, int(np.ceil(3.0 * (sigma[0] * abs(ca) + sigma[1] * abs(sa)) / spacing)))
+    ky = max(1, int(np.ceil(3.0 * (sigma[0] * abs(sa) + sigma[1] * abs(ca)) / spacing)))
+    dj = np.arange(-kx, kx + 2)
+    di = np.arange(-ky, ky + 2)
+    j = np.floor(cols).astype(np.intp)[:, None, None] + dj[None, None, :]
+    i = np.floor(rows).astype(np.intp)[:, None, None] + di[None, :, None]
+    inside = (j >= 0) & (j < nx) & (i >= 0) & (i < ny)
+    values = z[np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1)]
+    du = (j - cols[:, None, None]) * spacing
+    dv = (i - rows[:, None, None]) * spacing
+    u = ca * du + sa * dv  # offsets along the (turned) window axes
+    v = -sa * du + ca * dv
+    w = np.exp(-0.5 * ((u / sigma[0]) ** 2 + (v / sigma[1]) ** 2))
+    return values, inside & np.isfinite(values), u, v, w
+
+
+def window_support(
+    z: np.ndarray,
+    spacing: float,
+    cols: np.ndarray,
+    rows: np.ndarray,
+    sigma: tuple[float, float],
+    *,
+    angle: float = 0.0,
+) -> np.ndarray:
+    """The share of each half of a fit's window that lies on measured surface.
+
+    The window is :func:`fit_quadric_at`'s (Gaussian scales ``sigma`` along its axes, turned by
+    ``angle``); its halves are the sides ``u < 0`` and ``u > 0`` of its first axis, each
+    weighted as the fit weights it. A fit whose window misses much of one half extrapolates
+    that side: its slope across is then the other side's.
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        ``(ny, nx)`` depths (mm), NaN where not measured.
+    spacing : float
+        Grid step (mm).
+    cols, rows : numpy.ndarray
+        ``(n,)`` fractional positions of the points.
+    sigma : tuple of float
+        Gaussian scales (mm) along the window's axes.
+    angle : float, optional
+        The window's turn (radians), as in :func:`fit_quadric_at`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 2)`` shares (0 to 1) of the halves ``u < 0`` and ``u > 0``.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    _values, ok, u, _v, w = _window(z, spacing, cols, rows, sigma, angle)
+    w = np.broadcast_to(w, ok.shape).reshape(ok.shape[0], -1)
+    u = np.broadcast_to(u, ok.shape).reshape(ok.shape[0], -1)
+    ok = ok.reshape(ok.shape[0], -1)
+    out = np.zeros((ok.shape[0], 2))
+    for k, half in enumerate((u < 0.0, u > 0.0)):
+        total = np.where(half, w, 0.0).sum(axis=1)
+        out[:, k] = np.where(half & ok, w, 0.0).sum(axis=1) / np.maximum(total, 1e-300)
+    return out
+
+
 def fit_quadric_at(
     z: np.ndarray,
     spacing: float,
@@ -346,24 +427,8 @@ def fit_quadric_at(
     """
     z = np.asarray(z, dtype=np.float64)
     cols = np.atleast_1d(np.asarray(cols, dtype=float))
-    rows = np.atleast_1d(np.asarray(rows, dtype=float))
-    ny, nx = z.shape
     ca, sa = float(np.cos(angle)), float(np.sin(angle))
-    # the bounding box of the turned 3-sigma window
-    kx = max(1, int(np.ceil(3.0 * (sigma[0] * abs(ca) + sigma[1] * abs(sa)) / spacing)))
-    ky = max(1, int(np.ceil(3.0 * (sigma[0] * abs(sa) + sigma[1] * abs(ca)) / spacing)))
-    dj = np.arange(-kx, kx + 2)
-    di = np.arange(-ky, ky + 2)
-    j = np.floor(cols).astype(np.intp)[:, None, None] + dj[None, None, :]
-    i = np.floor(rows).astype(np.intp)[:, None, None] + di[None, :, None]
-    inside = (j >= 0) & (j < nx) & (i >= 0) & (i < ny)
-    values = z[np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1)]
-    du = (j - cols[:, None, None]) * spacing
-    dv = (i - rows[:, None, None]) * spacing
-    u = ca * du + sa * dv  # offsets along the (turned) window axes
-    v = -sa * du + ca * dv
-    w = np.exp(-0.5 * ((u / sigma[0]) ** 2 + (v / sigma[1]) ** 2))
-    ok = inside & np.isfinite(values)
+    values, ok, u, v, w = _window(z, spacing, cols, rows, sigma, angle)
     w = np.where(ok, w, 0.0).reshape(cols.size, -1)
     zz = np.where(ok, values, 0.0).reshape(cols.size, -1)
     # scale offsets to units of sigma for conditioning

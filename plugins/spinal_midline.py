@@ -39,11 +39,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .curvature import fit_quadric_at
+from .curvature import fit_quadric_at, window_support
 from .level_frame import LevelGrid
 from .symmetry_line import SymmetryLine
 
 __all__ = [
+    "MIN_SUPPORT",
     "ROTATION_SCALE",
     "SpinalMidline",
     "axial_rotation",
@@ -58,6 +59,11 @@ __all__ = [
 ROTATION_SCALE = (25.0, 6.0)
 #: Gaussian scales (mm) of the fit giving the normal's tilt along the trunk's axis.
 TILT_SCALE = (6.0, 6.0)
+#: Least share of each half (across the trunk) of the rotation's window that must lie on
+#: measured surface. With less, the wide fit extrapolates the missing side from the other,
+#: and its slope across, the rotation, is that side's flank: a hole of a few millimetres
+#: beside the furrow moved the midline by 5 mm and more (``BENCHMARKS.md``, 2026-11-30).
+MIN_SUPPORT = 0.85
 #: Reference trunk length (mm) and depths (mm) of the vertebral-body centres at VP and DM.
 REFERENCE_TRUNK_LENGTH = 440.0
 BODY_DEPTH_AT_VP = 45.0
@@ -67,6 +73,9 @@ BODY_DEPTH_AT_DM = 70.0
 @dataclass(frozen=True)
 class SpinalMidline:
     """Surface rotation and vertebral-body centres along the symmetry line.
+
+    Rows where the rotation is not measured (:func:`line_normals`) are NaN in every array but
+    ``depth``.
 
     Attributes
     ----------
@@ -97,7 +106,14 @@ def _normals(coef: np.ndarray) -> np.ndarray:
     return np.column_stack([zx / w, zy / w, -1.0 / w])
 
 
-def line_normals(grid: LevelGrid, line: SymmetryLine, vp: np.ndarray, dm: np.ndarray) -> np.ndarray:
+def line_normals(
+    grid: LevelGrid,
+    line: SymmetryLine,
+    vp: np.ndarray,
+    dm: np.ndarray,
+    *,
+    min_support: float = MIN_SUPPORT,
+) -> np.ndarray:
     """Outward unit surface normals (level frame) at the points of the symmetry line.
 
     In the trunk's frame (:func:`_trunk_axes`), the normal's sideways component comes from the
@@ -117,11 +133,15 @@ def line_normals(grid: LevelGrid, line: SymmetryLine, vp: np.ndarray, dm: np.nda
         The symmetry line.
     vp, dm : numpy.ndarray
         ``(3,)`` level points of VP and DM (the trunk's axis).
+    min_support : float, optional
+        Least share of either half of the wide window on measured surface
+        (:data:`MIN_SUPPORT`; :func:`rasterserver_plugins.curvature.window_support`).
 
     Returns
     -------
     numpy.ndarray
-        ``(M, 3)`` normals facing the camera; NaN rows where a fit had too few cells.
+        ``(M, 3)`` normals facing the camera; NaN rows where a fit had too few cells or one
+        side of the wide window too little surface: the rotation is not measured there.
     """
     cols, rows = grid.col_of(line.x), grid.row_of(line.y)
     v, a0, side = _trunk_axes(vp, dm)
@@ -131,6 +151,8 @@ def line_normals(grid: LevelGrid, line: SymmetryLine, vp: np.ndarray, dm: np.nda
         fit_quadric_at(grid.z, grid.spacing, cols, rows, ROTATION_SCALE, cubic=True, angle=lean)
     )
     narrow = _normals(fit_quadric_at(grid.z, grid.spacing, cols, rows, TILT_SCALE, angle=lean))
+    support = window_support(grid.z, grid.spacing, cols, rows, ROTATION_SCALE, angle=lean)
+    wide[support.min(axis=1) < min_support] = np.nan
     c_side = wide @ side
     c_axis = np.where(np.isfinite(narrow[:, 0]), narrow @ v, wide @ v)
     c_front = -np.sqrt(np.clip(1.0 - c_side**2 - c_axis**2, 0.0, None))
@@ -174,13 +196,6 @@ def body_depth(t: np.ndarray, trunk_length: float) -> np.ndarray:
     return scale * (BODY_DEPTH_AT_VP + (BODY_DEPTH_AT_DM - BODY_DEPTH_AT_VP) * np.asarray(t))
 
 
-def _bridged(values: np.ndarray, y: np.ndarray) -> np.ndarray:
-    ok = np.isfinite(values)
-    if ok.any() and not ok.all():
-        return np.interp(y, y[ok], values[ok])
-    return values
-
-
 def spinal_midline(
     line: SymmetryLine, normals: np.ndarray, vp: np.ndarray, dm: np.ndarray
 ) -> SpinalMidline:
@@ -191,8 +206,9 @@ def spinal_midline(
     line : SymmetryLine
         The symmetry line from VP to DM.
     normals : numpy.ndarray
-        ``(M, 3)`` outward surface normals at its points (:func:`line_normals`); NaN rows are
-        bridged.
+        ``(M, 3)`` outward surface normals at its points (:func:`line_normals`). Where a row is
+        NaN, the rotation is not measured, and neither is the centre: its rows are NaN too
+        (refused, not bridged: a bridge across a hole draws a midline that nothing measured).
     vp, dm : numpy.ndarray
         ``(3,)`` level points of VP and DM.
 
@@ -200,8 +216,8 @@ def spinal_midline(
     -------
     SpinalMidline
     """
-    rot = _bridged(surface_rotation(normals), line.y)
-    axial = _bridged(axial_rotation(normals, vp, dm), line.y)
+    rot = surface_rotation(normals)
+    axial = axial_rotation(normals, vp, dm)
     length = float(np.linalg.norm(vp - dm))
     _, a0, side = _trunk_axes(vp, dm)
     t = (line.y - vp[1]) / (dm[1] - vp[1])

@@ -43,6 +43,24 @@ def test_cobb_angle_of_exact_lines() -> None:
     assert cobb_angle(y, s, 3.0) == pytest.approx(inner, abs=1.0)
 
 
+def test_cobb_angle_reads_each_measured_piece_of_a_line_with_gaps() -> None:
+    y = np.arange(0.0, 450.0, 3.0)
+    s = 25.0 * np.sin(2 * np.pi * y / 450.0)
+    inner = 2.0 * math.degrees(math.atan(25.0 * 2 * np.pi / 450.0))
+    # a gap away from the curves' end vertebrae (the tangents' extremes) changes nothing
+    gap = s.copy()
+    gap[(y > 60.0) & (y < 90.0)] = np.nan
+    assert cobb_angle(y, gap, 3.0) == pytest.approx(cobb_angle(y, s, 3.0), abs=0.3)
+    assert cobb_angle(y, gap, 3.0) == pytest.approx(inner, abs=1.0)
+    # a gap's edges are no extremes: a straight line with holes stays straight
+    flat = np.where((y > 200.0) & (y < 230.0), np.nan, 7.0)
+    assert cobb_angle(y, flat, 3.0) == pytest.approx(0.0, abs=1e-9)
+    # nothing long enough for a centred tangent: no angle
+    bits = np.where((y // 30.0) % 2 == 0, s, np.nan)
+    assert math.isnan(cobb_angle(y, bits, 3.0))
+    assert math.isnan(cobb_angle(y, np.full_like(y, np.nan), 3.0))
+
+
 def test_asymmetry_of_a_symmetric_and_a_lopsided_back() -> None:
     y, x = np.mgrid[-300:300:3.0, -200:200:3.0]
     z = np.where(np.abs(x) < 150, 40.0 + (x / 30.0) ** 2, np.nan)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from rasterserver_plugins.curvature import fit_quadric_at, surface_curvature
+from rasterserver_plugins.curvature import fit_quadric_at, surface_curvature, window_support
 
 SPACING = 3.0
 
@@ -133,3 +133,19 @@ def test_fit_quadric_at_arbitrary_points() -> None:
         np.testing.assert_allclose(turned, coef, rtol=1e-7, atol=1e-9)
     # far outside the grid there is nothing to fit
     assert np.isnan(fit_quadric_at(z, SPACING, np.array([-100.0]), np.array([5.0]), (9, 9))).all()
+
+
+def test_window_support_per_half() -> None:
+    z = np.zeros((60, 80))
+    z[:, 40:] = np.nan  # the right half of the grid is not measured
+    cols, rows = np.array([20.0, 39.5, 60.0]), np.array([30.0, 30.0, 30.0])
+    share = window_support(z, 3.0, cols, rows, (25.0 / 3.0, 6.0 / 3.0))
+    np.testing.assert_allclose(share[0], [1.0, 1.0], atol=1e-12)  # the window is inside
+    np.testing.assert_allclose(share[1], [1.0, 0.0], atol=1e-12)  # one side wholly missing
+    np.testing.assert_allclose(share[2], [0.0, 0.0], atol=1e-12)
+    # turned by 90 degrees, the halves lie above and below: both half measured
+    turned = window_support(z, 3.0, cols[1:2], rows[1:2], (6.0, 2.0), angle=np.pi / 2)
+    assert 0.3 < turned[0, 0] < 0.7 and 0.3 < turned[0, 1] < 0.7
+    # outside the grid counts as not measured
+    edge = window_support(np.zeros((60, 80)), 3.0, np.array([0.0]), np.array([30.0]), (9.0, 3.0))
+    assert edge[0, 0] < 0.05 and edge[0, 1] == pytest.approx(1.0)

@@ -129,3 +129,32 @@ def test_mirrored_back_flips_rotation_and_deviation() -> None:
         assert m[name]["value"] == pytest.approx(-p[name]["value"], abs=0.3)
     for name in ("surface_rotation_rms_deg", "lateral_deviation_rms_mm", "scoliosis_angle_deg"):
         assert m[name]["value"] == pytest.approx(p[name]["value"], abs=0.3)
+
+
+def test_a_hole_beside_the_furrow_refuses_those_levels_not_bridges_them() -> None:
+    grid = _rotated_back(8.0)
+    line = _straight_line(grid)
+    vp = np.array([0.0, line.y[0], line.z[0]])
+    dm = np.array([0.0, line.y[-1], line.z[-1]])
+    # 30 mm of one side, 6 to 36 mm beside the line, missing over 60 mm of height
+    z = grid.z.copy()
+    ys, xs = grid.y_of(np.arange(z.shape[0])), grid.x_of(np.arange(z.shape[1]))
+    z[np.ix_(np.abs(ys - line.y[80]) < 30.0, (xs > 6.0) & (xs < 36.0))] = np.nan
+    holed = LevelGrid(grid.x0, grid.y0, grid.spacing, z)
+    normals = line_normals(holed, line, vp, dm)
+    mid = spinal_midline(line, normals, vp, dm)
+    refused = ~np.isfinite(mid.rotation)
+    near = np.abs(line.y - line.y[80]) < 25.0
+    assert refused[near].all()
+    assert not refused[np.abs(line.y - line.y[80]) > 60.0].any()
+    # every array but the depth is refused at the same levels; the rest is as without the hole
+    for values in (mid.points[:, 0], mid.lateral_deviation, mid.axial_rotation):
+        assert np.array_equal(~np.isfinite(values), refused)
+    assert np.isfinite(mid.depth).all()
+    full = spinal_midline(line, line_normals(grid, line, vp, dm), vp, dm)
+    far = np.abs(line.y - line.y[80]) > 60.0
+    np.testing.assert_allclose(mid.rotation[far], full.rotation[far], atol=1e-9)
+    # without the support check the fit extrapolates the missing side there
+    loose = surface_rotation(line_normals(holed, line, vp, dm, min_support=0.0))
+    assert np.isfinite(loose[near]).all()
+    assert np.abs(loose[near] - full.rotation[near]).max() > 0.5
