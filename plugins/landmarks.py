@@ -503,8 +503,10 @@ def find_dimples(
         reason = "two similar pairs of concavities in the lower back: ambiguous" + hint
         return _missing("DL", reason), _missing("DR", reason)
     level = 0.5 * (pl.row + pr.row)
+    # every concavity counts, grooves too: a waistband's edge is mostly grooves, and the one
+    # or two pits among them made a pair (version 10; version 6 counted the pits only)
     beside = sum(
-        1 for q in peaks if q is not pl and q is not pr and abs(q.row - level) * s <= LEVEL_MM
+        1 for q in candidates if q is not pl and q is not pr and abs(q.row - level) * s <= LEVEL_MM
     )
     if row_concavities > 0 and beside >= row_concavities:
         reason = (
