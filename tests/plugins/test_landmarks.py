@@ -248,6 +248,32 @@ def test_a_groove_below_the_dimples_is_no_candidate() -> None:
         assert np.linalg.norm(lm.point - truth["landmarks"][lm.name]) <= 2.0
 
 
+def test_a_pair_of_pits_in_a_row_of_grooves_is_refused() -> None:
+    # A waistband's edge: a groove across the lower back, concave across only, with two
+    # dents in it where the cloth presses in (pits). The grooves between and beside them
+    # make the row: version 6 counted the pits only and took the dents for the dimples.
+    surface, truth = back("normal")
+    dl, dr = truth["landmarks"]["DL"], truth["landmarks"]["DR"]
+    grid, _, _, _ = _grooved(surface, dl, wave=0.15, period=40.0, depth=4.0, below=45.0, width=6.0)
+    xs, ys = surface.coordinates()
+    dents = sum(
+        3.0
+        * np.exp(
+            -0.5 * (((xs[None, :] - p[0]) / 8.0) ** 2 + ((ys[:, None] - p[1] - 45.0) / 8.0) ** 2)
+        )
+        for p in (dl, dr)
+    )
+    grid = LevelGrid(grid.x0, grid.y0, grid.spacing, grid.z + dents)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    wrong, _ = find_dimples(grid, curv, trunk, vp, row_concavities=0)
+    assert wrong.found and np.linalg.norm(wrong.point - dl) > 40.0
+    left, right = find_dimples(grid, curv, trunk, vp)
+    assert not left.found and not right.found
+    assert "row of" in left.reason and "clothing" in left.reason
+
+
 @pytest.mark.parametrize(
     ("across", "along", "pit"),
     [(0.02, 0.02, True), (0.02, 0.006, True), (0.02, 0.0, False), (0.02, -0.01, False)],
