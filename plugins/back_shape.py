@@ -53,7 +53,7 @@ from .landmarks import (
 from .level_frame import LevelFrame
 from .sacrum_point import find_sacrum_point
 from .spinal_midline import MIN_SUPPORT, line_normals, spinal_midline
-from .symmetry_line import find_symmetry_line
+from .symmetry_line import EDGE_ROOM, edge_room_reason, find_symmetry_line
 from .trunk import find_trunk
 from .vp_axis import MAX_IMBALANCE, MAX_OFFSET, check_imbalance, check_vertebra_prominens
 
@@ -100,6 +100,7 @@ def analyse_back(
     vp_max_imbalance: float | None = MAX_IMBALANCE,
     vp_region_below: float = REGION_BELOW,
     midline_support: float = MIN_SUPPORT,
+    line_edge_room: float = EDGE_ROOM,
     vp_carried: np.ndarray | None = None,
 ) -> BackShape:
     """Analyse one smoothed surface.
@@ -133,6 +134,10 @@ def analyse_back(
         Least share of either side of the rotation's window on measured surface for the
         midline to be measured at a level
         (:data:`~rasterserver_plugins.spinal_midline.MIN_SUPPORT`).
+    line_edge_room : float, optional
+        Least room (trunk half-widths) between the symmetry line and the measured trunk's
+        edge (:data:`~rasterserver_plugins.symmetry_line.EDGE_ROOM`); the line is refused
+        closer. 0 does not check.
     vp_carried : numpy.ndarray or None, optional
         ``(3,)`` world position of VP carried from another visit of the patient through their
         registration (:func:`rasterserver.comparison.carry_vp`), used only where this
@@ -206,8 +211,9 @@ def analyse_back(
     top, bottom = vp.point, dm.point
     if top is not None and bottom is not None:
         line = find_symmetry_line(grid, curv, top, bottom, trunk.reference_half_width())
-        if not line.found:
-            reasons["symmetry_line"] = line.reason
+        why = line.reason if not line.found else edge_room_reason(line, grid, trunk, line_edge_room)
+        if why:
+            reasons["symmetry_line"] = why
             line = None
     else:
         reasons["symmetry_line"] = "needs VP and DM"
@@ -314,7 +320,9 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    where the skin between the dimples is not measured (version 8 failed there)
     # 10: the spinal midline is refused (not bridged) at levels where either side of the
     #    rotation's window lacks surface, and its parameters when it is refused over more
-    #    than a fifth of VP-DM (spinal_midline.MIN_SUPPORT, back_parameters.MIDLINE_MIN_MEASURED)
+    #    than a fifth of VP-DM (spinal_midline.MIN_SUPPORT, back_parameters.MIDLINE_MIN_MEASURED);
+    #    the dimples' clothing-edge check counts grooves too; the symmetry line is refused
+    #    where it runs along the measured trunk's edge (symmetry_line.EDGE_ROOM)
     version: ClassVar[str] = "10"
     input_type = Surface
     output_type = BackShape
@@ -382,6 +390,14 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "must lie on measured surface for the spinal midline to be measured at a level "
             "(refused there otherwise). 0 measures wherever the fit is possible.",
         )
+        line_edge_room: float = Field(
+            EDGE_ROOM,
+            ge=0.0,
+            le=0.5,
+            description="Least room, in trunk half-widths, between the symmetry line and the "
+            "measured trunk's edge on either side; the line (and what is measured along it) "
+            "is refused closer. 0 does not check.",
+        )
         vp_carried: tuple[float, float, float] | None = Field(
             None,
             description="World position (mm) of VP carried from another visit of the patient "
@@ -413,5 +429,6 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             vp_max_imbalance=params.vp_max_imbalance,
             vp_region_below=params.vp_region_below,
             midline_support=params.midline_support,
+            line_edge_room=params.line_edge_room,
             vp_carried=None if params.vp_carried is None else np.asarray(params.vp_carried),
         )

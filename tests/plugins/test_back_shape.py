@@ -323,3 +323,35 @@ def test_a_carried_vp_leaves_the_stored_parameters_hash_alone() -> None:
     assert params_hash(carried) != params_hash(plain)
     with pytest.raises(ValueError):
         BackShapeAnalysis.Params(vp_carried=(1.0, 2.0))
+
+
+def test_a_symmetry_line_along_the_trunks_edge_is_refused() -> None:
+    # Held-out clinic scene 43762 (benchmarks/clinic_analysis.py, kept frame; arms close, a
+    # 54 mm lateral deviation): the left arm cuts the measured trunk near the curve's apex,
+    # and the symmetry line ran along that edge, 85 mm off the spine; the midline's answer
+    # was a deviation of -27 mm against the truth's +54 mm. Version 10 refuses the line.
+    from rasterserver.simulator.back_truth import truth
+    from rasterserver.simulator.body import clinic_station, make_body, random_body
+
+    kept = np.load(Path(__file__).parents[1] / "data" / "scenes" / "body-43762.npz")
+    st = clinic_station(43762, str(kept["code"]))
+    context = StageContext(calibration=st, raster=st.raster_definition)
+    unchecked = run_chain(
+        kept["image"], context=context, until="analysis", params={"analysis": {"line_edge_room": 0}}
+    )["analysis"]
+    tr = truth(make_body(random_body(43762)))
+    true_max = tr["parameters"]["lateral_deviation_max_mm"]["value"]
+    wrong = unchecked.parameter_table()["lateral_deviation_neg_max_mm"]["value"]
+    assert true_max > 50.0 and wrong < -20.0  # the sign and size of the curve were wrong
+    shape = run_chain(kept["image"], context=context, until="analysis")["analysis"]
+    reasons = shape.reason_table()
+    assert "trunk's edge" in reasons["symmetry_line"]
+    assert len(shape.midline) == 0
+    table = shape.parameter_table()
+    for name in ("lateral_deviation_max_mm", "scoliosis_angle_deg", "kyphotic_angle_deg"):
+        assert name not in table and name in reasons
+    # the landmarks stand
+    for name in ("VP", "DL", "DR", "DM"):
+        point = shape.landmark(name)
+        assert point is not None
+        assert np.linalg.norm(point - tr["landmarks"][name]) < 3.0

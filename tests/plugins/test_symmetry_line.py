@@ -7,7 +7,14 @@ import pytest
 from back_surfaces import back
 from rasterserver_plugins.curvature import surface_curvature
 from rasterserver_plugins.level_frame import LevelGrid
-from rasterserver_plugins.symmetry_line import find_symmetry_line, profile_asymmetry
+from rasterserver_plugins.symmetry_line import (
+    EDGE_ROOM,
+    SymmetryLine,
+    edge_room_reason,
+    find_symmetry_line,
+    profile_asymmetry,
+)
+from rasterserver_plugins.trunk import find_trunk
 
 SPACING = 3.0
 
@@ -87,3 +94,23 @@ def test_too_short_a_line_is_refused() -> None:
         grid, curv, np.array([0.0, 0.0, 0.0]), np.array([0.0, 9.0, 0.0]), half_width=130.0
     )
     assert not line.found and "5 profiles" in line.reason
+
+
+def test_a_line_along_the_trunks_edge_is_refused() -> None:
+    # a 300 mm wide trunk (x -150 to 150): a line at x = 0 has room; one that runs to within
+    # 10 mm of the left edge at one height (14 mm is 0.1 half-widths) is refused there
+    _y, x = np.mgrid[-300:300:3.0, -200:200:3.0]
+    grid = LevelGrid(
+        -200.0, -300.0, 3.0, np.where(np.abs(x) <= 150.0, 40.0 + (x / 30.0) ** 2, np.nan)
+    )
+    trunk = find_trunk(grid.z, grid.spacing)
+    ys = np.arange(-150.0, 150.0, 3.0)
+
+    def line(xs: np.ndarray) -> SymmetryLine:
+        return SymmetryLine(x=xs, y=ys, z=0 * ys, asymmetry=0 * ys, raw_x=xs)
+
+    assert edge_room_reason(line(0 * ys), grid, trunk, EDGE_ROOM) == ""
+    bent = np.where(np.abs(ys) < 20.0, -140.0, 0.0)
+    why = edge_room_reason(line(bent), grid, trunk, EDGE_ROOM)
+    assert "from the measured trunk's edge" in why and "at height" in why
+    assert edge_room_reason(line(bent), grid, trunk, 0.0) == ""
