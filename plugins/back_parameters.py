@@ -241,6 +241,8 @@ def cobb_angle(vertical: np.ndarray, lateral: np.ndarray, step: float) -> float:
     runs = _runs(ok)
     betas = []
     for lo, hi in runs:
+        if hi - lo < 5:  # no tangent worth reading (a lone sample has none at all)
+            continue
         beta = _tangent_angle(vertical[lo:hi], lateral[lo:hi], FRONTAL_WINDOW, step)
         if beta.size > 2 * edge + 4:
             betas.append(beta[edge : beta.size - edge])

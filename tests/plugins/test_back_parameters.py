@@ -59,6 +59,11 @@ def test_cobb_angle_reads_each_measured_piece_of_a_line_with_gaps() -> None:
     bits = np.where((y // 30.0) % 2 == 0, s, np.nan)
     assert math.isnan(cobb_angle(y, bits, 3.0))
     assert math.isnan(cobb_angle(y, np.full_like(y, np.nan), 3.0))
+    # a lone measured sample, or a line of one sample: no tangent, no angle (no crash)
+    lone = np.full_like(y, np.nan)
+    lone[40] = 1.0
+    assert math.isnan(cobb_angle(y, lone, 3.0))
+    assert math.isnan(cobb_angle(y[:1], s[:1], 3.0))
 
 
 def test_asymmetry_of_a_symmetric_and_a_lopsided_back() -> None:
