@@ -211,9 +211,13 @@ def analyse_back(
     top, bottom = vp.point, dm.point
     if top is not None and bottom is not None:
         line = find_symmetry_line(grid, curv, top, bottom, trunk.reference_half_width())
-        why = line.reason if not line.found else edge_room_reason(line, grid, trunk, line_edge_room)
-        if why:
-            reasons["symmetry_line"] = why
+        refusal = (
+            (line.reason or "no symmetry line found")
+            if not line.found
+            else edge_room_reason(line, grid, trunk, line_edge_room)
+        )
+        if refusal:
+            reasons["symmetry_line"] = refusal
             line = None
     else:
         reasons["symmetry_line"] = "needs VP and DM"
