@@ -56,6 +56,23 @@ def test_png_page_with_maps_profiles_and_table(back) -> None:
     assert red.sum() > 200
 
 
+def test_a_midline_with_refused_levels_draws_with_gaps(back) -> None:
+    # analysis version 10 refuses the midline (NaN rows) where the rotation's window lacks
+    # surface: the page draws the measured pieces
+    import dataclasses
+
+    _image, surface, truth = back
+    shape = truth_backshape(truth, surface)
+    m = len(shape.midline)
+    assert m > 10
+    gap = slice(m // 3, m // 3 + max(m // 10, 2))
+    midline, rotation = shape.midline.copy(), shape.surface_rotation.copy()
+    midline[gap], rotation[gap] = np.nan, np.nan
+    holed = dataclasses.replace(shape, midline=midline, surface_rotation=rotation)
+    page = _decoded(render_report(_analysis(FrameAnalysis("frame.png", holed, surface))))
+    assert page.std() > 40
+
+
 def test_pdf_is_one_page(back) -> None:
     _image, surface, truth = back
     data = render_report(
