@@ -1,16 +1,13 @@
-"""Screening a peak-stage rule: dropped peaks flanked by trusted ones, kept.
+"""The flanked-peaks rule of the peak stage, scored with and without it on the same frames.
 
-The detector (:class:`~rasterserver_plugins.peak_detection.FirstMomentPeaks`) drops a peak
-whose first moment cannot be trusted; where only its bounding minima or flanks are unequal
-(a neighbouring line crowds it), a peak that trusted peaks flank in both adjacent columns
-(the same line on either side) is located about as well as the line around it
-(BENCHMARKS.md "Real bodies", 2026-11-30 (31) and (32)). The rule is
-:func:`~rasterserver_plugins.flanked_peaks.flanked`, an option of
-:func:`~rasterserver_plugins.peak_detection.detect_peaks` the stage does not use (measured,
-not adopted: section (32)). This script scores stages 1-4 on the clinic scenes of
-:mod:`real_bodies` with the installed stage's peaks and with the rule added to its
-parameters, both on the same frames: the wrongly numbered peaks, the back's coverage and
-the reconstructed peaks' rms, as ``real_bodies.py`` counts them.
+The detector (:class:`~rasterserver_plugins.peak_detection.FirstMomentPeaks`, version 5)
+keeps a peak dropped only because a neighbouring line crowds it (unequal bounding minima or
+flanks) where trusted peaks of the same line flank it
+(:mod:`~rasterserver_plugins.flanked_peaks`; BENCHMARKS.md "Real bodies", 2026-11-30 (31)).
+This script scores stages 1-4 on the clinic scenes of :mod:`real_bodies` without the rule
+(``flank_tolerance`` 0: version 4's peaks) and with the thresholds given (by default the
+stage's), both on the same frames: the wrongly numbered peaks, the back's coverage and the
+reconstructed peaks' rms, as ``real_bodies.py`` counts them.
 
 A dropped peak is kept where both adjacent columns hold a trusted peak within 2.5 px of
 its row, the two within ``--span`` px of each other, their mean within ``--tolerance``
@@ -45,15 +42,29 @@ def _real_bodies() -> Any:
     return importlib.import_module("real_bodies")  # beside this script; once per process
 
 
-def peaks(pixels: np.ndarray, rule: Any) -> Any:
-    """The installed peak stage's record of ``pixels`` (its default parameters) with the
-    flanked peaks ``rule`` keeps added (a
-    :class:`~rasterserver_plugins.flanked_peaks.FlankRule`; None: the stage's own)."""
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks, detect_peaks
+def _stage_rule() -> Any:
+    from rasterserver_plugins.flanked_peaks import FlankRule
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
 
-    p = FirstMomentPeaks.Params().model_dump()
-    found = detect_peaks(pixels, **p, flank_rule=rule)
-    return found.to_record((int(pixels.shape[0]), int(pixels.shape[1])))
+    p = FirstMomentPeaks.Params()
+    return FlankRule(p.flank_tolerance, p.flank_span, p.flank_area_ratio, p.flank_run_on)
+
+
+def peaks(pixels: np.ndarray, rule: Any) -> Any:
+    """The peak stage's record of ``pixels`` with the flanked-peaks thresholds ``rule``
+    (a :class:`~rasterserver_plugins.flanked_peaks.FlankRule`; tolerance 0: none kept)."""
+    from rasterserver_plugins.peak_detection import FirstMomentPeaks
+
+    from rasterserver.records import Image
+    from rasterserver.stage import run_stage
+
+    params = {
+        "flank_tolerance": rule.tolerance,
+        "flank_span": rule.span,
+        "flank_area_ratio": rule.area_ratio,
+        "flank_run_on": rule.run_on,
+    }
+    return run_stage(FirstMomentPeaks, Image(pixels), params=params)
 
 
 def score(frame: Any, peaks: Any) -> dict[str, Any]:
@@ -85,7 +96,7 @@ def score(frame: Any, peaks: Any) -> dict[str, Any]:
 
 _CACHE: Path | None = None
 _RASTER: str | None = None
-_RULE: Any = None  # a FlankRule, set in each worker
+_RULE: Any = None
 
 
 def _init(cache: Path | None, raster: str | None, rule: Any) -> None:
@@ -94,18 +105,14 @@ def _init(cache: Path | None, raster: str | None, rule: Any) -> None:
 
 
 def screen_scene(seed: int) -> dict[str, Any]:
-    """Scene ``seed`` scored with the installed peaks and with the flanked ones kept."""
-    from rasterserver_plugins.peak_detection import FirstMomentPeaks
-
-    from rasterserver.records import Image
-    from rasterserver.stage import run_stage
-
+    """Scene ``seed`` scored without the flanked peaks and with them kept by ``_RULE``."""
     frame = _real_bodies().cached_frame(seed, _RASTER, _CACHE)
+    rule = _RULE or _stage_rule()
     return {
         "seed": seed,
         "back_crossings": int(frame.lr_on_back.sum()),
-        "installed": score(frame, run_stage(FirstMomentPeaks, Image(frame.image))),
-        "flanked": score(frame, peaks(frame.image, _RULE)),
+        "unflanked": score(frame, peaks(frame.image, rule._replace(tolerance=0.0))),
+        "flanked": score(frame, peaks(frame.image, rule)),
     }
 
 
@@ -124,7 +131,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "scenes": len(ok),
         "error_seeds": sorted(r["seed"] for r in rows if "error" in r),
     }
-    for name in ("installed", "flanked"):
+    for name in ("unflanked", "flanked"):
         n = max(sum(r[name]["rec_n"] for r in ok), 1)
         out[name] = {
             "wrong_peaks": sum(r[name]["wrong_peaks"] for r in ok),
@@ -142,17 +149,16 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     add_scene_arguments(ap)
-    from rasterserver_plugins.flanked_peaks import FlankRule
-
-    ap.add_argument("--tolerance", type=float, default=FlankRule().tolerance)
-    ap.add_argument("--span", type=float, default=FlankRule().span)
-    ap.add_argument("--area-ratio", type=float, default=FlankRule().area_ratio)
-    ap.add_argument("--run-on", type=float, default=FlankRule().run_on)
+    stage = _stage_rule()
+    ap.add_argument("--tolerance", type=float, default=stage.tolerance)
+    ap.add_argument("--span", type=float, default=stage.span)
+    ap.add_argument("--area-ratio", type=float, default=stage.area_ratio)
+    ap.add_argument("--run-on", type=float, default=stage.run_on)
     args = ap.parse_args(argv)
     seeds = scene_seeds(ap, args, _real_bodies()._raster_names())
     if min(args.tolerance, args.span, args.run_on) < 0 or args.area_ratio < 1:
         ap.error("the thresholds must be >= 0 and --area-ratio >= 1")
-    rule = FlankRule(args.tolerance, args.span, args.area_ratio, args.run_on)
+    rule = type(stage)(args.tolerance, args.span, args.area_ratio, args.run_on)
     rows = scene_rows(
         _safe, seeds, workers=args.workers, initializer=_init,
         initargs=(args.cache, args.raster, rule),

@@ -17,12 +17,6 @@ columns say where it runs. Measured on the clinic scenes (BENCHMARKS.md "Real bo
 is located about as well as the line around it (0.146 px rms against the line's 0.048)
 and numbered as safely; 13 % of the dropped peaks qualify. A peak dropped for being dim or
 clipped is never kept: its location is doubtful whatever flanks it.
-
-It is an option of :func:`~rasterserver_plugins.peak_detection.detect_peaks`
-(``flank_rule``), not used by the stage: built as a peaks version 5 and measured whole, it
-raised the back's coverage by 0.08-0.16 point but let the spinal midline err by 5.8 and
-17.7 mm on two of 280 clinic bodies where version 4's peaks gave none beyond 5 mm
-(BENCHMARKS.md "Real bodies", 2026-11-30 (32)). ``benchmarks/flanked_peaks.py`` scores it.
 """
 
 from __future__ import annotations

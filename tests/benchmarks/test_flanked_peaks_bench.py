@@ -27,7 +27,7 @@ def test_a_scene_is_scored_both_ways(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads(out.read_text())
     assert summary["scenes"] == 1 and summary["error_seeds"] == []
-    without, kept = summary["installed"], summary["flanked"]
+    without, kept = summary["unflanked"], summary["flanked"]
     assert 90.0 < without["back_coverage"] <= kept["back_coverage"] <= 100.0
     assert kept["dropped"] <= without["dropped"]
     assert 0.0 < kept["rec_rms"] < 0.1

@@ -44,14 +44,13 @@ def test_a_dropped_peak_flanked_by_its_line_is_kept() -> None:
     assert none.col.tolist() == without.col.tolist() and none.dropped == 2
 
 
-def test_the_stage_keeps_none() -> None:
-    # measured and not adopted (BENCHMARKS.md "Real bodies", 2026-11-30 (32)): the stage's
-    # peaks are version 4's, the rule an option of detect_peaks for the benchmark
+def test_the_stage_keeps_it_by_default_and_not_with_tolerance_0() -> None:
     img = _frame()
     stage = run_stage(FirstMomentPeaks, Image(img))
-    assert stage.row[stage.col == 5].size == 0 and stage.dropped == 2
-    assert FirstMomentPeaks.version == "4"
-    assert not any(name.startswith("flank") for name in FirstMomentPeaks.Params.model_fields)
+    assert [round(float(r), 1) for r in stage.row[stage.col == 5]] == [30.3]
+    assert stage.dropped == 1
+    off = run_stage(FirstMomentPeaks, Image(img), {"flank_tolerance": 0.0})
+    assert off.row[off.col == 5].size == 0 and off.dropped == 2
 
 
 def test_flanks_of_unequal_area_or_a_line_that_does_not_run_on_keep_nothing() -> None:

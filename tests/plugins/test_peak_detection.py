@@ -279,8 +279,10 @@ def test_line_entirely_inside_one_pixel_is_not_told_from_a_hot_pixel() -> None:
     assert detect_peaks(pixels).col.size == 0
 
 
-def test_version_4_defaults() -> None:
-    # results of version 3 in an archive are told from version 4's by the version
-    assert FirstMomentPeaks.version == "4"
+def test_version_5_defaults() -> None:
+    # results of version 4 in an archive are told from version 5's by the version
+    assert FirstMomentPeaks.version == "5"
     p = FirstMomentPeaks.Params()
     assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 3.5)
+    rule = (p.flank_tolerance, p.flank_span, p.flank_area_ratio, p.flank_run_on)
+    assert rule == (0.4, 1.5, 1.5, 1.0)
