@@ -43,3 +43,33 @@ def write_section(title: str, body: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + section
     BENCHMARKS_MD.write_text(text.rstrip() + "\n")
+
+
+def write_subsection(title: str, heading: str, body: str) -> None:
+    """Write ``### heading`` as the newest subsection of the ``## title`` section.
+
+    A section that keeps a dated history (newest first) must not lose it when a run writes
+    its figures: a subsection of the same heading is replaced, otherwise the new one goes
+    first, above the older ones; the section is appended when BENCHMARKS.md lacks it.
+    """
+    text = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else "# Benchmarks\n"
+    sub = f"### {heading}\n\n{body.strip()}\n\n"
+    match = re.search(rf"^## {re.escape(title)}\n.*?(?=^## |\Z)", text, re.S | re.M)
+    if match is None:
+        text = text.rstrip() + f"\n\n## {title}\n\n" + sub
+    else:
+        section = match.group(0)
+        same = re.compile(rf"^### {re.escape(heading)}\n.*?(?=^### |\Z)", re.S | re.M)
+        if same.search(section):
+            section = same.sub(lambda _m: sub, section, count=1)
+        else:
+            first = re.search(r"^### ", section, re.M)
+            at = first.start() if first else len(section)
+            section = section[:at].rstrip() + "\n\n" + sub + section[at:]
+        text = text[: match.start()] + section.rstrip() + "\n\n" + text[match.end() :]
+    BENCHMARKS_MD.write_text(text.rstrip() + "\n")
+
+
+def subsection_heading(heading: str | None, script: str) -> str:
+    """``heading`` when given, else today's date and the script that measured."""
+    return heading or f"{dt.date.today().isoformat()}: `benchmarks/{Path(script).name}`"

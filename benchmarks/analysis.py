@@ -28,7 +28,8 @@ on the tuning set only; nobody tuning it looks at the held-out figures.
 
 Per acquisition one JSON line is appended to ``<out>.jsonl`` as soon as it is done (an
 interrupted run resumes); the summary goes to ``<out>`` (JSON) and a markdown report to
-``<out>.md`` (``--write`` also replaces the "Back-shape analysis" section of BENCHMARKS.md).
+``<out>.md`` (``--write`` adds it as the newest subsection of "Back-shape analysis" in
+BENCHMARKS.md, keeping the older ones).
 
 Usage::
 
@@ -62,7 +63,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _machine import machine, write_section  # noqa: E402
+from _machine import machine, subsection_heading, write_subsection  # noqa: E402
 
 TITLE = "Back-shape analysis"
 LANDMARK_NAMES = ("VP", "DL", "DR", "DM", "SP")
@@ -857,7 +858,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/analysis.json"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this run")
-    ap.add_argument("--write", action="store_true", help="replace the section in BENCHMARKS.md")
+    ap.add_argument(
+        "--write",
+        action="store_true",
+        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
+        " (older subsections are kept)",
+    )
+    ap.add_argument(
+        "--heading",
+        default=None,
+        help="the subsection's heading (default: today's date and the run's command)",
+    )
     args = ap.parse_args(argv)
     if args.count < 0 or args.repeat_backs < 0 or args.repeats < 0:
         ap.error("counts must be >= 0")
@@ -951,7 +962,7 @@ def main(argv: list[str] | None = None) -> int:
     out.with_suffix(".md").write_text(report)
     print(report)
     if args.write:
-        write_section(TITLE, report)
+        write_subsection(TITLE, subsection_heading(args.heading, __file__), report)
         print(f"wrote the section {TITLE!r} of BENCHMARKS.md", flush=True)
     return 0
 

@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import geometry_truth as gt  # noqa: E402
-from _machine import machine, write_section  # noqa: E402
+from _machine import machine, subsection_heading, write_subsection  # noqa: E402
 from sqlalchemy import delete, func, select, update  # noqa: E402
 
 from rasterserver.archive import Archive, FrameSource  # noqa: E402
@@ -172,8 +172,16 @@ def measure(settings: Settings, count: int, workers: int) -> Run:
             t0 = time.perf_counter()
             status = run_job(archive, job.id, dask=False)
             seconds = time.perf_counter() - t0
-            run = Run("in-process", count, seconds, _cpu(me) - c0, 0.0,
-                      _peak_rss_mb(me.pid), 0.0, loop_cpu=time.thread_time() - l0)
+            run = Run(
+                "in-process",
+                count,
+                seconds,
+                _cpu(me) - c0,
+                0.0,
+                _peak_rss_mb(me.pid),
+                0.0,
+                loop_cpu=time.thread_time() - l0,
+            )
         else:
             s0 = time.perf_counter()
             with dask_client(n_workers=workers) as client:
@@ -191,8 +199,17 @@ def measure(settings: Settings, count: int, workers: int) -> Run:
                 coordinator = _cpu(me) - c0
                 worker = sum(_cpu(p) for p in pids) - w0
                 worker_rss = max((_peak_rss_mb(p.pid) for p in pids), default=0.0)
-            run = Run(f"local cluster, {workers} worker(s)", count, seconds, coordinator,
-                      worker, _peak_rss_mb(me.pid), worker_rss, start_s, loop)
+            run = Run(
+                f"local cluster, {workers} worker(s)",
+                count,
+                seconds,
+                coordinator,
+                worker,
+                _peak_rss_mb(me.pid),
+                worker_rss,
+                start_s,
+                loop,
+            )
         assert status.job.state == "done" and status.job.done == count, status.to_dict()
     print(run.row(), file=sys.stderr, flush=True)
     return run
@@ -201,7 +218,9 @@ def measure(settings: Settings, count: int, workers: int) -> Run:
 def _child(cache: Path, count: int, workers: int) -> Run:
     out = subprocess.run(
         [sys.executable, __file__, str(count), "--cache", str(cache), "--one", str(workers)],
-        check=True, stdout=subprocess.PIPE, text=True,
+        check=True,
+        stdout=subprocess.PIPE,
+        text=True,
     ).stdout
     return Run(**json.loads(out.strip().splitlines()[-1]))
 
@@ -212,7 +231,17 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path("/tmp/rasterserver-reprocess"))
     parser.add_argument("--sizes", default="", help="in-process runs at these N too (memory)")
     parser.add_argument("--engines", default="0,1,2", help="0 in-process, k: k dask workers")
-    parser.add_argument("--write", action="store_true")
+    parser.add_argument(
+        "--write",
+        action="store_true",
+        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
+        " (older subsections are kept)",
+    )
+    parser.add_argument(
+        "--heading",
+        default=None,
+        help="the subsection's heading (default: today's date and the run's command)",
+    )
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -227,8 +256,10 @@ def main() -> None:
     todo = [(size, 0) for size in [int(x) for x in args.sizes.split(",") if x]]
     todo += [(args.count, int(x)) for x in args.engines.split(",") if x]
     for size in sorted({size for size, _w in todo}):
-        subprocess.run([sys.executable, __file__, str(size), "--cache", str(args.cache),
-                        "--one", "-1"], check=True)
+        subprocess.run(
+            [sys.executable, __file__, str(size), "--cache", str(args.cache), "--one", "-1"],
+            check=True,
+        )
     for size, workers in todo:
         # each in a fresh process: peak memory is that of one job, not of the ones before
         runs.append(_child(args.cache, size, workers))
@@ -242,8 +273,10 @@ def main() -> None:
     if one and two:
         lines.append(f"1 → 2 workers: {two.rate / one.rate:.2f}× the acquisitions per second.")
     if inproc and two:
-        lines.append(f"Local cluster (2 workers) against in-process: "
-                     f"{two.rate / inproc.rate:.2f}× the acquisitions per second.")
+        lines.append(
+            f"Local cluster (2 workers) against in-process: "
+            f"{two.rate / inproc.rate:.2f}× the acquisitions per second."
+        )
     if two and two.loop_cpu:
         loop = 1000 * two.loop_cpu / two.count
         # a worker's CPU per acquisition it computes: the workers' CPU over the acquisitions
@@ -269,7 +302,7 @@ def main() -> None:
 slow and noisy, CPU times less so). `nice benchmarks/reprocess.py {args.count}{sizes}`: one
 catalogue job (target mesh) over N cached simulated 604×576 acquisitions on SQLite, every
 stage computed (results removed before each run), each job in a fresh process. Cluster start
-and plugin import on the workers (not in the times): {starts or '-'}.
+and plugin import on the workers (not in the times): {starts or "-"}.
 
 {HEADER}
 {table}
@@ -277,7 +310,7 @@ and plugin import on the workers (not in the times): {starts or '-'}.
 {chr(10).join(lines)}"""
     print(body)
     if args.write:
-        write_section(TITLE, body)
+        write_subsection(TITLE, subsection_heading(args.heading, __file__), body)
 
 
 if __name__ == "__main__":
