@@ -329,12 +329,14 @@ def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
     rendering = render(scene, station, settings=render_settings(back), seed=noise_seed)
     t1 = time.perf_counter()
     durations: dict[str, float] = {}
+    # each of the two chains takes only its own stages' parameters (run_chain refuses others)
+    stage_params = _STATE.get("params") or {}
     surface = run_chain(
         rendering.image,
         context=context,
         until="surface",
         durations=durations,
-        params=_STATE.get("params"),
+        params={k: v for k, v in stage_params.items() if k != "analysis"} or None,
     )["surface"]
     t2 = time.perf_counter()
     shape = run_chain(
@@ -342,7 +344,7 @@ def run_task(task: tuple[str, str, int]) -> dict[str, Any]:
         context=context,
         until="analysis",
         durations=durations,
-        params=_STATE.get("params"),
+        params={k: v for k, v in stage_params.items() if k == "analysis"} or None,
     )["analysis"]
     curves = params.curves
     result = {
