@@ -333,6 +333,20 @@ class CodeWindowParams(StageParams):
         "inherited their numbers and are touched by numbered lines on one side only (0: "
         "none; version 22: 0).",
     )
+    kink_bend: float = Field(
+        0.8,
+        ge=0,
+        description="Last, before the lone peaks, refuse a line's first or last numbered peak "
+        "lying more than this many rows off the straight course of the two before it (and "
+        "kink_ratio times the line's own bends) where the lines numbered either side do not "
+        "go on beyond it (a link onto another surface's line; 0: none; version 23: 0).",
+    )
+    kink_ratio: float = Field(
+        5.0,
+        gt=0,
+        description="How many times the median second difference of the rows of the line's "
+        "five numbered peaks before the end the bend must exceed (kink_bend).",
+    )
     one_sided_peaks: int = Field(
         5,
         ge=0,

@@ -21,6 +21,7 @@ from .column_reading import misread_columns
 from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
+from .kinked_ends import kinked_ends
 from .numbering_checks import column_order_conflicts, local_spacing
 from .numbering_params import CodeWindowParams
 from .one_sided_lines import one_sided_components, one_sided_lines
@@ -387,11 +388,12 @@ def settle_last(
     peaks their column's code, read on through the unnumbered peaks beyond them, places a
     line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
     column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
-    ``one_sided_peaks``), and last the peaks those steps left with no numbered column
-    neighbour (:func:`.peak_checks.isolated_peaks`, ``final_isolated``) and, with
-    ``linked``, the small inherited components touched from one side only
-    (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``); the notes of
-    those that changed anything.
+    ``one_sided_peaks``), the line ends bent off their course where their neighbours end
+    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), and last the peaks those steps left
+    with no numbered column neighbour (:func:`.peak_checks.isolated_peaks`,
+    ``final_isolated``) and, with ``linked``, the small inherited components touched from
+    one side only (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``);
+    the notes of those that changed anything.
 
     Parameters
     ----------
@@ -408,7 +410,8 @@ def settle_last(
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
-        ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``column_check``,
+        ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``,
+        ``column_check``,
         ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
@@ -504,6 +507,14 @@ def settle_last(
             number, one_sided, notes, f"on lines of at most {params.one_sided_peaks} numbered "
             "peaks with no numbered peak both above and below any of them (numbered by one "
             "neighbour's contact, across what may be a depth step)",
+        )  # fmt: skip
+    if params.kink_bend > 0:
+        kinked = kinked_ends(
+            col, row, line_id, number, least_bend=params.kink_bend, bend_ratio=params.kink_ratio
+        )
+        number = _unnumber(
+            number, kinked, notes, "at a line's end that bends off the line's course where the "
+            "lines numbered either side end too (a link onto another surface's line)",
         )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered
