@@ -62,7 +62,6 @@ STEPS: dict[str, tuple[str, dict[str, Any]]] = {
     "one-sided-lines": ("21", {"one_sided_peaks": 0}),
     "shifted-blocks": ("22", {"pair_shift": False, "shift_block": 0}),
     "one-sided-components": ("23", {"linked_one_sided": 0}),
-    "kinked-ends": ("24", {"kink_bend": 0}),
 }
 
 

@@ -514,13 +514,13 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
     peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`;
     22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``); 23
-    inherited components touched from one side only (``linked_one_sided``); 24
-    :mod:`.kinked_ends`.
+    inherited components touched from one side only (``linked_one_sided``). An option, off:
+    :mod:`.kinked_ends` (``kink_bend``, tried as version 24 and not adopted).
     """
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "24"
+    version: ClassVar[str] = "23"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

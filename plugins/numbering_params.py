@@ -334,12 +334,13 @@ class CodeWindowParams(StageParams):
         "none; version 22: 0).",
     )
     kink_bend: float = Field(
-        0.8,
+        0.0,
         ge=0,
         description="Last, before the lone peaks, refuse a line's first or last numbered peak "
         "lying more than this many rows off the straight course of the two before it (and "
         "kink_ratio times the line's own bends) where the lines numbered either side do not "
-        "go on beyond it (a link onto another surface's line; 0: none; version 23: 0).",
+        "go on beyond it (a link onto another surface's line; 0: none; 0.8 was tried as "
+        "version 24 and not adopted).",
     )
     kink_ratio: float = Field(
         5.0,
