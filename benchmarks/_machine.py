@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import os
 import platform
@@ -73,3 +74,19 @@ def write_subsection(title: str, heading: str, body: str) -> None:
 def subsection_heading(heading: str | None, script: str) -> str:
     """``heading`` when given, else today's date and the script that measured."""
     return heading or f"{dt.date.today().isoformat()}: `benchmarks/{Path(script).name}`"
+
+
+def add_write_options(parser: argparse.ArgumentParser) -> None:
+    """``--write`` and ``--heading``, the options of the scripts that keep a dated history
+    in their BENCHMARKS.md section (:func:`write_subsection`, :func:`subsection_heading`)."""
+    parser.add_argument(
+        "--write",
+        action="store_true",
+        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
+        " (older subsections are kept)",
+    )
+    parser.add_argument(
+        "--heading",
+        default=None,
+        help="the subsection's heading (default: today's date and the script's name)",
+    )

@@ -63,7 +63,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _machine import machine, subsection_heading, write_subsection  # noqa: E402
+from _machine import add_write_options, machine, subsection_heading, write_subsection  # noqa: E402
 
 TITLE = "Back-shape analysis"
 LANDMARK_NAMES = ("VP", "DL", "DR", "DM", "SP")
@@ -860,17 +860,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/analysis.json"))
     ap.add_argument("--summary", type=Path, default=None, help="only summarise this run")
-    ap.add_argument(
-        "--write",
-        action="store_true",
-        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
-        " (older subsections are kept)",
-    )
-    ap.add_argument(
-        "--heading",
-        default=None,
-        help="the subsection's heading (default: today's date and the run's command)",
-    )
+    add_write_options(ap)
     args = ap.parse_args(argv)
     if args.count < 0 or args.repeat_backs < 0 or args.repeats < 0:
         ap.error("counts must be >= 0")

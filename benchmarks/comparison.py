@@ -62,7 +62,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _machine import machine, subsection_heading, write_subsection  # noqa: E402
+from _machine import add_write_options, machine, subsection_heading, write_subsection  # noqa: E402
 from analysis import HELD_OUT_FIRST_SEED, back_params, render_settings  # noqa: E402
 
 TITLE = "Longitudinal comparison"
@@ -971,17 +971,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backs", type=int, default=8, help="curved backs per set (default 8)")
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/out/comparison.json"))
-    ap.add_argument(
-        "--write",
-        action="store_true",
-        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
-        " (older subsections are kept)",
-    )
-    ap.add_argument(
-        "--heading",
-        default=None,
-        help="the subsection's heading (default: today's date and the run's command)",
-    )
+    add_write_options(ap)
     ap.add_argument("--summary", type=Path, default=None, help="only rewrite from this JSON")
     ap.add_argument(
         "--report-only",

@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import geometry_truth as gt  # noqa: E402
-from _machine import machine, subsection_heading, write_subsection  # noqa: E402
+from _machine import add_write_options, machine, subsection_heading, write_subsection  # noqa: E402
 from sqlalchemy import delete, func, select, update  # noqa: E402
 
 from rasterserver.archive import Archive, FrameSource  # noqa: E402
@@ -231,17 +231,7 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path("/tmp/rasterserver-reprocess"))
     parser.add_argument("--sizes", default="", help="in-process runs at these N too (memory)")
     parser.add_argument("--engines", default="0,1,2", help="0 in-process, k: k dask workers")
-    parser.add_argument(
-        "--write",
-        action="store_true",
-        help="write the figures as the newest dated subsection of their BENCHMARKS.md section"
-        " (older subsections are kept)",
-    )
-    parser.add_argument(
-        "--heading",
-        default=None,
-        help="the subsection's heading (default: today's date and the run's command)",
-    )
+    add_write_options(parser)
     parser.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
