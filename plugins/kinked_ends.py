@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .numbering_checks import line_runs
+
 __all__ = ["kinked_ends"]
 
 
@@ -73,11 +75,7 @@ def kinked_ends(
     numbered = np.nonzero((number >= 0) & (lid >= 0))[0]
     if least_bend <= 0 or numbered.size == 0 or inner < 3:
         return refused
-    # the numbered peaks line by line, in column order
-    idx = numbered[np.lexsort((col[numbered], lid[numbered]))]
-    groups = lid[idx]
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    ends = np.r_[starts[1:], idx.size]
+    idx, starts, ends = line_runs(lid, numbered)
     long_enough = (ends - starts) >= inner + 1
     # a numbered (column, number) present in the frame: the neighbours' lines going on
     key = col * 1_000_003 + number
