@@ -36,7 +36,10 @@ Usage::
 ``--code mseq7`` keeps only the range's scenes seen through one diapositive code (a tuning
 set of one raster); ``--raster mseq8-35to65`` sees every scene of the range through that
 built-in raster instead (the raster held out from tuning,
-:data:`rasterserver.raster.HELD_OUT_RASTERS`).
+:data:`rasterserver.raster.HELD_OUT_RASTERS`). ``--posture close`` keeps only the scenes
+whose body holds its arms so (with ``--code mseq7``: the stress set of section (35) of
+BENCHMARKS.md, where an arm hides one trunk line and its own lines take the hidden line's
+rows).
 """
 
 from __future__ import annotations
@@ -410,22 +413,24 @@ def summary(path: Path) -> dict[str, Any]:
     def tot(key: str, sel: list[dict[str, Any]] = ok) -> float:
         return float(sum(r[key] for r in sel))
 
-    per_code = {}
-    for code in sorted({r["code"] for r in ok}, key=lambda c: (c not in CODES, c)):
-        sel = [r for r in ok if r["code"] == code]
-        if sel:
-            per_code[code] = {
-                "scenes": len(sel),
-                "wrong_peaks": int(tot("wrong_peaks", sel)),
-                "scenes_with_wrong": sum(1 for r in sel if r["wrong_peaks"]),
-                "trunk_coverage": tot("trunk_covered", sel) / max(tot("trunk_crossings", sel), 1),
-                "back_coverage": tot("back_covered", sel) / max(tot("back_crossings", sel), 1),
-                "headarm_unnumbered": tot("headarm_unnumbered", sel)
-                / max(tot("headarm_peaks", sel), 1),
-                "rec_rms": (tot("rec_sse", sel) / max(tot("rec_n", sel), 1)) ** 0.5,
-                "dropped_share": sum(r.get("dropped_peaks", 0) for r in sel)
-                / max(sum(r.get("dropped_peaks", 0) + r["peaks"] for r in sel), 1),
-            }
+    def group(sel: list[dict[str, Any]]) -> dict[str, Any]:
+        return {
+            "scenes": len(sel),
+            "wrong_peaks": int(tot("wrong_peaks", sel)),
+            "scenes_with_wrong": sum(1 for r in sel if r["wrong_peaks"]),
+            "trunk_coverage": tot("trunk_covered", sel) / max(tot("trunk_crossings", sel), 1),
+            "back_coverage": tot("back_covered", sel) / max(tot("back_crossings", sel), 1),
+            "headarm_unnumbered": tot("headarm_unnumbered", sel)
+            / max(tot("headarm_peaks", sel), 1),
+            "rec_rms": (tot("rec_sse", sel) / max(tot("rec_n", sel), 1)) ** 0.5,
+            "dropped_share": sum(r.get("dropped_peaks", 0) for r in sel)
+            / max(sum(r.get("dropped_peaks", 0) + r["peaks"] for r in sel), 1),
+        }
+
+    codes = sorted({r["code"] for r in ok}, key=lambda c: (c not in CODES, c))
+    per_code = {c: group([r for r in ok if r["code"] == c]) for c in codes}
+    postures = sorted({r["posture"] for r in ok})
+    per_posture = {p: group([r for r in ok if r["posture"] == p]) for p in postures}
     ms = np.array([[r["ms"]["peaks"], r["ms"]["generic"], r["ms"]["numbers"]] for r in ok])
     stages = [r["ms"] for r in ok if "lines" in r["ms"]]
     ms_stages = (
@@ -474,6 +479,7 @@ def summary(path: Path) -> dict[str, Any]:
         "ms_median_peaks_generic_numbers": np.median(ms, axis=0).round(2).tolist() if ok else [],
         "ms_median_peaks_lines_order_numbers": ms_stages,
         "per_code": per_code,
+        "per_posture": per_posture,
     }
 
 
@@ -481,6 +487,41 @@ def _raster_names() -> tuple[str, ...]:
     from rasterserver.raster import CLINIC_RASTERS, HELD_OUT_RASTERS, TUNING_RASTERS
 
     return ("default", *CLINIC_RASTERS, *HELD_OUT_RASTERS, *TUNING_RASTERS)
+
+
+def _arm_postures() -> tuple[str, ...]:
+    from rasterserver.simulator.body import ARM_POSTURES
+
+    return ARM_POSTURES
+
+
+def scene_choice(seeds: range, code: str | None = None, posture: str | None = None) -> list[int]:
+    """The seeds of ``seeds`` whose scene is seen through ``code`` (``seed % 4``) and whose
+    body holds its arms in ``posture`` (:func:`~rasterserver.simulator.body.random_body`'s
+    draw; ``None``: any).
+
+    Parameters
+    ----------
+    seeds : range
+        The range of scene seeds.
+    code : str, optional
+        One of :data:`CODES`.
+    posture : str, optional
+        One of :data:`rasterserver.simulator.body.ARM_POSTURES`.
+
+    Returns
+    -------
+    list of int
+        The chosen seeds, in order.
+    """
+    from rasterserver.simulator.body import random_body
+
+    return [
+        s
+        for s in seeds
+        if (code is None or CODES[s % len(CODES)] == code)
+        and (posture is None or random_body(s).arm_posture == posture)
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -496,6 +537,13 @@ def main(argv: list[str] | None = None) -> int:
         choices=CODES,
         default=None,
         help="only the scenes of the range seen through this diapositive code (seed %% 4)",
+    )
+    ap.add_argument(
+        "--posture",
+        choices=_arm_postures(),
+        default=None,
+        help="only the scenes of the range whose body holds its arms so (a stress set of a "
+        "rare case, e.g. arms close to the trunk)",
     )
     ap.add_argument(
         "--raster",
@@ -521,6 +569,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.summary is not None:
         print(json.dumps(summary(args.summary), indent=2))
         return 0
+    chosen = scene_choice(
+        range(args.first_seed, args.first_seed + args.scenes), args.code, args.posture
+    )
+    if not chosen:
+        ap.error(
+            f"no scene of seeds {args.first_seed}-{args.first_seed + args.scenes - 1} is seen "
+            f"through {args.code or 'any code'} with arms {args.posture or 'in any posture'}"
+        )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
@@ -531,11 +587,7 @@ def main(argv: list[str] | None = None) -> int:
         # rows seen through another raster must not be summarised with this run's
         stamp = {**stamp, "raster": args.raster}
     done = done_seeds(args.out, stamp)
-    todo = [
-        s
-        for s in range(args.first_seed, args.first_seed + args.scenes)
-        if s not in done and (args.code is None or CODES[s % len(CODES)] == args.code)
-    ]
+    todo = [s for s in chosen if s not in done]
     print(f"{len(done)} scenes done, {len(todo)} to go", flush=True)
     start = time.time()
     with (

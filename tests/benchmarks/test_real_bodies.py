@@ -57,3 +57,24 @@ def test_a_code_keeps_only_its_scenes_and_a_raster_replaces_the_code(tmp_path: P
     assert "error" not in rows[0] and rows[0]["peaks"] > 0
     summary = json.loads(done.stdout[done.stdout.index("{") :])
     assert list(summary["per_code"]) == ["mseq8-35to65"]
+
+
+def test_a_posture_keeps_only_its_scenes_and_an_empty_choice_is_refused(tmp_path: Path) -> None:
+    """Seed 0's body has its hands on the hips and seed 1's arms are away (``random_body``'s
+    draw): ``--posture hips`` over seeds 0-1 scores seed 0 only, with the posture in the
+    summary; no scene of seeds 0-3 is seen through ``mseq7`` with hands on the hips, which
+    is refused by name before anything is written."""
+    out = tmp_path / "hips.jsonl"
+    done = _run("--first-seed", "0", "--scenes", "4", "--code", "mseq7", "--posture", "hips",
+                "--out", str(out))  # fmt: skip
+    assert done.returncode == 2
+    assert "no scene of seeds 0-3 is seen through mseq7 with arms hips" in done.stderr
+    assert not out.exists()
+    done = _run("--first-seed", "0", "--scenes", "2", "--posture", "hips", "--workers", "1",
+                "--out", str(out))  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
+    assert [(r["seed"], r["posture"]) for r in rows] == [(0, "hips")]
+    summary = json.loads(done.stdout[done.stdout.index("{") :])
+    assert list(summary["per_posture"]) == ["hips"]
+    assert summary["per_posture"]["hips"]["scenes"] == 1
