@@ -520,7 +520,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "23"
+    version: ClassVar[str] = "25"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

@@ -39,6 +39,7 @@ __all__ = [
     "local_spacing",
     "pair_contradictions",
     "plausible_distance",
+    "unordered_pairs",
 ]
 
 
@@ -201,6 +202,48 @@ def column_order_conflicts(
     # beside them apart: a line skipped between them that the numbers do not count (a
     # piece numbered a level off below a gap where lines went unfound).
     return order_conflicts(n, a, b, gap, k, spacing, tolerance, max_multiple)
+
+
+def unordered_pairs(col: np.ndarray, row: np.ndarray, number: np.ndarray) -> np.ndarray:
+    """Both peaks of every two numbered column neighbours whose numbers do not increase
+    downwards (equal, or decreasing).
+
+    Seen on any surface in front of the camera, the raster's lines keep their order down a
+    column, so no right numbering holds such a pair, whatever the gap between them; the
+    column does not tell which of the two is off. :func:`column_order_conflicts` judges the
+    pairs within a few spacings of each other while the numbering is built; this is the
+    invariant the last steps must leave true (a line's first peak carried onto another
+    surface's line below a peak that a later step numbered).
+
+    Parameters
+    ----------
+    col, row : numpy.ndarray
+        Peaks sorted by ``(col, row)``.
+    number : numpy.ndarray
+        Per-peak absolute number, -1 when unnumbered.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool, True for both peaks of every such pair, and of the pairs that
+        refusing them leaves out of order.
+    """
+    out = np.zeros(col.size, dtype=bool)
+    if col.size < 2:
+        return out
+    from .column_order import numbered_pairs  # compiled; the numba import costs ~0.3 s
+
+    left = np.asarray(number).copy()
+    # refusing a pair makes the peaks beside it neighbours, which may be out of order in
+    # turn (100, 105, 98, 99 leaves 100, 99): judged again until none is
+    while True:
+        a, b, _, k = numbered_pairs(col, row, left)
+        bad = k <= 0
+        if not np.any(bad):
+            return out
+        out[a[bad]] = True
+        out[b[bad]] = True
+        left[out] = -1
 
 
 def pair_judgements(

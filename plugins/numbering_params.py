@@ -110,6 +110,12 @@ class CodeWindowParams(StageParams):
         description="With column_check, refuse them again last, after the steps that "
         "refuse the peaks beside them (version 17: false).",
     )
+    final_order: bool = Field(
+        True,
+        description="Last, before the lone peaks, refuse both peaks of every two numbered "
+        "column neighbours whose numbers do not increase downwards (version 24 and before: "
+        "false).",
+    )
     tile_gain: float = Field(
         2.5, gt=0, description="Cost another placement must save on a band's run to refuse."
     )

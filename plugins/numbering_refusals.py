@@ -22,7 +22,7 @@ from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .kinked_ends import kinked_ends
-from .numbering_checks import column_order_conflicts, local_spacing
+from .numbering_checks import column_order_conflicts, local_spacing, unordered_pairs
 from .numbering_params import CodeWindowParams
 from .one_sided_lines import one_sided_components, one_sided_lines
 from .peak_checks import (
@@ -389,7 +389,9 @@ def settle_last(
     line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
     column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
     ``one_sided_peaks``), the line ends bent off their course where their neighbours end
-    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), and last the peaks those steps left
+    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the column neighbours whose numbers
+    do not increase downwards (:func:`.numbering_checks.unordered_pairs`, ``final_order``),
+    and last the peaks those steps left
     with no numbered column neighbour (:func:`.peak_checks.isolated_peaks`,
     ``final_isolated``) and, with ``linked``, the small inherited components touched from
     one side only (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``);
@@ -411,7 +413,7 @@ def settle_last(
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
         ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``,
-        ``column_check``,
+        ``final_order``, ``column_check``,
         ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
@@ -515,6 +517,11 @@ def settle_last(
         number = _unnumber(
             number, kinked, notes, "at a line's end that bends off the line's course where the "
             "lines numbered either side end too (a link onto another surface's line)",
+        )  # fmt: skip
+    if params.final_order:
+        number = _unnumber(
+            number, unordered_pairs(col, row, number), notes, "whose numbers do not "
+            "increase down their column (no surface shows the raster's lines out of order)",
         )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered

@@ -1,10 +1,15 @@
-"""Geometric evidence between components: line ends and their slopes, contact votes."""
+"""Geometric evidence between components: line ends and their slopes, contact votes; the
+column order every numbering must keep."""
 
 from __future__ import annotations
 
 import numpy as np
 from rasterserver_plugins.contact_tallies import line_ends
-from rasterserver_plugins.numbering_checks import contact_votes, pair_contradictions
+from rasterserver_plugins.numbering_checks import (
+    contact_votes,
+    pair_contradictions,
+    unordered_pairs,
+)
 
 
 def _sorted(col: np.ndarray, row: np.ndarray, line_id: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -134,3 +139,32 @@ def test_line_runs_orders_the_taken_peaks_line_by_line() -> None:
     assert starts.tolist() == [0, 2] and stops.tolist() == [2, 5]
     empty = line_runs(lid, np.zeros(0, dtype=np.int64))
     assert [a.size for a in empty] == [0, 0, 0]
+
+
+def test_unordered_pairs_refuses_numbers_that_do_not_increase_down_a_column() -> None:
+    # one column, lines 8 px apart: 10, 11, 11 (equal, two spacings on: no gap tells) and
+    # a second column 20, 19 (decreasing); a third column in order is left alone
+    col = np.array([0, 0, 0, 1, 1, 2, 2, 2])
+    row = np.array([100.0, 108.0, 124.0, 100.0, 108.0, 100.0, 108.0, 116.0])
+    number = np.array([10, 11, 11, 20, 19, 5, 6, 7])
+    got = unordered_pairs(col, row, number)
+    assert got.tolist() == [False, True, True, True, True, False, False, False]
+
+
+def test_unordered_pairs_judges_again_the_neighbours_a_refusal_leaves() -> None:
+    # 100, 105, 98, 99 down one column: (105, 98) refused leaves 100 above 99, refused too;
+    # unnumbered peaks between do not break a pair
+    col = np.zeros(5, dtype=np.int64)
+    row = np.array([100.0, 108.0, 112.0, 116.0, 124.0])
+    number = np.array([100, 105, -1, 98, 99])
+    assert unordered_pairs(col, row, number).tolist() == [True, True, False, True, True]
+
+
+def test_unordered_pairs_degenerate_inputs() -> None:
+    empty = np.zeros(0, dtype=np.int64)
+    assert unordered_pairs(empty, empty.astype(float), empty).size == 0
+    one = np.array([3])
+    assert unordered_pairs(one, np.array([1.0]), one).tolist() == [False]
+    # nothing numbered
+    col = np.array([0, 0])
+    assert not unordered_pairs(col, np.array([1.0, 9.0]), np.array([-1, -1])).any()

@@ -237,7 +237,7 @@ def test_the_pair_departure_is_the_faint_codes_only_for_a_faint_code() -> None:
 #: test of those two sees only their own refusals).
 LAST_STEPS_OFF = {
     "bracket_run": 0, "end_margin": 0, "end_dim": 0, "edge_run": 0, "surround_share": 0,
-    "skip_ratio": 0, "detached_peaks": 0,
+    "skip_ratio": 0, "detached_peaks": 0, "final_order": False,
 }  # fmt: skip
 
 
@@ -322,3 +322,23 @@ def test_a_peak_its_column_reads_a_line_off_is_refused_last() -> None:
     number[carried] += 1
     right, notes = settle_last(data, number, spacing, CodeWindowParams(**off), raster)
     assert np.array_equal(right, number) and not notes
+
+
+def test_numbers_out_of_order_in_a_column_are_refused_last() -> None:
+    """Line 3 numbered as line 2 (a line's start carried onto another surface's line): both
+    lines' peaks are refused with ``final_order`` (version 25), as the column cannot tell
+    which of the two is off; kept without it; the lines in order are kept."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30)] * 4, [1.0] * 4, raster)
+    number = numbers[data.line_id].copy()
+    twins = np.isin(data.line_id, [2, 3])
+    number[data.line_id == 3] = number[data.line_id == 2][0]
+    off = {k: v for k, v in LAST_STEPS_OFF.items() if k != "final_order"}
+    spacing = np.full(data.n_peaks, 10.0)
+    params = CodeWindowParams(**off, final_isolated=False)
+    got, notes = settle_last(data, number, spacing, params, raster)
+    assert np.all(got[twins] == -1) and np.array_equal(got[~twins], number[~twins])
+    assert any("do not increase down their column" in n for n in notes)
+    params = CodeWindowParams(**off, final_isolated=False, final_order=False)
+    kept, notes = settle_last(data, number, spacing, params, raster)
+    assert np.array_equal(kept, number) and not notes
