@@ -391,11 +391,11 @@ def settle_last(
     ``one_sided_peaks``), the line ends bent off their course where their neighbours end
     (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the column neighbours whose numbers
     do not increase downwards (:func:`.numbering_checks.unordered_pairs`, ``final_order``),
-    and last the peaks those steps left
-    with no numbered column neighbour (:func:`.peak_checks.isolated_peaks`,
-    ``final_isolated``) and, with ``linked``, the small inherited components touched from
-    one side only (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``);
-    the notes of those that changed anything.
+    and last the peaks those steps left with no numbered column neighbour
+    (:func:`.peak_checks.isolated_peaks`, ``final_isolated``) and, with ``linked``, the
+    small inherited components touched from one side only
+    (:func:`.one_sided_lines.one_sided_components`, ``linked_one_sided``); the notes of
+    those that changed anything.
 
     Parameters
     ----------
@@ -521,7 +521,7 @@ def settle_last(
     if params.final_order:
         number = _unnumber(
             number, unordered_pairs(col, row, number), notes, "whose numbers do not "
-            "increase down their column (no surface shows the raster's lines out of order)",
+            "increase down their column (a surface shows the raster's lines in their order)",
         )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered
