@@ -20,6 +20,11 @@ The seed's method, one hierarchical level above line search:
    they support it (a line vanishing behind a fold leaves its neighbours above and below
    disagreeing) is *contested*: it is left out and the order rebuilt without it. Lines left
    alone are not numbered, which is better than wrongly.
+   Two lines that overlap only by their ends, over fewer than ``min_link`` columns (the
+   upper one ends where the lower one begins, or the reverse), are not neighbours at all:
+   that staircase is the trace of a contour crossing the lines (the corner of a waistband,
+   an arm's edge), across which the surfaces' depth step, and with it the number of lines
+   between the two, is unknown (:func:`end_overlaps`).
 3. Groups that no pair links stay separate *components*, each with its own relative order
    from 0 (top) down; line numbering decides each component's offset on its own.
 
@@ -38,7 +43,13 @@ from pydantic import Field
 from rasterserver.records_lines import Lines, OrderedLines
 from rasterserver.stage import Stage, StageContext, StageParams
 
-__all__ = ["HierarchicalLineOrder", "LineOrder", "line_neighbours", "order_lines"]
+__all__ = [
+    "HierarchicalLineOrder",
+    "LineOrder",
+    "end_overlaps",
+    "line_neighbours",
+    "order_lines",
+]
 
 
 def line_neighbours(
@@ -102,6 +113,57 @@ def line_neighbours(
         net = net - _lookup(s_keys, s_counts, keys)
     keep = net > 0
     return upper[keep], lower[keep], net[keep]
+
+
+def end_overlaps(
+    col: np.ndarray,
+    line_id: np.ndarray,
+    upper: np.ndarray,
+    lower: np.ndarray,
+    n_lines: int,
+    min_span: int,
+) -> np.ndarray:
+    """Per pair of lines, whether they overlap only by their ends over fewer than
+    ``min_span`` columns.
+
+    Where a contour crosses the raster's lines (the corner of a waistband, an arm's edge),
+    the lines of one surface end along it and those of the other begin: in the few columns
+    where both are seen, one surface's line lies directly above the other's, at whatever
+    row the depth step between the surfaces puts it. A cloth standing off the skin can put
+    its line ``n + 1`` one spacing below the skin's line ``n - 1`` there, and several such
+    pairs along the contour agree on that shift. On one surface two neighbouring lines run
+    side by side over many columns, or one lies within the other's span (a piece of a line
+    broken by a shadow).
+
+    Parameters
+    ----------
+    col, line_id : numpy.ndarray
+        Peaks' columns and lines (-1: none).
+    upper, lower : numpy.ndarray
+        int64 line indices of the pairs.
+    n_lines : int
+        Number of lines.
+    min_span : int
+        Least span (columns, from the later first column to the earlier last one) of an
+        overlap by the ends that is not such a staircase.
+
+    Returns
+    -------
+    numpy.ndarray
+        Bool per pair: one line begins left of the other and also ends left of its end,
+        and the two share fewer than ``min_span`` columns of their spans.
+    """
+    inside = line_id >= 0
+    lid = line_id[inside].astype(np.int64)
+    c = col[inside].astype(np.int64)
+    first = np.full(n_lines, np.iinfo(np.int64).max, dtype=np.int64)
+    last = np.full(n_lines, -1, dtype=np.int64)
+    np.minimum.at(first, lid, c)
+    np.maximum.at(last, lid, c)
+    u0, u1, v0, v1 = first[upper], last[upper], first[lower], last[lower]
+    staggered = ((u0 < v0) & (u1 < v1)) | ((v0 < u0) & (v1 < u1))
+    span = np.minimum(u1, v1) - np.maximum(u0, v0) + 1
+    return staggered & (span >= 1) & (span < min_span)
 
 
 def _count_pairs(pair_key: np.ndarray, n_lines: int) -> tuple[np.ndarray, np.ndarray]:
@@ -224,6 +286,7 @@ def order_lines(
     min_overlap: int = 3,
     min_link: int = 6,
     max_conflict: float = 0.5,
+    end_overlaps_link: bool = False,
 ) -> LineOrder:
     """Relative order of the lines, component by component.
 
@@ -241,6 +304,10 @@ def order_lines(
     max_conflict : float
         A line whose neighbourhood columns contradicting its place reach this share of those
         supporting it is left out (a component of its own, not numbered).
+    end_overlaps_link : bool
+        Count the neighbourhoods of lines that overlap only by their ends over fewer than
+        ``min_link`` columns (:func:`end_overlaps`; version 1). By default they are not
+        neighbours.
 
     Returns
     -------
@@ -254,6 +321,8 @@ def order_lines(
     upper, lower, count = line_neighbours(col, row, line_id, n_lines, gap_ratio=gap_ratio)
     sizes = np.bincount(line_id[line_id >= 0], minlength=n_lines)
     usable = count >= min_overlap
+    if not end_overlaps_link:
+        usable &= ~end_overlaps(col, line_id, upper, lower, n_lines, min_link)
     upper, lower, count = upper[usable], lower[usable], count[usable]
     # A line whose neighbourhoods contradict its place almost as much as they support it
     # (where a line vanishes behind a fold, its neighbours above and below disagree) is
@@ -299,11 +368,16 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
     Two lines are neighbours where one lies directly above the other in a column; the pairs
     with the longest neighbourhood are ordered first, every line once, contradicting pairs are
     rejected; lines that cannot be linked form separate components.
+
+    Version 2: two lines that overlap only by their ends over fewer than ``min_link``
+    columns are not neighbours (:func:`end_overlaps`): along a waistband's corner, such
+    staircases of the skin's and the cloth's lines linked cloth lines one line off into the
+    back's order.
     """
 
     name: ClassVar[str] = "order.hierarchical"
     stage: ClassVar[str] = "order"
-    version: ClassVar[str] = "1"
+    version: ClassVar[str] = "2"
     input_type = Lines
     output_type = OrderedLines
 
@@ -324,6 +398,11 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
         max_conflict: float = Field(
             0.5, gt=0, description="Contradicting/supporting columns that leave a line out."
         )
+        end_overlaps_link: bool = Field(
+            False,
+            description="Lines overlapping only by their ends over fewer than min_link "
+            "columns are neighbours (version 1).",
+        )
 
     def run(self, data: Lines, params: Params, context: StageContext) -> OrderedLines:
         """Order the lines of ``data``; no lines give empty tables."""
@@ -335,6 +414,7 @@ class HierarchicalLineOrder(Stage[Lines, OrderedLines]):
             min_overlap=params.min_overlap,
             min_link=params.min_link,
             max_conflict=params.max_conflict,
+            end_overlaps_link=params.end_overlaps_link,
         )
         lid = data.line_id
         table = np.append(result.order, -1).astype(np.int32)

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from image_truth import back, truth_of_peaks, wall
 from rasterserver_plugins.line_search import HierarchicalLineSearch
-from rasterserver_plugins.line_sequence import HierarchicalLineOrder, line_neighbours, order_lines
+from rasterserver_plugins.line_sequence import (
+    HierarchicalLineOrder,
+    end_overlaps,
+    line_neighbours,
+    order_lines,
+)
 from rasterserver_plugins.peak_detection import FirstMomentPeaks
 
 from rasterserver.records import Image
@@ -212,3 +217,75 @@ def test_contested_line_is_left_out() -> None:
     assert result.order[:4].tolist() == [0, 1, 2, 3]
     assert result.component[4] != result.component[0]
     assert result.contested == 1
+
+
+def _staircase(overlap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A contour crossing the lines: the upper surface's lines 0-4 (rows 50-90) end at
+    columns 140, 130, ..., 100, the lower surface's lines 5-8 (rows 60-90) begin
+    ``overlap`` columns before the upper line above them ends, one spacing below it there,
+    and run on to column 199."""
+    cols, rows, lines = [], [], []
+    for k in range(5):
+        c = np.arange(0, 141 - 10 * k)
+        cols.append(c)
+        rows.append(np.full(c.size, 50.0 + 10 * k))
+        lines.append(np.full(c.size, k))
+    for j in range(4):
+        c = np.arange(141 - 10 * j - overlap, 200)
+        cols.append(c)
+        rows.append(np.full(c.size, 60.0 + 10 * j))
+        lines.append(np.full(c.size, 5 + j))
+    return np.concatenate(cols), np.concatenate(rows), np.concatenate(lines)
+
+
+def test_a_staircase_along_a_contour_does_not_link() -> None:
+    """Where a contour crosses the lines (a waistband's corner), the lower surface's lines
+    lie one spacing below the upper surface's in the three columns where both are seen:
+    four such pairs agree on a shift (version 1 linked the two surfaces by it); by default
+    the surfaces stay apart, each in its own order."""
+    col, row, line = _sorted(*_staircase(3))
+    up, low, count = line_neighbours(col, row, line, 9)
+    pairs = dict(zip(zip(up.tolist(), low.tolist(), strict=True), count.tolist(), strict=True))
+    assert all(pairs[(j, 5 + j)] == 3 for j in range(4))
+    stairs = end_overlaps(col, line, up, low, 9, 6)
+    assert stairs.sum() == 4
+    assert not np.any(stairs[(up < 5) == (low < 5)])  # a surface's own lines run side by side
+    linked = order_lines(col, row, line, min_link=6, end_overlaps_link=True)
+    assert len(set(linked.component.tolist())) == 1
+    assert linked.order[5:].tolist() == [1, 2, 3, 4]
+    apart = order_lines(col, row, line, min_link=6)
+    assert apart.component[0] != apart.component[5]
+    assert apart.order.tolist() == [0, 1, 2, 3, 4, 0, 1, 2, 3]
+
+
+def test_a_long_overlap_by_the_ends_still_links() -> None:
+    """Ends overlapping over min_link columns or more are neighbours by themselves, and a
+    short line inside its neighbour's span is not a staircase."""
+    col, row, line = _sorted(*_staircase(8))
+    apart = order_lines(col, row, line, min_link=6)
+    assert len(set(apart.component.tolist())) == 1
+    c = np.r_[np.arange(0, 60), np.arange(20, 23)]
+    r = np.r_[np.full(60, 50.0), np.full(3, 60.0)]
+    ln = np.r_[np.zeros(60, int), np.ones(3, int)]
+    c, r, ln = _sorted(c, r, ln)
+    up, low, _ = line_neighbours(c, r, ln, 2)
+    assert not np.any(end_overlaps(c, ln, up, low, 2, 6))
+
+
+def test_end_overlaps_of_no_pairs_and_unlined_peaks() -> None:
+    none = np.zeros(0, dtype=np.int64)
+    assert end_overlaps(none, none, none, none, 0, 6).shape == (0,)
+    col = np.array([0, 1, 2, 3])
+    line = np.array([-1, 0, -1, 1])
+    out = end_overlaps(col, line, np.array([0]), np.array([1]), 2, 6)
+    assert out.tolist() == [False]  # no shared column: not an overlap by the ends
+
+
+def test_version_2_and_the_version_1_switch() -> None:
+    assert HierarchicalLineOrder.version == "2"
+    assert HierarchicalLineOrder.Params().end_overlaps_link is False
+    col, row, line = _staircase(3)
+    v1 = _order(_lines(col, row, line), end_overlaps_link=True)
+    v2 = _order(_lines(col, row, line))
+    assert len(set(v1.line_component.tolist())) == 1
+    assert len(set(v2.line_component.tolist())) == 2
