@@ -9,11 +9,8 @@ from pathlib import Path
 from bench_scripts import run_script
 
 SCENES = Path(__file__).resolve().parents[1] / "data" / "scenes"
-#: numbering version 21 (``docs/numbering-versions.md``) after line order version 1, with
-#: which its cloth block was found
-V21 = json.dumps(
-    {"order": {"end_overlaps_link": True}, "numbers": {"pair_shift": False, "shift_block": 0}}
-)
+#: numbering version 21 (``docs/numbering-versions.md``)
+V21 = json.dumps({"numbers": {"pair_shift": False, "shift_block": 0}})
 
 
 def test_a_cloth_block_is_listed_and_drawn_against_the_version_that_refuses_it(

@@ -241,8 +241,9 @@ def _staircase(overlap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_a_staircase_along_a_contour_does_not_link() -> None:
     """Where a contour crosses the lines (a waistband's corner), the lower surface's lines
     lie one spacing below the upper surface's in the three columns where both are seen:
-    four such pairs agree on a shift (version 1 linked the two surfaces by it); by default
-    the surfaces stay apart, each in its own order."""
+    four such pairs agree on a shift, and by default link the two surfaces by it; with
+    the staircase option (``end_overlaps_link`` off) the surfaces stay apart, each in its
+    own order."""
     col, row, line = _sorted(*_staircase(3))
     up, low, count = line_neighbours(col, row, line, 9)
     pairs = dict(zip(zip(up.tolist(), low.tolist(), strict=True), count.tolist(), strict=True))
@@ -250,10 +251,10 @@ def test_a_staircase_along_a_contour_does_not_link() -> None:
     stairs = end_overlaps(col, line, up, low, 9, 6)
     assert stairs.sum() == 4
     assert not np.any(stairs[(up < 5) == (low < 5)])  # a surface's own lines run side by side
-    linked = order_lines(col, row, line, min_link=6, end_overlaps_link=True)
+    linked = order_lines(col, row, line, min_link=6)
     assert len(set(linked.component.tolist())) == 1
     assert linked.order[5:].tolist() == [1, 2, 3, 4]
-    apart = order_lines(col, row, line, min_link=6)
+    apart = order_lines(col, row, line, min_link=6, end_overlaps_link=False)
     assert apart.component[0] != apart.component[5]
     assert apart.order.tolist() == [0, 1, 2, 3, 4, 0, 1, 2, 3]
 
@@ -262,7 +263,7 @@ def test_a_long_overlap_by_the_ends_still_links() -> None:
     """Ends overlapping over min_link columns or more are neighbours by themselves, and a
     short line inside its neighbour's span is not a staircase."""
     col, row, line = _sorted(*_staircase(8))
-    apart = order_lines(col, row, line, min_link=6)
+    apart = order_lines(col, row, line, min_link=6, end_overlaps_link=False)
     assert len(set(apart.component.tolist())) == 1
     c = np.r_[np.arange(0, 60), np.arange(20, 23)]
     r = np.r_[np.full(60, 50.0), np.full(3, 60.0)]
@@ -281,11 +282,13 @@ def test_end_overlaps_of_no_pairs_and_unlined_peaks() -> None:
     assert out.tolist() == [False]  # no shared column: not an overlap by the ends
 
 
-def test_version_2_and_the_version_1_switch() -> None:
-    assert HierarchicalLineOrder.version == "2"
-    assert HierarchicalLineOrder.Params().end_overlaps_link is False
+def test_the_staircase_option_of_the_stage() -> None:
+    """Tried as version 2 and not adopted: the stage stays at version 1, the rule an
+    option."""
+    assert HierarchicalLineOrder.version == "1"
+    assert HierarchicalLineOrder.Params().end_overlaps_link is True
     col, row, line = _staircase(3)
-    v1 = _order(_lines(col, row, line), end_overlaps_link=True)
-    v2 = _order(_lines(col, row, line))
+    v1 = _order(_lines(col, row, line))
+    v2 = _order(_lines(col, row, line), end_overlaps_link=False)
     assert len(set(v1.line_component.tolist())) == 1
     assert len(set(v2.line_component.tolist())) == 2
