@@ -14,6 +14,9 @@ number of the rendering at the peak's pixel must agree (otherwise the peak has n
 Per scene (one JSON line each, resumable):
 
 * ``wrong_peaks``: numbered peaks whose number is not their true one; ``wrong_lines``;
+  ``wrong_on_back``: those of them on the back proper (the trunk at or below the vertebra
+  prominens, the region the clinical answer reads) rather than on a cloth, arm, head or
+  neck;
 * ``trunk_crossings``/``trunk_covered``: exact line-centre crossings on the trunk (the lit
   skin of neck, back and buttocks) and those carrying a peak with the correct number;
 * ``headarm_peaks``/``headarm_unnumbered``: peaks on true lines of the head and arms and how
@@ -283,6 +286,30 @@ def wrong_peaks(number: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return (number >= 0) & (truth >= 0) & (number != truth)
 
 
+def on_the_back(peaks: np.ndarray, crossing: np.ndarray, on_back: np.ndarray) -> np.ndarray:
+    """Per peak: selected by ``peaks`` and matched to a crossing of the back proper.
+
+    Parameters
+    ----------
+    peaks : numpy.ndarray
+        Bool per peak (e.g. :func:`wrong_peaks`).
+    crossing : numpy.ndarray
+        Each peak's exact crossing (:func:`_match`; -1: none).
+    on_back : numpy.ndarray
+        Bool per crossing: on the trunk at or below the vertebra prominens
+        (``Frame.lr_on_back``), the region the clinical answer reads.
+
+    Returns
+    -------
+    numpy.ndarray
+        Bool per peak.
+    """
+    crossing = np.asarray(crossing)
+    if on_back.size == 0:
+        return np.zeros(crossing.size, dtype=bool)
+    return np.asarray(peaks, dtype=bool) & (crossing >= 0) & on_back[np.maximum(crossing, 0)]
+
+
 def score_frame(frame: Frame) -> dict[str, Any]:
     """Run stages 1-4 on ``frame`` and score them against its truth."""
     result, ms = run_stages(frame, _PARAMS)
@@ -332,6 +359,7 @@ def score_frame(frame: Frame) -> dict[str, Any]:
         "true_peaks": int(on_line.sum()),
         "numbered_peaks": int(numbered.sum()),
         "wrong_peaks": int(wrong.sum()),
+        "wrong_on_back": int(on_the_back(wrong, idx, on_back).sum()),
         "wrong_lines": wrong_lines,
         "wrong_objects": sorted({names[int(o)] for o in obj[wrong] if o >= 0}),
         "numbered_off_truth": int(numbered_off.sum()),
@@ -417,6 +445,7 @@ def summary(path: Path) -> dict[str, Any]:
         return {
             "scenes": len(sel),
             "wrong_peaks": int(tot("wrong_peaks", sel)),
+            "wrong_on_back": sum(r.get("wrong_on_back", 0) for r in sel),
             "scenes_with_wrong": sum(1 for r in sel if r["wrong_peaks"]),
             "trunk_coverage": tot("trunk_covered", sel) / max(tot("trunk_crossings", sel), 1),
             "back_coverage": tot("back_covered", sel) / max(tot("back_crossings", sel), 1),
@@ -446,6 +475,8 @@ def summary(path: Path) -> dict[str, Any]:
         "errors": len(rows) - len(ok),
         "error_seeds": [r["seed"] for r in rows if "error" in r][:20],
         "wrong_peaks": int(tot("wrong_peaks")),
+        # of them on the back proper (rows written before this count was kept count 0)
+        "wrong_on_back": sum(r.get("wrong_on_back", 0) for r in ok),
         "wrong_lines": int(tot("wrong_lines")),
         "scenes_with_wrong": sum(1 for r in ok if r["wrong_peaks"]),
         "wrong_seeds": [

@@ -78,3 +78,38 @@ def test_a_posture_keeps_only_its_scenes_and_an_empty_choice_is_refused(tmp_path
     summary = json.loads(done.stdout[done.stdout.index("{") :])
     assert list(summary["per_posture"]) == ["hips"]
     assert summary["per_posture"]["hips"]["scenes"] == 1
+
+
+def _bench():  # type: ignore[no-untyped-def]
+    sys.path.insert(0, str(SCRIPT.parent))
+    import real_bodies
+
+    return real_bodies
+
+
+def test_wrong_peaks_on_the_back_are_those_matched_to_the_backs_crossings() -> None:
+    import numpy as np
+
+    bench = _bench()
+    on_back = np.array([True, False, True])
+    wrong = np.array([True, True, True, False])
+    crossing = np.array([0, 1, -1, 2])  # the third wrong peak matches no crossing
+    assert bench.on_the_back(wrong, crossing, on_back).tolist() == [True, False, False, False]
+    none = np.zeros(0, dtype=bool)
+    assert bench.on_the_back(none, np.zeros(0, dtype=np.int64), on_back).size == 0
+    assert bench.on_the_back(wrong, crossing, none).tolist() == [False] * 4
+
+
+def test_a_cloths_wrong_peaks_are_not_on_the_back() -> None:
+    """Kept scene 7770 (tests/data/scenes) with numbering version 20 and peaks version 4:
+    four peaks of a cloth below the waistband numbered wrongly, none of them on the back;
+    the summary counts them apart."""
+    bench = _bench()
+    frame = bench.Frame.load(SCRIPT.parents[1] / "tests" / "data" / "scenes" / "scene-7770.npz")
+    v20 = {"one_sided_peaks": 0, "pair_shift": False, "shift_block": 0,
+           "linked_one_sided": 0, "final_order": False}  # fmt: skip
+    bench._init(None, {"numbers": v20, "peaks": {"flank_tolerance": 0.0}})
+    row = bench.score_frame(frame)
+    bench._init(None, None)
+    assert row["wrong_peaks"] == 4 and row["wrong_objects"] == ["clothing"]
+    assert row["wrong_on_back"] == 0
