@@ -127,6 +127,108 @@ def _running_sums(a: np.ndarray) -> np.ndarray:
     return total
 
 
+@kernel()
+def turn_cuts(r: np.ndarray, linked: np.ndarray, turn: float, half: int) -> np.ndarray:
+    """Links (by position ``k``: between ``k - 1`` and ``k``) where the chain turns: the
+    mean row step of the ``half`` links before departs from that of the ``half`` links
+    after by more than ``turn`` (only the worst link of a turn).
+
+    A corner spread over two or three links (one surface's line running into another's,
+    rounded by the peaks at the contour) departs little at each link from the steps beside
+    it; the course before and after the contour still differ.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        float64 rows in chain order.
+    linked : numpy.ndarray
+        bool: position ``k`` continues the chain of ``k - 1``.
+    turn : float
+        Largest change of the mean row step (px per column).
+    half : int
+        Links on each side.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool per position.
+    """
+    n = r.shape[0]
+    dev = np.zeros(n)
+    for k in range(half, n - half):
+        whole = True
+        for j in range(k - half, k + half + 1):
+            if not linked[j]:
+                whole = False
+                break
+        if not whole:
+            continue
+        # steps k - half .. k - 1 (rows k - half - 1 .. k - 1) and k + 1 .. k + half
+        before = (r[k - 1] - r[k - half - 1]) / half
+        after = (r[k + half] - r[k]) / half
+        dev[k] = abs(after - before)
+    out = np.empty(n, dtype=np.bool_)
+    for k in range(n):
+        prev_dev = dev[k - 1] if k >= 1 else 0.0
+        next_dev = dev[k + 1] if k + 1 < n else 0.0
+        out[k] = dev[k] > turn and dev[k] >= prev_dev and dev[k] >= next_dev
+    return out
+
+
+@kernel()
+def vertex_cuts(r: np.ndarray, linked: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """``cut`` and, beside every cut link, the neighbouring link whose row step departs
+    more from the steps beside it: the peak at the vertex leaves both chains.
+
+    At a corner where one surface's line runs into another's, the peak at the vertex may
+    belong to either line and the kink does not tell which; left on one side, it carries
+    that line's number onto the other surface.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        float64 rows in chain order.
+    linked : numpy.ndarray
+        bool: position ``k`` continues the chain of ``k - 1``.
+    cut : numpy.ndarray
+        bool: the links cut (corners, turns).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool per position.
+    """
+    n = r.shape[0]
+    dev = np.zeros(n)
+    for k in range(1, n):
+        if not linked[k]:
+            continue
+        step = r[k] - r[k - 1]
+        has_prev = k >= 2 and linked[k - 1]
+        has_next = k + 1 < n and linked[k + 1]
+        if has_prev and has_next:
+            around = 0.5 * ((r[k - 1] - r[k - 2]) + (r[k + 1] - r[k]))
+        elif has_prev:
+            around = r[k - 1] - r[k - 2]
+        elif has_next:
+            around = r[k + 1] - r[k]
+        else:
+            continue
+        dev[k] = abs(step - around)
+    out = cut.copy()
+    for k in range(n):
+        if not cut[k]:
+            continue
+        best = -1
+        for j in (k - 1, k + 1):
+            free = 1 <= j < n and linked[j] and not cut[j]
+            if free and (best < 0 or dev[j] > dev[best]):
+                best = j
+        if best >= 0:
+            out[best] = True
+    return out
+
+
 @kernel(error_model="numpy")
 def smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
     """Mean of ``a`` over ``±half`` positions of the same chain (chain-ordered arrays).

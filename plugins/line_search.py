@@ -102,6 +102,14 @@ def _smooth_along(a: np.ndarray, linked: np.ndarray, half: int) -> np.ndarray:
     return smooth_along(a, linked, int(half))
 
 
+def _turn_cuts(r: np.ndarray, linked: np.ndarray, turn: float, half: int) -> np.ndarray:
+    """Links (by position ``k``: between ``k - 1`` and ``k``) where the chain turns by more
+    than ``turn`` px per column between the ``half`` links before and after."""
+    from .chain_scans import turn_cuts  # compiled; the numba import costs ~0.3 s
+
+    return turn_cuts(r, linked, float(turn), int(half))
+
+
 def _step_cuts(a: np.ndarray, linked: np.ndarray, half: int, ratio: float) -> np.ndarray:
     """Links (by position ``k``: between ``k - 1`` and ``k``) across which the peak area
     steps by more than ``ratio``: the mean of the ``half`` peaks before against the ``half``
@@ -167,6 +175,9 @@ def search_lines(
     min_length: int = 3,
     step_ratio: float | None = 1.6,
     step_half: int = 3,
+    turn: float | None = None,
+    turn_half: int = 3,
+    vertex: bool = False,
 ) -> np.ndarray:
     """Line id of every peak (-1: in no line), by hierarchical line search.
 
@@ -202,6 +213,19 @@ def search_lines(
         None keeps such links.
     step_half : int
         Peaks on each side of a link compared for an area step.
+    turn : float or None
+        A link where the mean row step of the ``turn_half`` links before and the
+        ``turn_half`` links after it differ by more than this (px per column) is cut: a
+        line on one smooth surface does not turn so within a few columns, and where it
+        does, the chain has run from one surface's line onto another's at a contour (an
+        arm's or a cloth's edge), the corner rounded by the peaks at the contour so that
+        no single link departs by ``corner``. None keeps such links.
+    turn_half : int
+        Links on each side of a link whose mean steps are compared for a turn.
+    vertex : bool
+        Also cut, beside every corner or turn cut, the neighbouring link that departs more
+        from the steps beside it, so that the peak at the vertex joins neither line: where
+        two surfaces' lines meet, it may belong to either.
 
     Returns
     -------
@@ -217,7 +241,14 @@ def search_lines(
     r = row[perm]
     linked = np.zeros(n, dtype=bool)
     linked[1:] = head[1:] == head[:-1]
-    linked &= ~_corner_cuts(r, linked, corner)
+    cut = _corner_cuts(r, linked, corner)
+    if turn is not None:
+        cut |= _turn_cuts(r, linked, turn, turn_half)
+    if vertex:
+        from .chain_scans import vertex_cuts  # compiled; the numba import costs ~0.3 s
+
+        cut = vertex_cuts(r, linked, cut)
+    linked &= ~cut
     a = area[perm].astype(np.float64)
     if step_ratio is not None:
         linked &= ~_step_cuts(a, linked, step_half, step_ratio)
@@ -309,6 +340,19 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
             description="Area step along a chain that cuts it (a change of surface); None: off.",
         )
         step_half: int = Field(3, ge=1, description="Peaks each side compared for a step.")
+        turn: float | None = Field(
+            None,
+            gt=0,
+            description="Change of the mean row step between the links either side of a "
+            "link that cuts it (px per column; a line running onto another surface's at "
+            "a contour); None: off.",
+        )
+        turn_half: int = Field(3, ge=1, description="Links each side compared for a turn.")
+        vertex: bool = Field(
+            False,
+            description="The peak at a cut corner or turn joins neither line (where two "
+            "surfaces' lines meet it may belong to either).",
+        )
 
     def run(self, data: Peaks, params: Params, context: StageContext) -> Lines:
         """Search the lines of ``data``; no peaks give no lines."""
@@ -326,5 +370,8 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
             min_length=params.min_length,
             step_ratio=params.step_ratio,
             step_half=params.step_half,
+            turn=params.turn,
+            turn_half=params.turn_half,
+            vertex=params.vertex,
         )
         return Lines.extend(data, line_id=line_id)

@@ -205,3 +205,73 @@ def test_same_side_maxima_and_roots(seed: int) -> None:
     assert np.array_equal(_roots(parent, ids), _jumps(parent, ids))
     assert _roots(np.zeros(0, np.int64), np.array([-1, -1])).tolist() == [-1, -1]
     assert _roots(parent, np.zeros(0, np.int64)).size == 0
+
+
+def _turns(r: np.ndarray, linked: np.ndarray, turn: float, half: int) -> np.ndarray:
+    """The turn cuts written as whole-array passes (cumulative sums), the kernel's reference."""
+    n = r.size
+    step = np.full(n, np.nan)
+    step[1:] = np.where(linked[1:], r[1:] - r[:-1], np.nan)
+    total = np.concatenate([[0.0], np.cumsum(np.nan_to_num(step))])
+    gaps = np.concatenate([[0], np.cumsum(np.isnan(step))])
+    dev = np.zeros(n)
+    k = np.arange(half, n - half)
+    whole = ((gaps[k] - gaps[k - half]) == 0) & ((gaps[k + half + 1] - gaps[k + 1]) == 0)
+    whole &= linked[k]
+    before = (total[k] - total[k - half]) / half
+    after = (total[k + half + 1] - total[k + 1]) / half
+    dev[k] = np.where(whole, np.abs(after - before), 0.0)
+    prev = np.concatenate([[0.0], dev[:-1]])
+    nxt = np.concatenate([dev[1:], [0.0]])
+    return (dev > turn) & (dev >= prev) & (dev >= nxt)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_turn_cuts_match_the_array_passes(seed: int) -> None:
+    from rasterserver_plugins.line_search import _turn_cuts
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    r = np.cumsum(rng.normal(0.0, 0.8, n))
+    linked = rng.random(n) > 0.05
+    linked[0] = False
+    for turn, half in ((0.5, 3), (1.0, 2), (2.0, 4)):
+        assert np.array_equal(_turn_cuts(r, linked, turn, half), _turns(r, linked, turn, half))
+    # chains too short to judge, and no positions at all
+    short = np.array([False, True, True])
+    assert not _turn_cuts(np.array([0.0, 5.0, 0.0]), short, 0.1, 3).any()
+    assert _turn_cuts(np.zeros(0), np.zeros(0, dtype=bool), 1.0, 3).size == 0
+
+
+def _vertices(r: np.ndarray, linked: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """The vertex cuts as whole-array passes and a loop over the cut links (reference)."""
+    n = r.size
+    step = np.full(n, np.nan)
+    step[1:] = np.where(linked[1:], r[1:] - r[:-1], np.nan)
+    prev = np.concatenate([[np.nan], step[:-1]])
+    nxt = np.concatenate([step[1:], [np.nan]])
+    around = np.where(np.isnan(prev), nxt, np.where(np.isnan(nxt), prev, 0.5 * (prev + nxt)))
+    dev = np.nan_to_num(np.abs(step - around), nan=0.0)
+    out = cut.copy()
+    for k in np.nonzero(cut)[0]:
+        beside = [j for j in (k - 1, k + 1) if 0 < j < n and linked[j] and not cut[j]]
+        if beside:
+            out[max(beside, key=lambda j: dev[j])] = True
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_vertex_cuts_match_the_reference(seed: int) -> None:
+    from rasterserver_plugins.chain_scans import vertex_cuts
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    r = np.cumsum(rng.normal(0.0, 0.8, n))
+    linked = rng.random(n) > 0.05
+    linked[0] = False
+    cut = linked & (rng.random(n) < 0.05)
+    assert np.array_equal(vertex_cuts(r, linked, cut), _vertices(r, linked, cut))
+    # nothing cut, nothing added; no positions at all
+    none = np.zeros(n, dtype=bool)
+    assert not vertex_cuts(r, linked, none).any()
+    assert vertex_cuts(np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)).size == 0

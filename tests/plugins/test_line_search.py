@@ -165,3 +165,60 @@ def test_output_keeps_the_peaks() -> None:
     for name in ("col", "row", "area", "height", "width", "image_shape"):
         assert np.array_equal(getattr(lines, name), getattr(peaks, name))
     assert lines.line_id.dtype == np.int32
+
+
+def _rounded_v(col: np.ndarray) -> np.ndarray:
+    """A line running down at 0.6 px per column onto another surface's line running up at
+    1.2 px per column, the vertex rounded over two links (as 62875's junction: steps 0.75,
+    -1.61, -1.09): no link departs by 1.5 px from the steps beside it."""
+    step = np.where(col < 60, 0.6, -1.2)
+    step[col == 60] = -0.3  # the peak at the contour lies between both courses
+    return 300.0 + np.cumsum(step)
+
+
+def test_turn_cuts_a_line_running_onto_another_surface() -> None:
+    col = np.arange(100)
+    row = _rounded_v(col)
+    # the corner alone keeps the chain: the vertex is rounded
+    kept = _lines(_peaks(col, row))
+    assert np.unique(kept.line_id).tolist() == [0]
+    cut = _lines(_peaks(col, row), turn=1.0)
+    ids = cut.line_id[np.argsort(cut.col)]
+    assert ids[0] >= 0 and ids[-1] >= 0 and ids[0] != ids[-1]
+    assert np.all(ids[:58] == ids[0]) and np.all(ids[62:] == ids[-1])
+
+
+def test_turn_keeps_smooth_curved_lines() -> None:
+    # a line bending towards a silhouette: its step grows from 0 to 2.5 px per column over
+    # 100 columns, and a gentle spinal furrow's V of 0.3 px per column either side
+    col = np.arange(100)
+    bend = 200.0 + 0.0125 * col**2
+    furrow = 400.0 + 0.3 * np.abs(col - 50.0)
+    for row in (bend, furrow):
+        lines = _lines(_peaks(col, row), turn=1.0)
+        assert np.unique(lines.line_id).tolist() == [0]
+
+
+def test_turn_on_short_and_degenerate_chains() -> None:
+    # chains shorter than the two sides' links are never judged; no peaks give no lines
+    col = np.arange(6)
+    row = np.array([10.0, 11.0, 12.0, 11.0, 10.0, 9.0])
+    assert np.unique(_lines(_peaks(col, row), turn=0.5).line_id).tolist() == [0]
+    empty = _lines(_peaks(np.zeros(0, np.int32), np.zeros(0)), turn=1.0)
+    assert empty.line_id.size == 0
+
+
+def test_vertex_peak_joins_neither_line() -> None:
+    # two surfaces' lines meeting in a V at column 50, the vertex peak between both
+    # courses: the corner cut leaves it to one of them; with ``vertex`` it is in neither
+    col = np.arange(100)
+    step = np.where(col < 50, 1.2, -3.0)
+    step[50] = 0.6
+    row = 300.0 + np.cumsum(step)
+    plain = _lines(_peaks(col, row))
+    ids = plain.line_id[np.argsort(plain.col)]
+    assert ids[0] != ids[-1] and ids[50] in (ids[0], ids[-1])
+    cut = _lines(_peaks(col, row), vertex=True)
+    ids = cut.line_id[np.argsort(cut.col)]
+    assert ids[50] == -1
+    assert np.all(ids[:50] == ids[0]) and np.all(ids[51:] == ids[-1]) and ids[0] != ids[-1]
