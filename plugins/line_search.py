@@ -223,9 +223,9 @@ def search_lines(
     turn_half : int
         Links on each side of a link whose mean steps are compared for a turn.
     vertex : bool
-        Also cut, beside every corner or turn cut, the neighbouring link that departs more
-        from the steps beside it, so that the peak at the vertex joins neither line: where
-        two surfaces' lines meet, it may belong to either.
+        Also cut, beside every corner cut, the neighbouring link that departs more from the
+        steps beside it, so that the peak at the vertex joins neither line: where two
+        surfaces' lines meet in a corner, it may belong to either.
 
     Returns
     -------
@@ -242,12 +242,14 @@ def search_lines(
     linked = np.zeros(n, dtype=bool)
     linked[1:] = head[1:] == head[:-1]
     cut = _corner_cuts(r, linked, corner)
-    if turn is not None:
-        cut |= _turn_cuts(r, linked, turn, turn_half)
     if vertex:
         from .chain_scans import vertex_cuts  # compiled; the numba import costs ~0.3 s
 
         cut = vertex_cuts(r, linked, cut)
+    if turn is not None:
+        # a turn's vertex is not cut out: the lines bending towards a silhouette turn too,
+        # and one more peak of each is the back's
+        cut |= _turn_cuts(r, linked, turn, turn_half)
     linked &= ~cut
     a = area[perm].astype(np.float64)
     if step_ratio is not None:
@@ -305,11 +307,16 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
 
     Version 2: chains are also cut where the peak area steps sharply (a change of surface,
     skin to clothing, where the depth may step by a whole line spacing).
+
+    Version 3: chains are also cut where they turn (the mean row step of the three links
+    before and after a link differ by more than 1.3 px per column: one surface's line
+    running into another's at a contour, the corner rounded), and the peak at a corner cut
+    joins neither line (it lies between both surfaces' courses and may belong to either).
     """
 
     name: ClassVar[str] = "lines.hierarchical"
     stage: ClassVar[str] = "lines"
-    version: ClassVar[str] = "2"
+    version: ClassVar[str] = "3"
     input_type = Peaks
     output_type = Lines
 
@@ -341,7 +348,7 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
         )
         step_half: int = Field(3, ge=1, description="Peaks each side compared for a step.")
         turn: float | None = Field(
-            None,
+            1.3,
             gt=0,
             description="Change of the mean row step between the links either side of a "
             "link that cuts it (px per column; a line running onto another surface's at "
@@ -349,9 +356,9 @@ class HierarchicalLineSearch(Stage[Peaks, Lines]):
         )
         turn_half: int = Field(3, ge=1, description="Links each side compared for a turn.")
         vertex: bool = Field(
-            False,
-            description="The peak at a cut corner or turn joins neither line (where two "
-            "surfaces' lines meet it may belong to either).",
+            True,
+            description="The peak at a cut corner joins neither line (where two surfaces' "
+            "lines meet it may belong to either).",
         )
 
     def run(self, data: Peaks, params: Params, context: StageContext) -> Lines:

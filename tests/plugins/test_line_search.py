@@ -156,7 +156,10 @@ def test_empty_and_tiny_inputs() -> None:
 
 
 def test_version_is_bumped() -> None:
-    assert HierarchicalLineSearch.version == "2"
+    # 3: turn cuts and vertex cuts by default
+    assert HierarchicalLineSearch.version == "3"
+    defaults = HierarchicalLineSearch.Params()
+    assert defaults.turn == 1.3 and defaults.turn_half == 3 and defaults.vertex
 
 
 def test_output_keeps_the_peaks() -> None:
@@ -179,13 +182,13 @@ def _rounded_v(col: np.ndarray) -> np.ndarray:
 def test_turn_cuts_a_line_running_onto_another_surface() -> None:
     col = np.arange(100)
     row = _rounded_v(col)
-    # the corner alone keeps the chain: the vertex is rounded
-    kept = _lines(_peaks(col, row))
+    # the corner alone keeps the chain: the vertex is rounded (version 2)
+    kept = _lines(_peaks(col, row), turn=None)
     assert np.unique(kept.line_id).tolist() == [0]
-    cut = _lines(_peaks(col, row), turn=1.0)
-    ids = cut.line_id[np.argsort(cut.col)]
-    assert ids[0] >= 0 and ids[-1] >= 0 and ids[0] != ids[-1]
-    assert np.all(ids[:58] == ids[0]) and np.all(ids[62:] == ids[-1])
+    for cut in (_lines(_peaks(col, row), turn=1.0), _lines(_peaks(col, row))):
+        ids = cut.line_id[np.argsort(cut.col)]
+        assert ids[0] >= 0 and ids[-1] >= 0 and ids[0] != ids[-1]
+        assert np.all(ids[:58] == ids[0]) and np.all(ids[62:] == ids[-1])
 
 
 def test_turn_keeps_smooth_curved_lines() -> None:
@@ -195,8 +198,9 @@ def test_turn_keeps_smooth_curved_lines() -> None:
     bend = 200.0 + 0.0125 * col**2
     furrow = 400.0 + 0.3 * np.abs(col - 50.0)
     for row in (bend, furrow):
-        lines = _lines(_peaks(col, row), turn=1.0)
-        assert np.unique(lines.line_id).tolist() == [0]
+        for turn in (1.0, 1.3):
+            lines = _lines(_peaks(col, row), turn=turn)
+            assert np.unique(lines.line_id).tolist() == [0]
 
 
 def test_turn_on_short_and_degenerate_chains() -> None:
@@ -215,10 +219,10 @@ def test_vertex_peak_joins_neither_line() -> None:
     step = np.where(col < 50, 1.2, -3.0)
     step[50] = 0.6
     row = 300.0 + np.cumsum(step)
-    plain = _lines(_peaks(col, row))
+    plain = _lines(_peaks(col, row), vertex=False, turn=None)
     ids = plain.line_id[np.argsort(plain.col)]
     assert ids[0] != ids[-1] and ids[50] in (ids[0], ids[-1])
-    cut = _lines(_peaks(col, row), vertex=True)
-    ids = cut.line_id[np.argsort(cut.col)]
-    assert ids[50] == -1
-    assert np.all(ids[:50] == ids[0]) and np.all(ids[51:] == ids[-1]) and ids[0] != ids[-1]
+    for cut in (_lines(_peaks(col, row), vertex=True, turn=None), _lines(_peaks(col, row))):
+        ids = cut.line_id[np.argsort(cut.col)]
+        assert ids[50] == -1
+        assert np.all(ids[:50] == ids[0]) and np.all(ids[51:] == ids[-1]) and ids[0] != ids[-1]
