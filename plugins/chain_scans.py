@@ -74,6 +74,13 @@ def corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray:
     numpy.ndarray
         bool per position.
     """
+    return _local_peaks(_corner_departures(r, linked), corner)
+
+
+@kernel(error_model="numpy")
+def _corner_departures(r: np.ndarray, linked: np.ndarray) -> np.ndarray:
+    """Per link, how far its row step departs from the mean of the steps beside it (0
+    where it or both neighbours are no link)."""
     n = r.shape[0]
     step = np.empty(n)
     for k in range(n):
@@ -91,11 +98,18 @@ def corner_cuts(r: np.ndarray, linked: np.ndarray, corner: float) -> np.ndarray:
             around = 0.5 * (prev_step + next_step)
         d = abs(step[k] - around)
         dev[k] = 0.0 if math.isnan(d) else d
+    return dev
+
+
+@kernel()
+def _local_peaks(dev: np.ndarray, limit: float) -> np.ndarray:
+    """Positions whose ``dev`` exceeds ``limit`` and is not below either neighbour's."""
+    n = dev.shape[0]
     out = np.empty(n, dtype=np.bool_)
     for k in range(n):
         prev_dev = dev[k - 1] if k >= 1 else 0.0
         next_dev = dev[k + 1] if k + 1 < n else 0.0
-        out[k] = dev[k] > corner and dev[k] >= prev_dev and dev[k] >= next_dev
+        out[k] = dev[k] > limit and dev[k] >= prev_dev and dev[k] >= next_dev
     return out
 
 
@@ -167,12 +181,7 @@ def turn_cuts(r: np.ndarray, linked: np.ndarray, turn: float, half: int) -> np.n
         before = (r[k - 1] - r[k - half - 1]) / half
         after = (r[k + half] - r[k]) / half
         dev[k] = abs(after - before)
-    out = np.empty(n, dtype=np.bool_)
-    for k in range(n):
-        prev_dev = dev[k - 1] if k >= 1 else 0.0
-        next_dev = dev[k + 1] if k + 1 < n else 0.0
-        out[k] = dev[k] > turn and dev[k] >= prev_dev and dev[k] >= next_dev
-    return out
+    return _local_peaks(dev, turn)
 
 
 @kernel()
@@ -199,22 +208,7 @@ def vertex_cuts(r: np.ndarray, linked: np.ndarray, cut: np.ndarray) -> np.ndarra
         bool per position.
     """
     n = r.shape[0]
-    dev = np.zeros(n)
-    for k in range(1, n):
-        if not linked[k]:
-            continue
-        step = r[k] - r[k - 1]
-        has_prev = k >= 2 and linked[k - 1]
-        has_next = k + 1 < n and linked[k + 1]
-        if has_prev and has_next:
-            around = 0.5 * ((r[k - 1] - r[k - 2]) + (r[k + 1] - r[k]))
-        elif has_prev:
-            around = r[k - 1] - r[k - 2]
-        elif has_next:
-            around = r[k + 1] - r[k]
-        else:
-            continue
-        dev[k] = abs(step - around)
+    dev = _corner_departures(r, linked)
     out = cut.copy()
     for k in range(n):
         if not cut[k]:
