@@ -45,7 +45,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from .curvature import fit_quadric_at
 from .level_frame import LevelGrid, bilinear
@@ -214,6 +213,9 @@ def _tangent_angle(along: np.ndarray, across: np.ndarray, window: float, step: f
     win = min(win, n if n % 2 else n - 1)
     if win < 5:
         return np.degrees(np.arctan2(np.gradient(across), np.gradient(along)))
+    # imported here: scipy.signal costs ~0.7 s, paid by every command that lists the stages
+    from scipy.signal import savgol_filter
+
     d_across = savgol_filter(across, win, 3, deriv=1, mode="interp")
     d_along = savgol_filter(along, win, 3, deriv=1, mode="interp")
     return np.degrees(np.arctan2(d_across, d_along))

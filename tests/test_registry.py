@@ -366,3 +366,24 @@ def test_record_kinds_are_known_in_a_fresh_process_without_imports() -> None:
 def test_unknown_record_kind_is_not_found(thirdparty: Path) -> None:
     with pytest.raises(NotFoundError, match="no installed stage plugin"):
         Registry().record_type("no-such-kind")
+
+
+def test_listing_the_stages_does_not_load_the_mesh_library_or_scipy_signal() -> None:
+    # Every command that discovers the stages imports their modules; open3d (~0.6 s) and
+    # scipy.signal (~0.7 s) are loaded where a stage runs, not when it is listed.
+    import subprocess
+
+    code = textwrap.dedent(
+        """
+        import sys
+        from rasterserver.cli import main
+        assert main(["plugins"]) == 0
+        print(" ".join(m for m in ("open3d", "scipy.signal") if m in sys.modules))
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert "lines.hierarchical" in done.stdout
+    assert done.stdout.splitlines()[-1] == "", done.stdout.splitlines()[-1]
