@@ -1,4 +1,4 @@
-"""Start-up time of the command line: ``rasterserver --help`` and ``list`` on the demo archive.
+"""Start-up time of the command line: ``--help``, ``list``, ``verify`` and ``plugins``.
 
 Each command runs as a fresh process, as a user runs it, ``--runs`` times (default 15); the
 commands take turns (round robin) so that a change in the machine's load during the run
@@ -164,6 +164,8 @@ def main() -> None:
         "rasterserver --help": [*cli, "--help"],
         "rasterserver list": [*cli, "--archive", str(archive), "list"],
         "rasterserver verify": [*cli, "--archive", str(archive), "verify"],
+        # discovers and imports every stage plugin, as process, stats and prune do
+        "rasterserver plugins": [*cli, "plugins"],
     }
     before = ""
     if args.before is not None:
@@ -222,6 +224,10 @@ modules by a test) and imports no command module; a command imports its own modu
 Typer builds its options alone. Plain option values (strings, integers, flags, paths without
 checks) are coerced without Typer's Pydantic adapters (`rasterserver.commands.light_params`,
 checked against Typer's own coercion by a test), so `list` loads no Pydantic.
+
+`plugins` imports every stage's module, as every command that discovers the stages does
+(`process`, `stats`, `prune`); the stages import open3d and `scipy.signal` where they
+compute (the mesh, the tangent angles), not when they are listed (tests/test_registry.py).
 
 `--help`, `list` and `verify` load none of open3d, SciPy, Dask, matplotlib, FastAPI, uvicorn
 and the simulator (tests/commands/test_cli_imports.py). `list` opens the catalogue alone (a
