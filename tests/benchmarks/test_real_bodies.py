@@ -101,14 +101,15 @@ def test_wrong_peaks_on_the_back_are_those_matched_to_the_backs_crossings() -> N
 
 
 def test_a_cloths_wrong_peaks_are_not_on_the_back() -> None:
-    """Kept scene 7770 (tests/data/scenes) with numbering version 20 and peaks version 4:
-    four peaks of a cloth below the waistband numbered wrongly, none of them on the back;
-    the summary counts them apart."""
+    """Kept scene 7770 (tests/data/scenes) with numbering version 20, peaks version 4 and
+    line order version 1: four peaks of a cloth below the waistband numbered wrongly, none
+    of them on the back; the summary counts them apart."""
     bench = _bench()
     frame = bench.Frame.load(SCRIPT.parents[1] / "tests" / "data" / "scenes" / "scene-7770.npz")
     v20 = {"one_sided_peaks": 0, "pair_shift": False, "shift_block": 0,
            "linked_one_sided": 0, "final_order": False}  # fmt: skip
-    bench._init(None, {"numbers": v20, "peaks": {"flank_tolerance": 0.0}})
+    order_1 = {"gap_ratio": 1.6}
+    bench._init(None, {"numbers": v20, "peaks": {"flank_tolerance": 0.0}, "order": order_1})
     row = bench.score_frame(frame)
     bench._init(None, None)
     assert row["wrong_peaks"] == 4 and row["wrong_objects"] == ["clothing"]

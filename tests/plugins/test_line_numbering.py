@@ -26,6 +26,11 @@ STAIRCASE = {"end_overlaps_link": False}
 #: The line search of version 2 in version 3 (no turn cuts, the vertex of a corner kept):
 #: the scenes below whose line ends ran onto another surface's line were found under it.
 LINES_2 = {"turn": None, "vertex": False}
+#: The line order of version 1 in version 3 (a column's pair counted as neighbours up to 1.6
+#: times the gaps beside it): the scenes below erred under it, and version 3 orders several
+#: of them right, so that the earlier numbering does not err there. Their tests compare the
+#: numbering's versions with it and check the installed chain besides.
+ORDER_1 = {"gap_ratio": 1.6}
 #: Version 23's parameters in version 25 (the step of 25 switched off; 24 was not adopted).
 V23 = {"final_order": False}
 #: Version 22's parameters in version 25 (the steps of 23 and 25 switched off).
@@ -648,20 +653,22 @@ def _assert_refused_where_earlier_erred(
 ) -> None:
     """The clinic scenes ``seeds`` (seen through ``raster``, a built-in raster's name,
     instead of the seed's code; ``stored``: the frames kept in ``SCENES``) scored with the
-    ``earlier`` version's numbering parameters and with this one's: at least one erred
-    before, none errs now, and none loses more than ``max_loss`` of its back's
-    crossings."""
+    ``earlier`` version's numbering parameters and with this one's, both on the line order
+    of version 1 (``ORDER_1``): at least one erred before, none errs now, and none loses
+    more than ``max_loss`` of its back's crossings; nor does the installed chain err."""
     bench = _real_bodies()
     erring = 0
     for seed in seeds:
         frame = _scene(bench, seed, raster, stored)
-        bench._init(None, {"numbers": earlier})
+        bench._init(None, {"numbers": earlier, "order": ORDER_1})
         before = bench.score_frame(frame)
-        bench._init(None, None)
+        bench._init(None, {"order": ORDER_1})
         after = bench.score_frame(frame)
         erring += before["wrong_peaks"] > 0
         assert after["wrong_peaks"] == 0
         assert after["back_covered"] >= before["back_covered"] - max_loss * before["back_crossings"]
+        bench._init(None, None)
+        assert bench.score_frame(frame)["wrong_peaks"] == 0
     assert erring >= 1
 
 
@@ -784,16 +791,19 @@ def test_clinic_scenes_through_a_faint_code_number_more_of_their_backs() -> None
     assert min(gains) > 0.01 and max(gains) > 0.03
 
 
-def _notes_of_clinic_scene(seed: int, raster: str | None = None) -> list[str]:
+def _notes_of_clinic_scene(
+    seed: int, raster: str | None = None, order: dict | None = None
+) -> list[str]:
     """The notes of the numbering's reason on clinic scene ``seed`` (seen through
-    ``raster`` instead of the seed's code)."""
+    ``raster`` instead of the seed's code; ``order``: the line order's parameters)."""
     from rasterserver.simulator.body import clinic_station
 
     frame = _real_bodies().render_scene(seed, raster)
     station = clinic_station(seed, frame.code)
     context = StageContext(calibration=station, raster=station.raster_definition)
     peaks = run_stage(FirstMomentPeaks, Image(frame.image))
-    ordered = run_stage(HierarchicalLineOrder, run_stage(HierarchicalLineSearch, peaks))
+    lines = run_stage(HierarchicalLineSearch, peaks)
+    ordered = run_stage(HierarchicalLineOrder, lines, params=order)
     return run_stage(CodeWindowNumbering, ordered, context=context).reason.split("; ")
 
 
@@ -816,8 +826,9 @@ def test_clinic_scenes_report_the_peaks_the_last_steps_refuse(
     seeds: tuple[int, ...], words: str
 ) -> None:
     """The numbering's reason counts the peaks versions 14's and 15's steps refuse, for the
-    overlay (on one of the scenes at least: the frames differ by processor)."""
-    notes = [n for seed in seeds for n in _notes_of_clinic_scene(seed, "mseq8b-35to65")]
+    overlay (on one of the scenes at least: the frames differ by processor), on the line
+    order of version 1, under which they were found."""
+    notes = [n for seed in seeds for n in _notes_of_clinic_scene(seed, "mseq8b-35to65", ORDER_1)]
     note = [n for n in notes if words in n]
     assert note and all(int(n.split()[0]) > 0 for n in note)
 
@@ -849,13 +860,15 @@ def test_clinic_scenes_where_a_line_end_runs_onto_a_cloth_read_a_line_off_are_re
     line ends crossing onto the cloth (7408: 2). Judged with peaks version 4, under which
     the case was found; with version 5's peaks (the flanked ones kept) version 18 reads
     them right, and the installed chain errs no more than it did. Judged with line search
-    version 2: version 3 (turn and vertex cuts) ends some of those lines before the cloth."""
+    version 2 and line order version 1: version 3 of the line search (turn and vertex cuts)
+    ends some of those lines before the cloth."""
     bench = _real_bodies()
     for seed, left in ((7038, 3), (7408, 2)):
         frame = _scene(bench, seed, "mseq8b-35to65", stored=True)
-        bench._init(None, {"numbers": V18, "peaks": PEAKS_4, "lines": LINES_2})
+        earlier = {"peaks": PEAKS_4, "lines": LINES_2, "order": ORDER_1}
+        bench._init(None, {"numbers": V18, **earlier})
         before = bench.score_frame(frame)
-        bench._init(None, {"peaks": PEAKS_4, "lines": LINES_2})
+        bench._init(None, earlier)
         after = bench.score_frame(frame)
         assert after["wrong_peaks"] <= left and before["wrong_peaks"] >= after["wrong_peaks"] + 3
         assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
@@ -899,17 +912,18 @@ def test_a_clinic_scene_whose_short_cloth_line_rests_on_one_neighbour_is_refused
     peaks (the flanked ones kept) version 20 numbers the line right, and the installed chain
     errs nowhere either. The cloth line's contact with the back's line 101 is an overlap
     by the ends of the two (a staircase along the cloth's edge): with the line order's
-    staircase option, which does not count it, version 20 does not err there either."""
+    staircase option, which does not count it, version 20 does not err there either.
+    Judged on line order version 1; on version 3 version 20 does not err there."""
     bench = _real_bodies()
     frame = _scene(bench, 7770, None, stored=True)
-    bench._init(None, {"numbers": V20, "peaks": PEAKS_4})
+    bench._init(None, {"numbers": V20, "peaks": PEAKS_4, "order": ORDER_1})
     before = bench.score_frame(frame)
-    bench._init(None, {"peaks": PEAKS_4})
+    bench._init(None, {"peaks": PEAKS_4, "order": ORDER_1})
     after = bench.score_frame(frame)
     assert before["wrong_peaks"] == 4 and before["wrong_objects"] == ["clothing"]
     assert after["wrong_peaks"] == 0
     assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
-    bench._init(None, {"numbers": V20, "peaks": PEAKS_4, "order": STAIRCASE})
+    bench._init(None, {"numbers": V20, "peaks": PEAKS_4, "order": {**STAIRCASE, **ORDER_1}})
     assert bench.score_frame(frame)["wrong_peaks"] == 0
     bench._init(None, None)
     assert bench.score_frame(frame)["wrong_peaks"] == 0
@@ -923,19 +937,22 @@ def test_a_cloth_block_placed_a_line_off_behind_an_albedo_edge_is_refused() -> N
     code (the first should be light) but would agree were both one more; version 21 spares
     the shorter line for its agreeing pairs below, which are all heavy and agree at either
     placement, and 34 peaks err. Version 22 counts only pairs that tell the placements
-    apart (``pair_shift``) and refuses the block tied by the others (``shift_block``)."""
+    apart (``pair_shift``) and refuses the block tied by the others (``shift_block``).
+    Judged on line order version 1, under which the case was found."""
     bench = _real_bodies()
     frame = _scene(bench, 7728, "mseq8b-35to65", stored=True)
-    bench._init(None, {"numbers": V21})
+    bench._init(None, {"numbers": V21, "order": ORDER_1})
     before = bench.score_frame(frame)
-    bench._init(None, {"numbers": {"shift_block": 0, **V22}})
+    bench._init(None, {"numbers": {"shift_block": 0, **V22}, "order": ORDER_1})
     support_only = bench.score_frame(frame)
-    bench._init(None, None)
+    bench._init(None, {"order": ORDER_1})
     after = bench.score_frame(frame)
     assert before["wrong_peaks"] >= 30 and before["wrong_objects"] == ["clothing"]
     assert support_only["wrong_peaks"] < before["wrong_peaks"] / 2
     assert after["wrong_peaks"] == 0
     assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
+    bench._init(None, None)
+    assert bench.score_frame(frame)["wrong_peaks"] == 0
 
 
 @pytest.mark.slow
@@ -946,17 +963,20 @@ def test_a_cloth_piece_numbered_from_the_skin_above_it_alone_is_refused() -> Non
     skin's lines it touches above the waistband, which hides a line (the cloth stands off
     by a line's depth): 22 peaks one line low in version 22. Nothing numbered touches it
     from below (the cloth's other lines are refused). Version 23 refuses small inherited
-    components touched from one side only (``linked_one_sided``), and keeps the back."""
+    components touched from one side only (``linked_one_sided``), and keeps the back.
+    Judged on line order version 1, under which the case was found."""
     bench = _real_bodies()
     frame = _scene(bench, 44157, "mseq8b-35to65", stored=True)
-    bench._init(None, {"numbers": V22})
+    bench._init(None, {"numbers": V22, "order": ORDER_1})
     before = bench.score_frame(frame)
-    bench._init(None, None)
+    bench._init(None, {"order": ORDER_1})
     after = bench.score_frame(frame)
     assert before["wrong_peaks"] >= 20 and before["wrong_objects"] == ["clothing"]
     assert after["wrong_peaks"] == 0
     assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
-    reason = bench.run_stages(frame)[0].reason
+    bench._init(None, None)
+    assert bench.score_frame(frame)["wrong_peaks"] == 0
+    reason = bench.run_stages(frame, {"order": ORDER_1})[0].reason
     notes = [n for n in reason.split("; ") if "touching them on one side only" in n]
     assert len(notes) == 1 and int(notes[0].split()[0]) >= 20
 
@@ -1025,19 +1045,45 @@ def test_line_ends_run_onto_another_surface_are_cut_by_the_line_search() -> None
     the line there. In 63677 the corner is cut, but the peak at its vertex stays with the
     trunk's line onto the arm; version 3's vertex cut leaves it in neither line. Each
     cut alone mends its scene; the back keeps all but 0.19 % (62875: 26 of its 13,955
-    crossings lost to the new cuts) and 0.04 % (63677)."""
+    crossings lost to the new cuts) and 0.04 % (63677). Judged on line order version 1."""
     bench = _real_bodies()
     for seed, alone, objects in (
         (62875, {"vertex": False}, ["clothing"]),
         (63677, {"turn": None}, ["right-arm"]),
     ):
         frame = _scene(bench, seed, None, stored=True)
-        bench._init(None, {"lines": LINES_2})
+        bench._init(None, {"lines": LINES_2, "order": ORDER_1})
         before = bench.score_frame(frame)
-        bench._init(None, {"lines": alone})
+        bench._init(None, {"lines": alone, "order": ORDER_1})
         one_cut = bench.score_frame(frame)
-        bench._init(None, None)
+        bench._init(None, {"order": ORDER_1})
         after = bench.score_frame(frame)
         assert before["wrong_peaks"] >= 1 and before["wrong_objects"] == objects
         assert one_cut["wrong_peaks"] == 0 and after["wrong_peaks"] == 0
         assert after["back_covered"] >= before["back_covered"] - 0.002 * before["back_crossings"]
+        bench._init(None, None)
+        assert bench.score_frame(frame)["wrong_peaks"] == 0
+
+
+@pytest.mark.slow
+def test_a_block_ordered_across_a_hidden_line_is_numbered_with_line_order_version_3() -> None:
+    """Clinic scene 64298 (the ``w8-1to2`` code; the frame kept in ``SCENES``, rendered on an
+    AMD EPYC): line order version 1 takes two lines 1.3-1.6 spacings apart in their columns
+    for neighbours, where a line between them is hidden, and orders a block of lines a
+    level off; the numbering's code bands see the block's own code contradict its placement
+    and refuse it (26 lines), so that 4 % of the back goes unnumbered. Version 3 counts a
+    pair only within 1.3 times the gaps beside it: the block is ordered right and numbered,
+    with no wrong peak either way."""
+    bench = _real_bodies()
+    frame = _scene(bench, 64298, None, stored=True)
+    bench._init(None, {"order": ORDER_1})
+    before = bench.score_frame(frame)
+    bench._init(None, None)
+    after = bench.score_frame(frame)
+    assert before["wrong_peaks"] == 0 and after["wrong_peaks"] == 0
+    assert after["back_covered"] >= before["back_covered"] + 0.03 * before["back_crossings"]
+    notes = bench.run_stages(frame, {"order": ORDER_1})[0].reason.split("; ")
+    refused = [n for n in notes if "a block ordered a level off" in n]
+    assert refused and int(refused[0].split()[0]) >= 20
+    installed = bench.run_stages(frame)[0].reason
+    assert not any("a block ordered a level off" in n for n in installed.split("; "))

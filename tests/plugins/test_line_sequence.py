@@ -283,12 +283,30 @@ def test_end_overlaps_of_no_pairs_and_unlined_peaks() -> None:
 
 
 def test_the_staircase_option_of_the_stage() -> None:
-    """Tried as version 2 and not adopted: the stage stays at version 1, the rule an
-    option."""
-    assert HierarchicalLineOrder.version == "1"
+    """Tried as version 2 and not adopted: the rule is an option, off."""
+    assert HierarchicalLineOrder.version == "3"
     assert HierarchicalLineOrder.Params().end_overlaps_link is True
     col, row, line = _staircase(3)
     v1 = _order(_lines(col, row, line))
     v2 = _order(_lines(col, row, line), end_overlaps_link=False)
     assert len(set(v1.line_component.tolist())) == 1
     assert len(set(v2.line_component.tolist())) == 2
+
+
+def test_a_line_seen_across_a_hidden_one_is_not_its_neighbour() -> None:
+    """Version 3: the skin's line 2 is hidden over columns 0-29 (a waistband's edge) and the
+    cloth below stands off, so that its line 3 shows 1.45 spacings below the skin's line 1
+    there. Counted as a neighbourhood (version 1, ``gap_ratio`` 1.6), it outweighs the
+    columns where line 2 is seen and places the cloth's lines a level high; within 1.3
+    spacings, the pair is not one and the order is right."""
+    col, row, line = _grid(6, np.arange(60))
+    row = row - np.where((line >= 3) & (col < 40), 5.5, 0.0)  # 1.45 spacings below line 1
+    keep = ~((line == 2) & (col < 45))  # line 2 seen over 15 columns only
+    args = (col[keep], row[keep], line[keep])
+    assert HierarchicalLineOrder.Params().gap_ratio == 1.3
+    v3 = _order(_lines(*args))
+    v1 = _order(_lines(*args), gap_ratio=1.6)
+    up, low, _ = line_neighbours(*args, 6, gap_ratio=1.3)
+    assert (1, 3) not in set(zip(up.tolist(), low.tolist(), strict=True))
+    assert v3.line_order.tolist() == [0, 1, 2, 3, 4, 5]
+    assert v1.line_order[3] - v1.line_order[1] == 1  # the cloth a level high
