@@ -149,10 +149,12 @@ class Frame:
         return LineRows(self.lr_column, self.lr_number, self.lr_row, self.lr_object)
 
     def save(self, path: Path) -> None:
-        """Write the frame to ``path`` (npz)."""
+        """Write the frame to ``path`` (npz), whole or not at all."""
         arrays = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
         meta = {k: v for k, v in self.__dict__.items() if not isinstance(v, np.ndarray)}
-        tmp = path.with_suffix(".tmp.npz")
+        # a file of this process's own: two runs sharing a frame folder may render the same
+        # scene at once, and writing one temporary file together corrupted the frame
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
         np.savez_compressed(tmp, meta=np.array(json.dumps(meta)), **arrays)
         tmp.replace(path)
 

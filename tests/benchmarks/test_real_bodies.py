@@ -114,3 +114,22 @@ def test_a_cloths_wrong_peaks_are_not_on_the_back() -> None:
     bench._init(None, None)
     assert row["wrong_peaks"] == 4 and row["wrong_objects"] == ["clothing"]
     assert row["wrong_on_back"] == 0
+
+
+def test_a_frame_is_kept_through_a_file_of_the_writing_process(tmp_path: Path) -> None:
+    """Two runs sharing a frame folder may render one scene at once: each writes its own
+    temporary file and replaces the frame whole (a shared temporary file corrupted one)."""
+    import os
+
+    import numpy as np
+
+    bench = _bench()
+    frame = bench.Frame.load(SCRIPT.parents[1] / "tests" / "data" / "scenes" / "scene-7770.npz")
+    path = tmp_path / "scene-7770.npz"
+    other = tmp_path / "scene-7770.tmp.npz"  # what a run of the old code was writing
+    other.write_bytes(b"half-written")
+    frame.save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, path.name])
+    assert not (tmp_path / f"scene-7770.{os.getpid()}.tmp.npz").exists()
+    again = bench.Frame.load(path)
+    assert again.seed == frame.seed and np.array_equal(again.image, frame.image)
