@@ -270,6 +270,7 @@ def end_flags(
     margin: int,
     dim_ratio: float,
     inner: int,
+    jump: float,
 ) -> np.ndarray:
     """Numbered peaks at either end of a line's numbered peaks that the ends' evidence
     leaves in doubt (:func:`.peak_checks.line_ends`).
@@ -293,6 +294,9 @@ def end_flags(
     inner : int
         Numbered peaks the end peak is compared with; a line with fewer numbered peaks
         besides the end one is not judged on its height.
+    jump : float
+        The end peak higher than this many times, or lower than its inverse, the mean
+        height of the two numbered peaks next to it is flagged (0: none).
 
     Returns
     -------
@@ -326,6 +330,13 @@ def end_flags(
                 for t in range(1, inner + 1):
                     total += height[order[kept[t] if side == 0 else kept[k - 1 - t]]]
                 if height[order[end]] < dim_ratio * total / inner:
+                    out[order[end]] = True
+            if jump > 0 and k >= 3:
+                near = height[order[kept[1]]] + height[order[kept[2]]]
+                if side == 1:
+                    near = height[order[kept[k - 2]]] + height[order[kept[k - 3]]]
+                e = height[order[end]]
+                if e * jump < 0.5 * near or e > 0.5 * jump * near:
                     out[order[end]] = True
         start = stop + 1
     return out

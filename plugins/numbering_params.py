@@ -191,6 +191,20 @@ class CodeWindowParams(StageParams):
         description="Refuse a line's end peak lower than this share of the mean height of "
         "its next six numbered peaks (0: keep it; version 9: 0).",
     )
+    end_jump: float = Field(
+        0.0,
+        ge=0,
+        description="Refuse a line's end peak this many times higher, or lower than its "
+        "inverse, than the mean height of its next two numbered peaks: a step to another "
+        "surface (0: keep it; version 25: 0).",
+    )
+    meet_tolerance: float = Field(
+        0.0,
+        ge=0,
+        description="Refuse a line's end peak lying within this many rows of the course "
+        "of another numbered line, of another number, that ends in the next column beyond "
+        "it: the meeting of two surfaces' lines (0: keep it; version 25: 0).",
+    )
     edge_run: int = Field(
         6,
         ge=0,
@@ -377,6 +391,9 @@ class CodeWindowParams(StageParams):
 
     @model_validator(mode="after")
     def _gaps_ordered(self) -> CodeWindowParams:
+        if 0 < self.end_jump <= 1:
+            # a factor of 1 or less would call every end a step
+            raise ValueError(f"end_jump must be 0 (off) or more than 1, got {self.end_jump}")
         # an empty range would join no column pair and detach every piece off the lines
         if self.detached_gap_low >= self.detached_gap_high:
             raise ValueError(

@@ -22,6 +22,7 @@ from .detached_pieces import detached_pieces
 from .end_surroundings import ends_among_unnumbered
 from .frame_edges import edge_ends
 from .kinked_ends import kinked_ends
+from .meeting_ends import meeting_ends
 from .numbering_checks import column_order_conflicts, local_spacing, unordered_pairs
 from .numbering_params import CodeWindowParams
 from .one_sided_lines import one_sided_components, one_sided_lines
@@ -328,6 +329,7 @@ def refuse_ends(
     end_refused: int = 6,
     end_margin: int = 0,
     end_dim: float = 0.0,
+    end_jump: float = 0.0,
 ) -> tuple[np.ndarray, str]:
     """The doubtful ends of the lines' numbered peaks refused (:func:`.peak_checks.line_ends`),
     and the note for the numbering's reason.
@@ -348,6 +350,9 @@ def refuse_ends(
     end_dim : float
         A line's end peak lower than this share of its next six numbered peaks' mean
         height is refused (0: none).
+    end_jump : float
+        A line's end peak this many times higher or lower than its next two numbered
+        peaks' mean height is refused (0: none).
 
     Returns
     -------
@@ -358,13 +363,15 @@ def refuse_ends(
     """
     number = np.asarray(number, dtype=np.int32)
     ends = line_ends(
-        line_id, number, height, min_refused=end_refused, margin=end_margin, dim_ratio=end_dim
-    )
+        line_id, number, height, min_refused=end_refused, margin=end_margin, dim_ratio=end_dim,
+        jump=end_jump,
+    )  # fmt: skip
     if not np.any(ends):
         return number, ""
     return np.where(ends, -1, number).astype(np.int32), (
         f"{int(ends.sum())} peak(s) at a line's end beyond its refused peaks or dimmer than "
-        "the line (the end may run onto another surface) left unnumbered"
+        "the line or a step in brightness off it (the end may run onto another surface) "
+        "left unnumbered"
     )
 
 
@@ -380,7 +387,8 @@ def settle_last(
     (:func:`.bracketed_peaks.fill_brackets`), the blocks at lines' ends that their own
     columns' code reads a line off refused (:func:`.column_blocks.contradicted_blocks`,
     ``block_least``; first, so that the steps on line ends judge the ends it leaves), then
-    the doubtful line ends (:func:`refuse_ends`), the ends leaving the frame
+    the doubtful line ends (:func:`refuse_ends`), the line ends where two numbered lines
+    meet (:func:`.meeting_ends.meeting_ends`, ``meet_tolerance``), the ends leaving the frame
     (:func:`.frame_edges.edge_ends`) and the long lines' ends among unnumbered peaks
     (:func:`.end_surroundings.ends_among_unnumbered`), the consecutive numbers a skipped
     line apart (:func:`.skipped_lines.skipped_lines`) and the small pieces no standing
@@ -407,7 +415,8 @@ def settle_last(
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
         ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
-        ``end_dim``, ``edge_run``, ``edge_reach``, ``edge_company``, ``surround_share``,
+        ``end_dim``, ``end_jump``, ``meet_tolerance``, ``edge_run``, ``edge_reach``,
+        ``edge_company``, ``surround_share``,
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
@@ -447,9 +456,16 @@ def settle_last(
         )  # fmt: skip
     number, note = refuse_ends(
         line_id, number, height, end_refused=params.end_refused,
-        end_margin=params.end_margin, end_dim=params.end_dim,
+        end_margin=params.end_margin, end_dim=params.end_dim, end_jump=params.end_jump,
     )  # fmt: skip
     notes += [note] if note else []
+    if params.meet_tolerance > 0:
+        meeting = meeting_ends(col, row, line_id, number, tolerance=params.meet_tolerance)
+        number = _unnumber(
+            number, meeting, notes, "at a line's end lying as well on the course of another "
+            "numbered line, of another number, ending beside it (where two surfaces' lines "
+            "meet)",
+        )  # fmt: skip
     if params.edge_run > 0:
         rows = int(data.image_shape[0])
         edge = edge_ends(

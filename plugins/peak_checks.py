@@ -365,10 +365,11 @@ def line_ends(
     margin: int = 3,
     dim_ratio: float = 0.3,
     inner: int = 6,
+    jump: float = 0.0,
 ) -> np.ndarray:
     """Numbered peaks at the ends of a line's numbered peaks that the end leaves in doubt.
 
-    Two kinds of end, both where a line runs off one surface onto another (on the clinic
+    Three kinds of end, both where a line runs off one surface onto another (on the clinic
     tuning scenes: a line's end crossing a cloth's side edge or the edge of an arm, where
     the next surface shows the next raster line at the same row):
 
@@ -379,7 +380,12 @@ def line_ends(
     - the end peak, when lower than ``dim_ratio`` of the mean height of the ``inner``
       numbered peaks next to it: a line dims gradually where its surface turns away, so a
       sudden drop in its last column is a peak of another surface (or a pixel shared with
-      it).
+      it);
+    - the end peak, when ``jump`` times higher or lower than the two numbered peaks next
+      to it: along one line the kind and the lighting change slowly, so a step of that
+      size between neighbouring columns is the edge of another surface, and the end peak
+      lies on it (an arm's line where the trunk's line turns away, the skin beside a
+      cloth's line).
 
     Parameters
     ----------
@@ -397,6 +403,9 @@ def line_ends(
         none).
     inner : int
         Numbered peaks the end peak is compared with.
+    jump : float
+        Factor of the step in height from the two numbered peaks next to the end peak up
+        or down to it that makes it doubtful (0: none).
 
     Returns
     -------
@@ -404,7 +413,7 @@ def line_ends(
         ``(N,)`` bool, True for the refused peaks.
     """
     order, line = _line_by_line(line_id)
-    if order.size == 0 or (margin <= 0 and dim_ratio <= 0):
+    if order.size == 0 or (margin <= 0 and dim_ratio <= 0 and jump <= 0):
         return np.zeros(line_id.size, dtype=bool)
     from .check_scans import end_flags  # compiled; the numba import costs ~0.3 s
 
@@ -417,4 +426,5 @@ def line_ends(
         int(margin),
         float(dim_ratio),
         int(inner),
+        float(jump),
     )

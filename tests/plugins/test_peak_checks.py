@@ -144,7 +144,10 @@ def test_short_runs_standing_alone_in_their_column_are_refused() -> None:
     spacing = np.full(col.size, s)
     refused = column_islands(col, row, number, spacing)
     assert sorted(zip(col[refused].tolist(), number[refused].tolist(), strict=True)) == [
-        (0, 19), (0, 20), (3, 30), (3, 40)
+        (0, 19),
+        (0, 20),
+        (3, 30),
+        (3, 40),
     ]
     # unnumbered peaks neither count nor get refused; a larger least run takes column 1 too
     number[0] = -1
@@ -184,7 +187,7 @@ def test_short_runs_cut_off_by_refused_peaks_are_refused() -> None:
     assert not np.any(stranded_runs(np.full(3, -1, np.int32), np.full(3, 5, np.int32), 6))
 
 
-def _ends_reference(line, number, height, min_refused, margin, dim_ratio, inner=6):  # type: ignore[no-untyped-def]
+def _ends_reference(line, number, height, min_refused, margin, dim_ratio, jump=0.0, inner=6):  # type: ignore[no-untyped-def]
     """Line by line in plain Python: what :func:`line_ends` must flag."""
     out = np.zeros(line.size, dtype=bool)
     for k in set(line[line >= 0].tolist()):
@@ -200,6 +203,10 @@ def _ends_reference(line, number, height, min_refused, margin, dim_ratio, inner=
                 out[ends[:margin]] = True
             inner_mean = height[ends[1 : inner + 1]].mean() if kept.size > inner else 0.0
             if dim_ratio > 0 and height[ends[0]] < dim_ratio * inner_mean:
+                out[ends[0]] = True
+            near = height[ends[1:3]].mean() if kept.size >= 3 else 0.0
+            step = max(height[ends[0]] / near, near / height[ends[0]]) if near > 0 else 0.0
+            if jump > 0 and step > jump:
                 out[ends[0]] = True
     return out
 
@@ -230,12 +237,34 @@ def test_line_ends_beyond_refused_peaks_and_dim_end_peaks_are_refused() -> None:
         line = line[rng.permutation(m)]
         number = np.where(rng.random(m) < 0.7, 5, -1).astype(np.int32)
         height = rng.uniform(1.0, 60.0, m)
-        for args in ((6, 3, 0.3), (1, 1, 0.0), (3, 5, 0.9), (2, 0, 0.5)):
+        for args in ((6, 3, 0.3, 0.0), (1, 1, 0.0, 2.2), (3, 5, 0.9, 0.0), (2, 0, 0.5, 1.5)):
             assert np.array_equal(
                 line_ends(line, number, height, min_refused=args[0], margin=args[1],
-                          dim_ratio=args[2]),
+                          dim_ratio=args[2], jump=args[3]),
                 _ends_reference(line, number, height, *args),
             )  # fmt: skip
+
+
+def test_a_line_end_a_step_in_brightness_off_its_line_is_refused() -> None:
+    """An end peak 2.2 times brighter or dimmer than the two peaks next to it lies on
+    another surface (an arm's line where the trunk's line turns away, the skin beside a
+    cloth's line) and is refused; a line dimming gradually to its end, or an end peak
+    stepping by less, keeps it; a line of two numbered peaks is not judged."""
+    from rasterserver_plugins.peak_checks import line_ends
+
+    gradual = np.linspace(50.0, 12.0, 20)  # a surface turning away: 0.9 per column
+    brighter = np.r_[np.linspace(50.0, 18.0, 19), 57.0]  # 66005: an arm's peak at the end
+    dimmer = np.r_[17.0, 38.0, 59.0, np.full(17, 50.0)]  # 65930: the skin's peak first
+    small = np.r_[np.full(19, 30.0), 60.0]  # twice as bright: within the factor
+    height = np.r_[gradual, brighter, dimmer, small, 5.0, 50.0]
+    line = np.repeat(np.arange(5), [20, 20, 20, 20, 2]).astype(np.int32)
+    number = np.full(line.size, 7, np.int32)
+    refused = line_ends(line, number, height, margin=0, dim_ratio=0.0, jump=2.2)
+    assert np.flatnonzero(refused).tolist() == [39, 40]
+    assert not np.any(line_ends(line, number, height, margin=0, dim_ratio=0.0, jump=0.0))
+    # the step is judged among the numbered peaks: a refused peak between does not count
+    number[39] = -1
+    assert not np.any(line_ends(line, number, height, margin=0, dim_ratio=0.0, jump=2.2)[:40])
 
 
 def test_line_ends_of_degenerate_inputs() -> None:
