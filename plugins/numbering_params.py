@@ -198,6 +198,12 @@ class CodeWindowParams(StageParams):
         "inverse, than the mean height of its next two numbered peaks: a step to another "
         "surface (0: keep it; version 25: 0).",
     )
+    final_run: int = Field(
+        0,
+        ge=0,
+        description="After the last steps, refuse runs of fewer numbered peaks of a line "
+        "cut off by its refused peaks (0 or 1: keep them; version 25: 0).",
+    )
     meet_tolerance: float = Field(
         0.0,
         ge=0,

@@ -539,6 +539,14 @@ def settle_last(
             number, unordered_pairs(col, row, number), notes, "whose numbers do not "
             "increase down their column (a surface shows the raster's lines in their order)",
         )  # fmt: skip
+    if params.final_run > 1:
+        # the same for the runs of a line that the steps above cut off by refusing the
+        # peaks around them: nothing but the line's continuity carried their numbers
+        number = _unnumber(
+            number, stranded_runs(line_id, number, params.final_run), notes, f"in runs of "
+            f"fewer than {params.final_run} numbered peaks of a line cut off by the peaks the "
+            "last steps refused",
+        )  # fmt: skip
     if params.column_check and params.final_isolated:
         # the steps above refuse peaks a column's order rested on: what is left numbered
         # by its line's continuity alone is judged as the peak checks judged it
