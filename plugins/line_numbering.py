@@ -514,8 +514,11 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
     peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`;
     22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``); 23
-    inherited components touched from one side only (``linked_one_sided``). An option, off:
-    :mod:`.kinked_ends` (``kink_bend``, tried as version 24 and not adopted).
+    inherited components touched from one side only (``linked_one_sided``). Options, off:
+    :mod:`.kinked_ends` (``kink_bend``, tried as version 24 and not adopted); the line ends
+    where two numbered lines meet (:mod:`.meeting_ends`, ``meet_tolerance``), a step in
+    brightness (``end_jump``) and lone runs judged again last (``final_run``), tried as
+    version 26 and not adopted.
     """
 
     name: ClassVar[str] = "numbers.code-window"

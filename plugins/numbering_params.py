@@ -196,20 +196,22 @@ class CodeWindowParams(StageParams):
         ge=0,
         description="Refuse a line's end peak this many times higher, or lower than its "
         "inverse, than the mean height of its next two numbered peaks: a step to another "
-        "surface (0: keep it; version 25: 0).",
+        "surface (0: keep it; an option, off: tried as version 26 with 2.8, not adopted).",
     )
     final_run: int = Field(
         0,
         ge=0,
         description="After the last steps, refuse runs of fewer numbered peaks of a line "
-        "cut off by its refused peaks (0 or 1: keep them; version 25: 0).",
+        "cut off by its refused peaks (0 or 1: keep them; an option, off: tried as version 26 "
+        "with 2, not adopted).",
     )
     meet_tolerance: float = Field(
         0.0,
         ge=0,
         description="Refuse a line's end peak lying within this many rows of the course "
         "of another numbered line, of another number, that ends in the next column beyond "
-        "it: the meeting of two surfaces' lines (0: keep it; version 25: 0).",
+        "it: the meeting of two surfaces' lines (0: keep it; an option, off: tried as version "
+        "26 with 1.0, not adopted).",
     )
     edge_run: int = Field(
         6,

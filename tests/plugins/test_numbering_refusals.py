@@ -342,3 +342,37 @@ def test_numbers_out_of_order_in_a_column_are_refused_last() -> None:
     params = CodeWindowParams(**off, final_isolated=False, final_order=False)
     kept, notes = settle_last(data, number, spacing, params, raster)
     assert np.array_equal(kept, number) and not notes
+
+
+def test_a_lone_numbered_peak_between_its_lines_refused_peaks_is_refused_last() -> None:
+    """With ``final_run`` 2 (an option, off) a single numbered peak left between refused
+    peaks of its own line after the last steps is refused (its number rests on the line's
+    continuity through refused peaks alone); runs of two are kept, and nothing without it."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30), (0, 30), (0, 30)], [1.0, 1.0, 1.0], raster)
+    number = numbers[data.line_id].copy()
+    middle = data.line_id == 1
+    number[middle & (data.col >= 10) & (data.col <= 20)] = -1  # refused around ...
+    lone = np.flatnonzero(middle & (data.col == 15))
+    number[lone] = numbers[1]  # ... one numbered peak left among them
+    pair = np.flatnonzero(middle & (data.col >= 17) & (data.col <= 18))
+    number[pair] = numbers[1]  # and a run of two
+    spacing = np.full(data.n_peaks, 10.0)
+    off = CodeWindowParams(**LAST_STEPS_OFF, final_isolated=False)
+    got, notes = settle_last(data, number, spacing, off.model_copy(update={"final_run": 2}), raster)
+    assert np.all(got[lone] == -1) and np.all(got[pair] == numbers[1])
+    assert np.sum(got != number) == lone.size
+    assert any("cut off by the peaks the last steps refused" in n for n in notes)
+    kept, notes = settle_last(data, number, spacing, off, raster)
+    assert np.array_equal(kept, number) and not notes
+
+
+def test_the_line_end_options_are_off_and_checked() -> None:
+    """The options tried as version 26 are off by default; a brightness step of a factor of
+    1 or less would call every end a step and is rejected."""
+    params = CodeWindowParams()
+    assert (params.meet_tolerance, params.end_jump, params.final_run) == (0.0, 0.0, 0)
+    for bad in (0.5, 1.0):
+        with pytest.raises(ValueError, match="end_jump"):
+            CodeWindowParams(end_jump=bad)
+    assert CodeWindowParams(end_jump=2.8).end_jump == 2.8
