@@ -368,10 +368,11 @@ def refuse_ends(
     )  # fmt: skip
     if not np.any(ends):
         return number, ""
+    # the released note unchanged while the option is off: a result's text is part of it
+    step = " or a step in brightness off it" if end_jump > 0 else ""
     return np.where(ends, -1, number).astype(np.int32), (
         f"{int(ends.sum())} peak(s) at a line's end beyond its refused peaks or dimmer than "
-        "the line or a step in brightness off it (the end may run onto another surface) "
-        "left unnumbered"
+        f"the line{step} (the end may run onto another surface) left unnumbered"
     )
 
 
@@ -399,6 +400,7 @@ def settle_last(
     ``one_sided_peaks``), the line ends bent off their course where their neighbours end
     (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the column neighbours whose numbers
     do not increase downwards (:func:`.numbering_checks.unordered_pairs`, ``final_order``),
+    the runs of a line its refused peaks cut off, judged again (``final_run``),
     and last the peaks those steps left with no numbered column neighbour
     (:func:`.peak_checks.isolated_peaks`, ``final_isolated``) and, with ``linked``, the
     small inherited components touched from one side only
@@ -422,7 +424,7 @@ def settle_last(
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
         ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``,
-        ``final_order``, ``column_check``,
+        ``final_order``, ``final_run``, ``column_check``,
         ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
