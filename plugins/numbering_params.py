@@ -3,7 +3,7 @@ code is read, when a component inherits a number, and which checks refuse what."
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import Field, model_validator
 
@@ -14,6 +14,11 @@ __all__ = ["CodeWindowParams"]
 
 class CodeWindowParams(StageParams):
     """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 8)."""
+
+    #: the options tried as version 26 (off): version 25's results keep their digest
+    digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
+        {"end_jump", "final_run", "meet_tolerance"}
+    )
 
     area_ratio: float | None = Field(
         None,

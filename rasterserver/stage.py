@@ -83,6 +83,13 @@ class StageParams(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    #: Options added to a released stage after its results were stored, left out of the
+    #: digest (:func:`params_hash`) while at their default. An option added switched off
+    #: leaves the stage's computation unchanged, so it must leave the digest that stored
+    #: results are keyed by unchanged too; otherwise every stored result would count as
+    #: another computation and be reprocessed to the same bytes.
+    digest_omits_defaults: ClassVar[frozenset[str]] = frozenset()
+
 
 class _FrozenMapping(Mapping[str, Any]):
     """A read-only mapping that, unlike ``MappingProxyType``, pickles (for Dask workers)."""
@@ -280,7 +287,9 @@ def params_hash(params: BaseModel) -> str:
 
     Canonical means sorted keys, no whitespace and defaults included, so ``{"a": 1, "b": 2}``
     and ``{"b": 2, "a": 1}`` and an omitted default all give the same digest. Together with
-    the plugin name and version it identifies a computation in the provenance.
+    the plugin name and version it identifies a computation in the provenance. The fields
+    a class names in ``digest_omits_defaults`` (options added switched off) are left out
+    while at their default, so that adding one keeps the digest of the stored results.
 
     Parameters
     ----------
@@ -292,9 +301,14 @@ def params_hash(params: BaseModel) -> str:
     str
         64 lowercase hex digits.
     """
+    dump = params.model_dump(mode="json")
+    omitted: frozenset[str] = getattr(type(params), "digest_omits_defaults", frozenset())
+    fields = type(params).model_fields
+    for name in omitted:
+        if name in dump and getattr(params, name) == fields[name].default:
+            del dump[name]
     # non-ASCII written as is, NaN allowed: as these digests were first stored
-    return canonical_json_sha256(params.model_dump(mode="json"), ensure_ascii=False,
-                                 allow_nan=True)
+    return canonical_json_sha256(dump, ensure_ascii=False, allow_nan=True)
 
 
 def _describe_validation_error(exc: ValidationError, params_cls: type[BaseModel]) -> str:

@@ -217,6 +217,37 @@ def test_params_hash_same_params_same_hash() -> None:
     assert params_hash(coerce_params(Threshold(), {"gain": 1})) == base  # 1 is coerced to 1.0
 
 
+def test_an_option_added_switched_off_keeps_the_digest() -> None:
+    """A field named in ``digest_omits_defaults`` is left out of the digest while at its
+    default: the parameters hash as before the option was added (stored results keep
+    their identity), and differently once it is set."""
+
+    class Before(StageParams):
+        threshold: int = 20
+
+    class After(StageParams):
+        digest_omits_defaults: ClassVar[frozenset[str]] = frozenset({"bend"})
+        threshold: int = 20
+        bend: float = 0.0
+
+    assert params_hash(After()) == params_hash(Before())
+    assert params_hash(After(bend=0.0)) == params_hash(Before())
+    assert params_hash(After(bend=0.8)) != params_hash(Before())
+    assert params_hash(After(threshold=5)) == params_hash(Before(threshold=5))
+    assert "digest_omits_defaults" not in After.model_fields
+
+
+def test_the_numbering_options_tried_as_version_26_keep_version_25s_digest() -> None:
+    """Pinned: the digest of the line numbering's defaults as its version 25 results were
+    stored (before the options ``meet_tolerance``, ``end_jump`` and ``final_run`` were
+    added, off), so that no stored result is reprocessed for them."""
+    from rasterserver_plugins.numbering_params import CodeWindowParams
+
+    v25 = "38842508d99df1cce3e2409f53c2e19c318a4fb2b96e1ffe7cb9a8cd0072590b"
+    assert params_hash(CodeWindowParams()) == v25
+    assert params_hash(CodeWindowParams(meet_tolerance=1.0)) != v25
+
+
 def test_params_hash_key_order_is_irrelevant() -> None:
     a = coerce_params(Threshold(), {"threshold": 5, "gain": 2.0, "label": "y"})
     b = coerce_params(Threshold(), {"label": "y", "gain": 2.0, "threshold": 5})
