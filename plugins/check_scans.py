@@ -332,9 +332,8 @@ def end_flags(
                 if height[order[end]] < dim_ratio * total / inner:
                     out[order[end]] = True
             if jump > 0 and k >= 3:
-                near = height[order[kept[1]]] + height[order[kept[2]]]
-                if side == 1:
-                    near = height[order[kept[k - 2]]] + height[order[kept[k - 3]]]
+                a, b = (1, 2) if side == 0 else (k - 2, k - 3)
+                near = height[order[kept[a]]] + height[order[kept[b]]]
                 e = height[order[end]]
                 if e * jump < 0.5 * near or e > 0.5 * jump * near:
                     out[order[end]] = True

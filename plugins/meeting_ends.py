@@ -86,7 +86,8 @@ def meeting_ends(
     for k, (a, b) in enumerate(zip(starts, stops, strict=True)):
         first_at.setdefault(int(col[order[a]]), []).append(k)
         last_at.setdefault(int(col[order[b - 1]]), []).append(k)
-        numbers[k] = np.unique(number[order[a:b]][number[order[a:b]] >= 0])
+        own = number[order[a:b]]
+        numbers[k] = np.unique(own[own >= 0])
     for k, (a, b) in enumerate(zip(starts, stops, strict=True)):
         seq = order[a:b]
         kept = seq[number[seq] >= 0]

@@ -369,7 +369,7 @@ def line_ends(
 ) -> np.ndarray:
     """Numbered peaks at the ends of a line's numbered peaks that the end leaves in doubt.
 
-    Three kinds of end, both where a line runs off one surface onto another (on the clinic
+    Three kinds of end, all where a line runs off one surface onto another (on the clinic
     tuning scenes: a line's end crossing a cloth's side edge or the edge of an arm, where
     the next surface shows the next raster line at the same row):
 
