@@ -17,7 +17,7 @@ class CodeWindowParams(StageParams):
 
     #: the options tried as version 26 (off): version 25's results keep their digest
     digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
-        {"end_jump", "final_run", "meet_tolerance"}
+        {"course_beyond", "course_departure", "end_jump", "final_run", "meet_tolerance"}
     )
 
     area_ratio: float | None = Field(
@@ -217,6 +217,20 @@ class CodeWindowParams(StageParams):
         "of another numbered line, of another number, that ends in the next column beyond "
         "it: the meeting of two surfaces' lines (0: keep it; an option, off: tried as version "
         "26 with 1.0, not adopted).",
+    )
+    course_beyond: float = Field(
+        0.0,
+        ge=0,
+        description="Refuse a line's numbered end peaks (up to three, from the outermost) "
+        "lying within this many rows of the straight course of the line's unnumbered peaks "
+        "beyond them and course_departure rows or more off its own numbered peaks' course: "
+        "the line turns there onto another surface (0: keep them; an option, off).",
+    )
+    course_departure: float = Field(
+        1.0,
+        gt=0,
+        description="Least distance (rows) of such an end peak from the straight course of "
+        "its line's numbered peaks farther in (with course_beyond).",
     )
     edge_run: int = Field(
         6,

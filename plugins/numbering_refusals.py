@@ -35,6 +35,7 @@ from .peak_checks import (
     stranded_runs,
 )
 from .skipped_lines import skipped_lines
+from .turned_courses import turned_courses
 
 __all__ = [
     "edge_doubts",
@@ -467,6 +468,15 @@ def settle_last(
             number, meeting, notes, "at a line's end lying as well on the course of another "
             "numbered line, of another number, ending beside it (where two surfaces' lines "
             "meet)",
+        )  # fmt: skip
+    if params.course_beyond > 0:
+        turned = turned_courses(
+            col, row, line_id, number, beyond=params.course_beyond,
+            departure=params.course_departure,
+        )  # fmt: skip
+        number = _unnumber(
+            number, turned, notes, "at a line's end on the course of its refused peaks beyond "
+            "rather than its own (the line turns there onto another surface)",
         )  # fmt: skip
     if params.edge_run > 0:
         rows = int(data.image_shape[0])
