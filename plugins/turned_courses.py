@@ -82,30 +82,28 @@ def turned_courses(
         if np.count_nonzero(kept) < _JUDGED + _INNER_LEAST:
             continue
         # each numbered run's ends with an unnumbered peak of the line next beyond them
-        for e in np.flatnonzero(kept):
-            for inward in (1, -1):
-                out = e - inward
-                if not 0 <= out < seq.size or kept[out]:
-                    continue
-                far = _walk(kept, out, -inward, want=False, most=_BEYOND_MOST)
-                inner = _walk(kept, e, inward, want=True, most=_JUDGED + _INNER_MOST)
-                if far.size < _BEYOND_LEAST or inner.size < _JUDGED + _INNER_LEAST:
-                    continue
-                base = seq[inner[_JUDGED:]]
-                for p in seq[inner[:_JUDGED]]:
-                    c = int(col[p])
-                    on_far = abs(row[p] - _course_at(col[seq[far]], row[seq[far]], c))
-                    off_own = abs(row[p] - _course_at(col[base], row[base], c))
-                    # from the outermost peak in: the surface changes once
-                    if on_far >= beyond or off_own < departure:
-                        break
-                    refused[p] = True
+        change = np.flatnonzero(kept[1:] != kept[:-1])  # between change and change + 1
+        ends = [(int(k) + 1, 1) if kept[k + 1] else (int(k), -1) for k in change]
+        for e, inward in ends:
+            far = _walk(kept, e - inward, -inward, want=False, most=_BEYOND_MOST)
+            inner = _walk(kept, e, inward, want=True, most=_JUDGED + _INNER_MOST)
+            if far.size < _BEYOND_LEAST or inner.size < _JUDGED + _INNER_LEAST:
+                continue
+            base = seq[inner[_JUDGED:]]
+            for p in seq[inner[:_JUDGED]]:
+                c = int(col[p])
+                on_far = abs(row[p] - _course_at(col[seq[far]], row[seq[far]], c))
+                off_own = abs(row[p] - _course_at(col[base], row[base], c))
+                # from the outermost peak in: the surface changes once
+                if on_far >= beyond or off_own < departure:
+                    break
+                refused[p] = True
     return refused
 
 
 def _walk(kept: np.ndarray, start: int, step: int, *, want: bool, most: int) -> np.ndarray:
     """Positions from ``start`` on by ``step`` while ``kept`` is ``want``, at most ``most``."""
-    pos = []
+    pos: list[int] = []
     k = start
     while 0 <= k < kept.size and bool(kept[k]) == want and len(pos) < most:
         pos.append(k)

@@ -4,23 +4,8 @@ it with another number: refused (where two surfaces' lines meet)."""
 from __future__ import annotations
 
 import numpy as np
+from line_pieces import line_pieces as _frame
 from rasterserver_plugins.meeting_ends import meeting_ends
-
-
-def _frame(lines: list[tuple[int, range, float, float, int]]) -> tuple[np.ndarray, ...]:
-    """Peaks of ``(line, columns, row at column 0, slope, number)`` lines (number -1:
-    unnumbered), sorted by ``(col, row)``. Returns col, row, line_id, number."""
-    rng = np.random.default_rng(5)
-    col, row, lid, num = [], [], [], []
-    for line, columns, r0, slope, number in lines:
-        for c in columns:
-            col.append(c)
-            row.append(r0 + slope * c + 0.02 * rng.standard_normal())
-            lid.append(line)
-            num.append(number)
-    order = np.lexsort((np.array(row), np.array(col)))
-    c, r, li, n = (np.array(x)[order] for x in (col, row, lid, num))
-    return c.astype(np.int32), r, li.astype(np.int32), n.astype(np.int32)
 
 
 def _at(col: np.ndarray, lid: np.ndarray, line: int, column: int) -> list[int]:
@@ -33,9 +18,7 @@ def test_the_peaks_where_two_lines_of_other_numbers_meet_are_refused() -> None:
     either peak at the meeting lies on, so both are refused, and nothing else."""
     col, row, lid, num = _frame([(0, range(20), 50.0, 0.5, 84), (1, range(20, 40), 60.2, 0.0, 83)])
     refused = meeting_ends(col, row, lid, num, tolerance=1.0)
-    assert np.flatnonzero(refused).tolist() == sorted(
-        _at(col, lid, 0, 19) + _at(col, lid, 1, 20)
-    )
+    assert np.flatnonzero(refused).tolist() == sorted(_at(col, lid, 0, 19) + _at(col, lid, 1, 20))
 
 
 def test_lines_that_do_not_contradict_each_other_or_do_not_meet_keep_their_ends() -> None:

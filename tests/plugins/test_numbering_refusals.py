@@ -372,7 +372,29 @@ def test_the_line_end_options_are_off_and_checked() -> None:
     1 or less would call every end a step and is rejected."""
     params = CodeWindowParams()
     assert (params.meet_tolerance, params.end_jump, params.final_run) == (0.0, 0.0, 0)
+    assert (params.course_beyond, params.course_departure) == (0.0, 1.0)
     for bad in (0.5, 1.0):
         with pytest.raises(ValueError, match="end_jump"):
             CodeWindowParams(end_jump=bad)
     assert CodeWindowParams(end_jump=2.8).end_jump == 2.8
+
+
+def test_a_line_s_end_turned_onto_its_refused_peaks_course_is_refused_with_the_option() -> None:
+    """With ``course_beyond`` 0.4 (an option, off) the three numbered peaks at line 1's end
+    that lie on the course of its refused peaks beyond them, two rows off its own course,
+    are refused, and nothing else; nothing without it."""
+    raster = get_raster("w8-1to2")
+    data, numbers = _stack([(0, 30)] * 3, [1.0] * 3, raster)
+    turned = (data.line_id == 1) & (data.col >= 22)
+    data = dataclasses.replace(data, row=np.where(turned, data.row + 2.0, data.row))
+    number = numbers[data.line_id].copy()
+    number[(data.line_id == 1) & (data.col >= 25)] = -1  # the far part, refused
+    spacing = np.full(data.n_peaks, 10.0)
+    off = CodeWindowParams(**LAST_STEPS_OFF, final_isolated=False)
+    got, notes = settle_last(data, number, spacing, off.model_copy(update={"course_beyond": 0.4}),
+                             raster)  # fmt: skip
+    assert np.flatnonzero(got != number).tolist() == np.flatnonzero(turned & (number >= 0)).tolist()
+    assert np.sum(turned & (number >= 0)) == 3
+    assert any("on the course of its refused peaks beyond" in n for n in notes)
+    kept, notes = settle_last(data, number, spacing, off, raster)
+    assert np.array_equal(kept, number) and not notes
