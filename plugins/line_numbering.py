@@ -518,7 +518,8 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     :mod:`.kinked_ends` (``kink_bend``, tried as version 24 and not adopted); the line ends
     where two numbered lines meet (:mod:`.meeting_ends`, ``meet_tolerance``), a step in
     brightness (``end_jump``) and lone runs judged again last (``final_run``), tried as
-    version 26 and not adopted.
+    version 26 and not adopted; a line's end peaks on the course of its refused peaks beyond
+    (:mod:`.turned_courses`, ``course_beyond``), tried as version 27 and not adopted.
     """
 
     name: ClassVar[str] = "numbers.code-window"

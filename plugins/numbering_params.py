@@ -224,7 +224,8 @@ class CodeWindowParams(StageParams):
         description="Refuse a line's numbered end peaks (up to three, from the outermost) "
         "lying within this many rows of the straight course of the line's unnumbered peaks "
         "beyond them and course_departure rows or more off its own numbered peaks' course: "
-        "the line turns there onto another surface (0: keep them; an option, off).",
+        "the line turns there onto another surface (0: keep them; an option, off: tried as "
+        "version 27 with 0.4, not adopted).",
     )
     course_departure: float = Field(
         1.0,

@@ -1119,3 +1119,23 @@ def test_line_ends_where_two_surfaces_meet_are_refused_with_the_options() -> Non
         assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
         bench._init(None, {"numbers": V26_ENDS})
         assert bench.score_frame(frame)["wrong_peaks"] == 0
+
+
+@pytest.mark.slow
+def test_a_line_end_turned_onto_its_refused_peaks_course_is_refused_with_the_option() -> None:
+    """Clinic scene 67624 (the default code, hands on the hips; frame kept in ``SCENES``,
+    rendered on an AMD EPYC): the installed numbering (version 25) numbers the last two
+    peaks of a trunk line wrongly, where the line runs onto the arm: they lie on the course
+    of the five refused arm peaks beyond them, off the trunk line's own course. With
+    ``course_beyond`` 0.4 both are refused, and the back keeps its coverage to a
+    thousandth. (Tried as version 27, the option caught nothing on fresh held-out frames
+    and stays off.)"""
+    bench = _real_bodies()
+    frame = _scene(bench, 67624, None, stored=True)
+    bench._init(None, None)
+    before = bench.score_frame(frame)
+    bench._init(None, {"numbers": {"course_beyond": 0.4}})
+    after = bench.score_frame(frame)
+    assert before["wrong_peaks"] == 2 and before["wrong_objects"] == ["right-arm"]
+    assert after["wrong_peaks"] == 0
+    assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
