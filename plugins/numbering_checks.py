@@ -37,6 +37,7 @@ __all__ = [
     "contact_votes",
     "line_runs",
     "local_spacing",
+    "numbered_peaks",
     "pair_contradictions",
     "plausible_distance",
     "unordered_pairs",
@@ -439,3 +440,26 @@ def line_runs(lid: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     lines = lid[order]
     starts = np.flatnonzero(np.r_[True, lines[1:] != lines[:-1]]) if order.size else order[:0]
     return order, starts, np.r_[starts[1:], order.size][: starts.size]
+
+
+def numbered_peaks(
+    col: np.ndarray, row: np.ndarray, line_id: np.ndarray, number: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The peaks' columns, rows, lines and numbers as the line-end checks read them.
+
+    Parameters
+    ----------
+    col, row, line_id, number : numpy.ndarray
+        Per peak (any integer or float dtypes).
+
+    Returns
+    -------
+    col, row, line_id, number : numpy.ndarray
+        int64, float64, int64 and int64.
+    """
+    return (
+        np.asarray(col, dtype=np.int64),
+        np.asarray(row, dtype=np.float64),
+        np.asarray(line_id, dtype=np.int64),
+        np.asarray(number, dtype=np.int64),
+    )

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .numbering_checks import line_runs
+from .numbering_checks import line_runs, numbered_peaks
 
 __all__ = ["turned_courses"]
 
@@ -71,10 +71,7 @@ def turned_courses(
     numpy.ndarray
         ``(N,)`` bool, True for the refused peaks.
     """
-    col = np.asarray(col, dtype=np.int64)
-    row = np.asarray(row, dtype=np.float64)
-    lid = np.asarray(line_id, dtype=np.int64)
-    number = np.asarray(number, dtype=np.int64)
+    col, row, lid, number = numbered_peaks(col, row, line_id, number)
     refused = np.zeros(number.size, dtype=bool)
     if beyond <= 0 or not np.any((number >= 0) & (lid >= 0)):
         return refused
