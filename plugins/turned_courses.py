@@ -33,10 +33,9 @@ _BEYOND_MOST, _BEYOND_LEAST = 5, 3
 _JUDGED, _INNER_MOST, _INNER_LEAST = 3, 6, 4
 
 
-def _course_at(col: np.ndarray, row: np.ndarray, at: int) -> float:
-    """The row at column ``at`` of the straight line fitted through the peaks."""
-    # centred on ``at``: the fit's constant term is the row there
-    return float(np.polyfit(col.astype(np.float64) - at, row.astype(np.float64), 1)[1])
+def _course(peaks: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Slope and intercept of the straight line fitted through the rows of ``peaks``."""
+    return np.polyfit(col[peaks].astype(np.float64), row[peaks], 1)
 
 
 def turned_courses(
@@ -89,11 +88,12 @@ def turned_courses(
             inner = _walk(kept, e, inward, want=True, most=_JUDGED + _INNER_MOST)
             if far.size < _BEYOND_LEAST or inner.size < _JUDGED + _INNER_LEAST:
                 continue
-            base = seq[inner[_JUDGED:]]
+            # each course fitted once per end, read at the judged peaks' columns
+            far_course = _course(seq[far], col, row)
+            own_course = _course(seq[inner[_JUDGED:]], col, row)
             for p in seq[inner[:_JUDGED]]:
-                c = int(col[p])
-                on_far = abs(row[p] - _course_at(col[seq[far]], row[seq[far]], c))
-                off_own = abs(row[p] - _course_at(col[base], row[base], c))
+                on_far = abs(row[p] - np.polyval(far_course, col[p]))
+                off_own = abs(row[p] - np.polyval(own_course, col[p]))
                 # from the outermost peak in: the surface changes once
                 if on_far >= beyond or off_own < departure:
                     break
