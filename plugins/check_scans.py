@@ -553,11 +553,12 @@ def block_support_flags(
     clean: float,
     shifts: int,
 ) -> np.ndarray:
-    """The peaks whose column pairs a shifted reading explains for
+    """The shifts each peak's column pairs support for
     :func:`.column_blocks.contradicted_blocks`: int64 numbers, float64 log area steps
-    (``step[k]``: peak ``k + 1`` against ``k``), bool pairs, the raster's log widths."""
+    (``step[k]``: peak ``k + 1`` against ``k``), bool pairs, the raster's log widths;
+    ``(n, 2 * shifts)`` bool, columns the shifts ``-shifts .. -1, 1 .. shifts``."""
     n = number.size
-    support = np.zeros(n, dtype=np.bool_)
+    support = np.zeros((n, 2 * shifts), dtype=np.bool_)
     for i in range(n):
         above = i >= 1 and bool(pair[i - 1])
         below = i < n - 1 and bool(pair[i])
@@ -571,15 +572,13 @@ def block_support_flags(
             own += _pair_departure(number, step, i, table, 0)
         if not own >= gain * per:  # no shift can gain that much
             continue
-        for shift in range(-shifts, shifts + 1):
-            if shift == 0:
-                continue
+        for j in range(2 * shifts):
+            shift = j - shifts if j < shifts else j - shifts + 1
             cost = 0.0
             if above:
                 cost += _pair_departure(number, step, i - 1, table, shift)
             if below:
                 cost += _pair_departure(number, step, i, table, shift)
             if cost <= clean * per and own - cost >= gain * per:
-                support[i] = True
-                break
+                support[i, j] = True
     return support

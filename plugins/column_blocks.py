@@ -21,6 +21,11 @@ is met where the lines leave the skin, while a dim patch of the back (a shoulder
 away under the raster's top lines) reads off across the middle of its lines and holds no
 more than a short line's end. Alone, one peak's reading is noise (a fold, a shadow's edge); a block
 across several lines and columns, all read off, is the code's own verdict.
+
+A faint code (45:55: its kinds differ by log 1.22 = 0.20) lets a shifted reading gain
+little: the gain can be taken as a share of the code's contrast (``gain_share``), and then,
+with so low a threshold, a block is joined from peaks supporting one shift only
+(``one_shift``), or noise on the back forms blocks of mixed shifts.
 """
 
 from __future__ import annotations
@@ -33,7 +38,24 @@ from rasterserver.raster import Raster
 
 from .column_reading import log_width_by_number
 
-__all__ = ["contradicted_blocks"]
+__all__ = ["code_contrast", "contradicted_blocks"]
+
+
+def code_contrast(raster: Raster) -> float:
+    """The code's contrast: the natural log of its widest line's width over its narrowest's.
+
+    Parameters
+    ----------
+    raster : Raster
+        The diapositive's code.
+
+    Returns
+    -------
+    float
+        0 for a raster of one width (no code to read).
+    """
+    widths = np.asarray(raster.widths, dtype=np.float64)
+    return float(np.log(widths.max() / widths.min())) if widths.size else 0.0
 
 
 def contradicted_blocks(
@@ -45,9 +67,11 @@ def contradicted_blocks(
     *,
     least: int = 15,
     gain: float = 0.3,
+    gain_share: float = 0.0,
     clean: float = 0.15,
     shifts: int = 2,
     ends_least: int = 2,
+    one_shift: bool = False,
 ) -> np.ndarray:
     """Numbered peaks in blocks, holding lines' ends, that their columns' code reads a line
     or two off (the column pairs read in one compiled loop,
@@ -76,6 +100,11 @@ def contradicted_blocks(
         Largest shift, in lines, tried either way.
     ends_least : int
         Fewest lines whose end (first or last numbered peak) a refused block holds.
+    one_shift : bool
+        Join into a block only peaks that support one and the same shift: a cloth's lines
+        are all a line or two off together, while a fold's or a shadow's noise supports
+        one shift here and another there (with a low ``gain`` such mixed blocks cover
+        the back).
 
     Returns
     -------
@@ -92,6 +121,8 @@ def contradicted_blocks(
     with np.errstate(divide="ignore"):  # a zero area reads as -inf: no reading explains it
         log_area = np.log(np.asarray(area, dtype=np.float64))
     table = log_width_by_number(raster)
+    if gain_share > 0:
+        gain = gain_share * code_contrast(raster)
     # column pairs (i, i + 1): numbered neighbours of one column, numbers one apart
     pair = (
         (col[:-1] == col[1:])
@@ -105,16 +136,45 @@ def contradicted_blocks(
         step = log_area[1:] - log_area[:-1]
     from .check_scans import block_support_flags  # compiled; the numba import costs ~0.3 s
 
-    support = block_support_flags(number, step, pair, table, float(gain), float(clean), int(shifts))
-    if np.count_nonzero(support) < least:
-        return flags
-    # along lines: consecutive numbered peaks of one line, by column (the peaks come
-    # sorted by column, and a stable sort by line keeps that order), of the lines that
+    by_shift = block_support_flags(
+        number, step, pair, table, float(gain), float(clean), int(shifts)
+    )
+    # the ends of the numbered lines: a line's first and last numbered peaks by column (the
+    # peaks come sorted by column, and a stable sort by line keeps that order)
+    numbered = np.flatnonzero(number >= 0)
+    by_line = numbered[np.argsort(line_id[numbered], kind="stable")]
+    same = line_id[by_line[1:]] == line_id[by_line[:-1]]
+    ends = np.zeros(n, dtype=bool)
+    if by_line.size:
+        ends[by_line[np.r_[True, ~same]]] = True
+        ends[by_line[np.r_[~same, True]]] = True
+    ends[line_id < 0] = False
+    supports = by_shift.T if one_shift else [by_shift.any(axis=1)]
+    for support in supports:
+        if np.count_nonzero(support) >= least:
+            flags |= _held_blocks(support, number >= 0, line_id, pair, ends, least, ends_least)
+    return flags
+
+
+def _held_blocks(
+    support: np.ndarray,
+    numbered: np.ndarray,
+    line_id: np.ndarray,
+    pair: np.ndarray,
+    ends: np.ndarray,
+    least: int,
+    ends_least: int,
+) -> np.ndarray:
+    """The supporting peaks in blocks of ``least`` or more, joined along their lines (a
+    numbered peak that does not support parts them) and down their columns (``pair``),
+    holding the ``ends`` of ``ends_least`` or more lines."""
+    n = support.size
+    # along lines: consecutive numbered peaks of one line by column, of the lines that
     # hold a supporting peak (a lookup by line: a frame has few such lines)
     holds = np.zeros(int(line_id.max()) + 2, dtype=bool)
     holds[line_id[support]] = True
     holds[-1] = False  # line -1: none
-    members = np.flatnonzero((number >= 0) & holds[line_id])
+    members = np.flatnonzero(numbered & holds[line_id])
     by_line = members[np.argsort(line_id[members], kind="stable")]
     same = line_id[by_line[1:]] == line_id[by_line[:-1]]
     below = np.flatnonzero(pair)
@@ -130,14 +190,10 @@ def contradicted_blocks(
     )
     _, label = connected_components(graph, directed=False)
     size = np.bincount(label)
-    # a line's first and last numbered peaks
-    ends = np.zeros(n, dtype=bool)
-    if by_line.size:
-        ends[by_line[np.r_[True, ~same]]] = True
-        ends[by_line[np.r_[~same, True]]] = True
     # the lines whose ends each block holds, counted once per line and block
     held = ends[nodes]
     pairs = np.unique(np.stack([label[held], line_id[nodes[held]]]), axis=1)
     line_ends = np.bincount(pairs[0], minlength=size.size)
+    flags = np.zeros(n, dtype=bool)
     flags[nodes] = ((size >= least) & (line_ends >= ends_least))[label]
     return flags

@@ -17,7 +17,15 @@ class CodeWindowParams(StageParams):
 
     #: the options tried as versions 26 and 27 (off): version 25's results keep their digest
     digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
-        {"course_beyond", "course_departure", "end_jump", "final_run", "meet_tolerance"}
+        {
+            "block_gain_share",
+            "block_one_shift",
+            "course_beyond",
+            "course_departure",
+            "end_jump",
+            "final_run",
+            "meet_tolerance",
+        }
     )
 
     area_ratio: float | None = Field(
@@ -361,6 +369,19 @@ class CodeWindowParams(StageParams):
         ge=0,
         description="Least advantage, per ratio (natural log), of a shifted reading over a "
         "peak's own numbers for it to join such a block (block_least).",
+    )
+    block_gain_share: float = Field(
+        0.0,
+        ge=0,
+        description="When above 0, block_gain is replaced by this share of the code's "
+        "contrast, the log ratio of its heavy to its light line widths (a faint 45:55 code "
+        "differs by 0.20 only, below block_gain 0.3; block_least; 0: block_gain as given).",
+    )
+    block_one_shift: bool = Field(
+        False,
+        description="Join into such a block only peaks whose ratios read the code off by "
+        "one and the same shift (a cloth's lines are off together; noise reads mixed "
+        "shifts; block_least).",
     )
     block_ends: int = Field(
         2,

@@ -424,9 +424,9 @@ def settle_last(
         ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
-        ``block_clean``, ``block_ends``, ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``,
-        ``final_order``, ``final_run``, ``column_check``,
-        ``final_isolated``, ``linked_one_sided``.
+        ``block_gain_share``, ``block_one_shift``, ``block_clean``, ``block_ends``,
+        ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``, ``final_order``, ``final_run``,
+        ``column_check``, ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
     linked : numpy.ndarray, optional
@@ -449,7 +449,9 @@ def settle_last(
     if params.block_least > 0:
         blocks = contradicted_blocks(
             col, number, line_id, data.area, raster, least=params.block_least,
-            gain=params.block_gain, clean=params.block_clean, ends_least=params.block_ends,
+            gain=params.block_gain, gain_share=params.block_gain_share,
+            clean=params.block_clean, ends_least=params.block_ends,
+            one_shift=params.block_one_shift,
         )  # fmt: skip
         number = _unnumber(
             number, blocks, notes, f"in blocks of {params.block_least} or more, holding "
