@@ -519,7 +519,9 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     where two numbered lines meet (:mod:`.meeting_ends`, ``meet_tolerance``), a step in
     brightness (``end_jump``) and lone runs judged again last (``final_run``), tried as
     version 26 and not adopted; a line's end peaks on the course of its refused peaks beyond
-    (:mod:`.turned_courses`, ``course_beyond``), tried as version 27 and not adopted.
+    (:mod:`.turned_courses`, ``course_beyond``), tried as version 27 and not adopted; the
+    block check's gain as a share of the code's contrast, in blocks of one shift
+    (``block_gain_share``, ``block_one_shift``), tried as version 28 and not adopted.
     """
 
     name: ClassVar[str] = "numbers.code-window"

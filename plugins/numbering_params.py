@@ -15,7 +15,7 @@ __all__ = ["CodeWindowParams"]
 class CodeWindowParams(StageParams):
     """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 8)."""
 
-    #: the options tried as versions 26 and 27 (off): version 25's results keep their digest
+    #: the options tried as versions 26-28 (off): version 25's results keep their digest
     digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
         {
             "block_gain_share",

@@ -240,12 +240,14 @@ def test_an_option_added_switched_off_keeps_the_digest() -> None:
 def test_the_numbering_options_tried_as_version_26_keep_version_25s_digest() -> None:
     """Pinned: the digest of the line numbering's defaults as its version 25 results were
     stored (before the options ``meet_tolerance``, ``end_jump`` and ``final_run`` were
-    added, off), so that no stored result is reprocessed for them."""
+    added, off, and those tried as versions 27 and 28), so that no stored result is
+    reprocessed for them."""
     from rasterserver_plugins.numbering_params import CodeWindowParams
 
     v25 = "38842508d99df1cce3e2409f53c2e19c318a4fb2b96e1ffe7cb9a8cd0072590b"
     assert params_hash(CodeWindowParams()) == v25
     assert params_hash(CodeWindowParams(meet_tolerance=1.0)) != v25
+    assert params_hash(CodeWindowParams(block_gain_share=0.4, block_one_shift=True)) != v25
 
 
 def test_params_hash_key_order_is_irrelevant() -> None:
