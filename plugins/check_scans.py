@@ -552,13 +552,15 @@ def block_support_flags(
     gain: float,
     clean: float,
     shifts: int,
+    every: bool,
 ) -> np.ndarray:
     """The shifts each peak's column pairs support for
     :func:`.column_blocks.contradicted_blocks`: int64 numbers, float64 log area steps
     (``step[k]``: peak ``k + 1`` against ``k``), bool pairs, the raster's log widths;
-    ``(n, 2 * shifts)`` bool, columns the shifts ``-shifts .. -1, 1 .. shifts``."""
+    ``(n, 2 * shifts)`` bool, columns the shifts ``-shifts .. -1, 1 .. shifts`` (without
+    ``every``, ``(n, 1)``: whether the peak supports any shift)."""
     n = number.size
-    support = np.zeros((n, 2 * shifts), dtype=np.bool_)
+    support = np.zeros((n, 2 * shifts if every else 1), dtype=np.bool_)
     for i in range(n):
         above = i >= 1 and bool(pair[i - 1])
         below = i < n - 1 and bool(pair[i])
@@ -580,5 +582,7 @@ def block_support_flags(
             if below:
                 cost += _pair_departure(number, step, i, table, shift)
             if cost <= clean * per and own - cost >= gain * per:
-                support[i, j] = True
+                support[i, j if every else 0] = True
+                if not every:
+                    break
     return support

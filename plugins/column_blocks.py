@@ -137,22 +137,12 @@ def contradicted_blocks(
     from .check_scans import block_support_flags  # compiled; the numba import costs ~0.3 s
 
     by_shift = block_support_flags(
-        number, step, pair, table, float(gain), float(clean), int(shifts)
+        number, step, pair, table, float(gain), float(clean), int(shifts), bool(one_shift)
     )
-    # the ends of the numbered lines: a line's first and last numbered peaks by column (the
-    # peaks come sorted by column, and a stable sort by line keeps that order)
-    numbered = np.flatnonzero(number >= 0)
-    by_line = numbered[np.argsort(line_id[numbered], kind="stable")]
-    same = line_id[by_line[1:]] == line_id[by_line[:-1]]
-    ends = np.zeros(n, dtype=bool)
-    if by_line.size:
-        ends[by_line[np.r_[True, ~same]]] = True
-        ends[by_line[np.r_[~same, True]]] = True
-    ends[line_id < 0] = False
-    supports = by_shift.T if one_shift else [by_shift.any(axis=1)]
-    for support in supports:
+    # with one_shift each shift's peaks join alone; without, one column: any shift's
+    for support in by_shift.T:
         if np.count_nonzero(support) >= least:
-            flags |= _held_blocks(support, number >= 0, line_id, pair, ends, least, ends_least)
+            flags |= _held_blocks(support, number >= 0, line_id, pair, least, ends_least)
     return flags
 
 
@@ -161,16 +151,16 @@ def _held_blocks(
     numbered: np.ndarray,
     line_id: np.ndarray,
     pair: np.ndarray,
-    ends: np.ndarray,
     least: int,
     ends_least: int,
 ) -> np.ndarray:
     """The supporting peaks in blocks of ``least`` or more, joined along their lines (a
     numbered peak that does not support parts them) and down their columns (``pair``),
-    holding the ``ends`` of ``ends_least`` or more lines."""
+    holding the ends (first or last numbered peaks) of ``ends_least`` or more lines."""
     n = support.size
-    # along lines: consecutive numbered peaks of one line by column, of the lines that
-    # hold a supporting peak (a lookup by line: a frame has few such lines)
+    # along lines: consecutive numbered peaks of one line by column (the peaks come sorted
+    # by column, and a stable sort by line keeps that order), of the lines that hold a
+    # supporting peak (a lookup by line: a frame has few such lines)
     holds = np.zeros(int(line_id.max()) + 2, dtype=bool)
     holds[line_id[support]] = True
     holds[-1] = False  # line -1: none
@@ -190,6 +180,11 @@ def _held_blocks(
     )
     _, label = connected_components(graph, directed=False)
     size = np.bincount(label)
+    # a line's first and last numbered peaks
+    ends = np.zeros(n, dtype=bool)
+    if by_line.size:
+        ends[by_line[np.r_[True, ~same]]] = True
+        ends[by_line[np.r_[~same, True]]] = True
     # the lines whose ends each block holds, counted once per line and block
     held = ends[nodes]
     pairs = np.unique(np.stack([label[held], line_id[nodes[held]]]), axis=1)

@@ -232,6 +232,8 @@ def test_the_compiled_reading_decides_as_whole_array_passes(seed: int) -> None:
         step = log_area[1:] - log_area[:-1]
     table = log_width_by_number(RASTER)
     for gain, clean, shifts in ((0.3, 0.15, 2), (0.1, 0.3, 1), (0.0, 0.5, 3)):
-        got = block_support_flags(number, step, pair, table, gain, clean, shifts)
         expected = _support_by_whole_arrays(number, step, pair, table, gain, clean, shifts)
-        np.testing.assert_array_equal(got, expected)
+        every = block_support_flags(number, step, pair, table, gain, clean, shifts, True)
+        np.testing.assert_array_equal(every, expected)
+        anyone = block_support_flags(number, step, pair, table, gain, clean, shifts, False)
+        np.testing.assert_array_equal(anyone, expected.any(axis=1, keepdims=True))
