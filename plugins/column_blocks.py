@@ -42,20 +42,12 @@ __all__ = ["code_contrast", "contradicted_blocks"]
 
 
 def code_contrast(raster: Raster) -> float:
-    """The code's contrast: the natural log of its widest line's width over its narrowest's.
-
-    Parameters
-    ----------
-    raster : Raster
-        The diapositive's code.
-
-    Returns
-    -------
-    float
-        0 for a raster of one width (no code to read).
-    """
-    widths = np.asarray(raster.widths, dtype=np.float64)
-    return float(np.log(widths.max() / widths.min())) if widths.size else 0.0
+    """The code's contrast: the natural log of its widest line's width over its narrowest's
+    (from :func:`.column_reading.log_width_by_number`, the log widths the readings use);
+    0 for a raster of one width (no code to read)."""
+    table = log_width_by_number(raster)
+    widths = table[np.isfinite(table)]
+    return float(widths.max() - widths.min()) if widths.size else 0.0
 
 
 def contradicted_blocks(
