@@ -279,10 +279,52 @@ def test_line_entirely_inside_one_pixel_is_not_told_from_a_hot_pixel() -> None:
     assert detect_peaks(pixels).col.size == 0
 
 
-def test_version_5_defaults() -> None:
-    # results of version 4 in an archive are told from version 5's by the version
-    assert FirstMomentPeaks.version == "5"
+def test_version_6_defaults() -> None:
+    # results of version 5 in an archive are told from version 6's by the version
+    assert FirstMomentPeaks.version == "6"
     p = FirstMomentPeaks.Params()
-    assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 3.5)
+    assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 5.7)
+    assert p.smooth is False
     rule = (p.flank_tolerance, p.flank_span, p.flank_area_ratio, p.flank_run_on)
     assert rule == (0.4, 1.5, 1.5, 1.0)
+
+
+def _two_lines(centre: float, gap: float, sigma: float) -> np.ndarray:
+    rows = np.arange(60, dtype=np.float64)[:, None]
+    column = 10.0 + sum(
+        60.0 * np.exp(-0.5 * ((rows - c) / sigma) ** 2) for c in (centre, centre + gap)
+    )
+    return np.repeat(column, 4, axis=1).astype(np.uint8)
+
+
+VERSION_5 = {"smooth": True, "noise_factor": 3.5}
+
+
+def test_two_close_lines_are_not_one_peak_between_them() -> None:
+    # two lines 2.5 px apart where the back turns away: the smoothed column of version 5
+    # holds one maximum between them, a peak 1.25 px off both lines; on the raw column the
+    # one line that rises above its minima is crowded by the other (its bounding minima
+    # differ): dropped as untrustworthy, not misplaced
+    pixels = _two_lines(20.3, 2.5, 0.7)
+    merged = _run(pixels, **VERSION_5)
+    assert merged.n_peaks == 4 and np.allclose(merged.row, 21.56, atol=0.01)
+    found = _run(pixels)
+    assert found.n_peaks == 0 and found.dropped == 4
+
+
+def test_two_lines_three_pixels_apart_are_two_peaks() -> None:
+    found = _run(_two_lines(20.3, 3.0, 0.7))
+    assert found.n_peaks == 8
+    assert np.abs(np.sort(found.row[found.col == 0]) - [20.3, 23.3]).max() < 0.05
+
+
+@pytest.mark.parametrize("height", [5.0, 6.0])
+def test_dim_narrow_line_is_found_on_the_raw_column(height: float) -> None:
+    # a line sharper than a pixel, a few DN high: the [1, 2, 1] smoothing of version 5
+    # flattened it under the least height
+    rows = np.arange(60, dtype=np.float64)[:, None]
+    pixels = np.repeat(10.0 + height * np.exp(-0.5 * ((rows - 20.3) / 0.45) ** 2), 4, axis=1)
+    pixels = pixels.astype(np.uint8)
+    assert _run(pixels, **VERSION_5).n_peaks == 0
+    found = _run(pixels)
+    assert found.n_peaks == 4 and np.abs(found.row - 20.3).max() < 0.2
