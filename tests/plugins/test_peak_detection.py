@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from image_truth import back, synthetic_lines, truth_of_peaks, wall
@@ -328,3 +330,27 @@ def test_dim_narrow_line_is_found_on_the_raw_column(height: float) -> None:
     assert _run(pixels, **VERSION_5).n_peaks == 0
     found = _run(pixels)
     assert found.n_peaks == 4 and np.abs(found.row - 20.3).max() < 0.2
+
+
+SCENES = Path(__file__).resolve().parents[1] / "data" / "scenes"
+
+
+def _back_crossings_found(frame: np.lib.npyio.NpzFile, peaks: Peaks) -> int:
+    """The back's exact line crossings with a peak within 1.5 px in their column."""
+    back = frame["lr_on_back"]
+    key = np.sort(peaks.col.astype(np.int64) * 100_000 + peaks.row)
+    want = frame["lr_column"][back].astype(np.int64) * 100_000 + frame["lr_row"][back]
+    j = np.clip(np.searchsorted(key, want), 1, key.size - 1)
+    nearest = np.minimum(np.abs(key[j - 1] - want), np.abs(key[j] - want))
+    return int(np.count_nonzero(nearest < 1.5))
+
+
+@pytest.mark.parametrize("name", ["scene-7408-mseq8b-35to65", "scene-44157-mseq8b-35to65"])
+def test_kept_clinic_frames_of_close_lines_find_more_of_the_back(name: str) -> None:
+    # clinic frames through the tuning twin of the raster with the closest lines (kept in
+    # tests/data/scenes): version 6 finds a peak at 58-69 more of the back's crossings
+    with np.load(SCENES / f"{name}.npz") as frame:
+        image = frame["image"]
+        before = _back_crossings_found(frame, _run(image, **VERSION_5))
+        after = _back_crossings_found(frame, _run(image))
+    assert after >= before + 50
