@@ -95,6 +95,7 @@ def analyse_back(
     sigma: float = 5.0,
     vp_axis_offset: float = MAX_OFFSET,
     row_concavities: int = ROW_CONCAVITIES,
+    dimple_row_each: bool = True,
     pit_ratio: float | None = PIT_RATIO,
     vp_top_drop: float | None = TOP_DROP,
     vp_max_imbalance: float | None = MAX_IMBALANCE,
@@ -119,6 +120,8 @@ def analyse_back(
     row_concavities : int, optional
         Other concave candidates at the dimples' height that refuse them (a clothing
         edge, :func:`~rasterserver_plugins.landmarks.find_dimples`); 0 does not check.
+    dimple_row_each : bool, optional
+        Count them at either dimple's height (version 11), not at the pair's mean height.
     pit_ratio : float or None, optional
         Least ratio of a dimple candidate's weaker to its stronger principal curvature
         (a pit, not a groove); None does not check.
@@ -173,7 +176,7 @@ def analyse_back(
     # the candidate's height starts the dimples' search even when it is refused below: a
     # shoulder's convex point lies about as high as C7
     dl, dr = find_dimples(
-        grid, curv, trunk, vp, row_concavities=row_concavities, pit_ratio=pit_ratio
+        grid, curv, trunk, vp, row_concavities, pit_ratio=pit_ratio, row_each=dimple_row_each
     )
     if vp_axis_offset > 0:
         vp = check_vertebra_prominens(
@@ -327,7 +330,8 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    than a fifth of VP-DM (spinal_midline.MIN_SUPPORT, back_parameters.MIDLINE_MIN_MEASURED);
     #    the dimples' clothing-edge check counts grooves too; the symmetry line is refused
     #    where it runs along the measured trunk's edge (symmetry_line.EDGE_ROOM)
-    version: ClassVar[str] = "10"
+    # 11: the dimples' clothing-edge check counts the row at either dimple's height
+    version: ClassVar[str] = "11"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
@@ -354,6 +358,11 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             description="Refuse the lumbar dimples when this many other concave candidates lie "
             "at their height (a row of concavities across the lower back: the edge of "
             "clothing). 0 does not check (version 4).",
+        )
+        dimple_row_each: bool = Field(
+            True,
+            description="Count the row of concavities (row_concavities) at either dimple's "
+            "height, not at the pair's mean height (false: version 10).",
         )
         dimple_pit_ratio: float | None = Field(
             PIT_RATIO,
@@ -428,6 +437,7 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             sigma=params.sigma,
             vp_axis_offset=params.vp_axis_offset,
             row_concavities=params.row_concavities,
+            dimple_row_each=params.dimple_row_each,
             pit_ratio=params.dimple_pit_ratio,
             vp_top_drop=params.vp_top_drop,
             vp_max_imbalance=params.vp_max_imbalance,

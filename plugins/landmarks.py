@@ -394,9 +394,10 @@ def find_dimples(
     curv: Curvature,
     trunk: Trunk,
     vp: Landmark,
-    *,
     row_concavities: int = ROW_CONCAVITIES,
+    *,
     pit_ratio: float | None = PIT_RATIO,
+    row_each: bool = True,
 ) -> tuple[Landmark, Landmark]:
     """The lumbar dimples DL (patient's left, ``-x``) and DR (right, ``+x``).
 
@@ -424,7 +425,8 @@ def find_dimples(
         The vertebra prominens (its height starts the search), found or not.
     row_concavities : int, optional
         Refuse the pair when this many other candidates lie at its height (a row of
-        concavities: a clothing edge); 0 does not check (version 4).
+        concavities: a clothing edge); 0 does not check (version 4). ``row_each``: at
+        either dimple's height (version 11), not at the pair's mean height.
     pit_ratio : float or None, optional
         Least ratio of the weaker to the stronger principal curvature of a candidate
         (:data:`PIT_RATIO`): grooves are no dimples. None does not check (version 5).
@@ -502,12 +504,13 @@ def find_dimples(
     if runner >= AMBIGUOUS_RATIO * score:
         reason = "two similar pairs of concavities in the lower back: ambiguous" + hint
         return _missing("DL", reason), _missing("DR", reason)
-    level = 0.5 * (pl.row + pr.row)
     # every concavity counts, grooves too: a waistband's edge is mostly grooves, and the one
-    # or two pits among them made a pair (version 10; version 6 counted the pits only)
-    beside = sum(
-        1 for q in candidates if q is not pl and q is not pr and abs(q.row - level) * s <= LEVEL_MM
-    )
+    # or two pits among them made a pair (version 10; version 6 counted the pits only); at
+    # either dimple's height, as one pit of a waistband's edge paired with a true dimple
+    # 20 mm above it and the pair's mean height missed the row (version 11)
+    levels = (pl.row, pr.row) if row_each else (0.5 * (pl.row + pr.row),)
+    others = [q for q in candidates if q is not pl and q is not pr]
+    beside = max(sum(abs(q.row - lv) * s <= LEVEL_MM for q in others) for lv in levels)
     if row_concavities > 0 and beside >= row_concavities:
         reason = (
             f"the pair lies in a row of {beside + 2} concavities across the lower back (the "

@@ -274,6 +274,31 @@ def test_a_pair_of_pits_in_a_row_of_grooves_is_refused() -> None:
     assert "row of" in left.reason and "clothing" in left.reason
 
 
+def test_a_waistbands_dent_paired_with_the_other_dimple_is_refused() -> None:
+    # Held-out clinic body 60321 (BENCHMARKS.md "Real bodies" (42)): a waistband's edge
+    # 24 mm below the left dimple, dented there (a pit, deeper than the dimple). Version 10
+    # paired the dent with the right dimple; the pair's mean height lies 12 mm off the edge,
+    # beyond LEVEL_MM, so its row went uncounted and DL was found 24 mm off. Version 11
+    # counts the row at either dimple's height and refuses the pair.
+    surface, truth = back("normal")
+    dl = truth["landmarks"]["DL"]
+    grid, _, _, _ = _grooved(surface, dl, wave=0.15, period=40.0, depth=4.0, below=24.0, width=6.0)
+    xs, ys = surface.coordinates()
+    dent = 4.0 * np.exp(
+        -0.5 * (((xs[None, :] - dl[0]) / 8.0) ** 2 + ((ys[:, None] - dl[1] - 24.0) / 8.0) ** 2)
+    )
+    grid = LevelGrid(grid.x0, grid.y0, grid.spacing, grid.z + dent)
+    curv = surface_curvature(grid.z, grid.spacing, sigma=5.0)
+    trunk = find_trunk(grid.z, grid.spacing)
+    vp = find_vertebra_prominens(grid, curv, trunk)
+    wrong, right = find_dimples(grid, curv, trunk, vp, row_each=False)
+    assert wrong.found and np.linalg.norm(wrong.point - dl) > 20.0
+    assert np.linalg.norm(right.point - truth["landmarks"]["DR"]) < 3.0
+    left, right = find_dimples(grid, curv, trunk, vp)
+    assert not left.found and not right.found
+    assert "row of" in left.reason and "clothing" in left.reason
+
+
 @pytest.mark.parametrize(
     ("across", "along", "pit"),
     [(0.02, 0.02, True), (0.02, 0.006, True), (0.02, 0.0, False), (0.02, -0.01, False)],
