@@ -9,19 +9,27 @@ from pathlib import Path
 from bench_scripts import run_script
 
 SCENES = Path(__file__).resolve().parents[1] / "data" / "scenes"
+#: peaks version 5 in version 6, on which the scene's case was found
+PEAKS_5 = {"smooth": True, "noise_factor": 3.5}
 #: numbering version 21 (``docs/numbering-versions.md``) on line order version 1
-V21 = json.dumps({"numbers": {"pair_shift": False, "shift_block": 0}, "order": {"gap_ratio": 1.6}})
+V21 = json.dumps(
+    {
+        "numbers": {"pair_shift": False, "shift_block": 0},
+        "order": {"gap_ratio": 1.6},
+        "peaks": PEAKS_5,
+    }
+)
 
 
 def test_a_cloth_block_is_listed_and_drawn_against_the_version_that_refuses_it(
     tmp_path: Path,
 ) -> None:
     """Scene 7728 through the twin raster: version 21 numbers a cloth block a line low
-    (tests/plugins/test_line_numbering.py), on line order version 1; the installed numbering
-    on that order refuses it."""
+    (tests/plugins/test_line_numbering.py), on line order version 1 and peaks version 5;
+    the installed numbering on those refuses it."""
     png = tmp_path / "look.png"
     args = ("--seed", "7728", "--raster", "mseq8b-35to65", "--cache", str(SCENES))
-    against = json.dumps({"order": {"gap_ratio": 1.6}})
+    against = json.dumps({"order": {"gap_ratio": 1.6}, "peaks": PEAKS_5})
     done = run_script("scene_look", *args, "--params", V21, "--against", against, "--png", str(png))
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(done.stdout)
