@@ -2,8 +2,12 @@
 
 The seed's method, over the whole frame at once:
 
-1. each column is lightly smoothed (``[1, 2, 1] / 4``) only to *find* extrema, so that a
-   noise wiggle on a flank does not split a peak; the moments use the raw grey values;
+1. the extrema are found on the raw grey values of each column, as the seed finds them.
+   Version 5 and earlier found them on a ``[1, 2, 1] / 4`` smoothed column (``smooth``),
+   so that a noise wiggle would not split a peak; but where the back turns away from the
+   camera two lines two or three pixels apart merged into one maximum there, and a dim
+   narrow line fell under the least height. The heights, raised with the frame's noise
+   (``noise_factor``), keep noise from making peaks instead;
 2. a maximum is where the slope turns from positive to negative (zero slopes skipped, so a
    plateau belongs to the flank it continues); its pixels run from the nearest minimum on
    its left to the nearest minimum on its right (column ends count as minima), found for
@@ -91,14 +95,14 @@ def detect_peaks(
     bias_fraction: float = 0.1,
     min_width: int = 2,
     max_width: int = 25,
-    smooth: bool = True,
+    smooth: bool = False,
     trust: bool = True,
     min_trust_height: float = 3.0,
     max_base_step: float = 0.4,
     max_flank_asymmetry: int = 1,
     clip_level: float | None = None,
     narrow: bool = True,
-    noise_factor: float = 3.5,
+    noise_factor: float = 5.7,
     flank_rule: FlankRule | None = None,
 ) -> PeakArrays:
     """Find the raster-line peaks in every column of ``image``.
@@ -108,8 +112,8 @@ def detect_peaks(
     image : numpy.ndarray
         ``(H, W)`` grey values, any real dtype; raster lines run across the columns.
     min_height : float
-        Least rise and fall (DN, on the smoothed column) from the bounding minima to the
-        maximum.
+        Least rise and fall (DN, on the column the extrema are found on) from the bounding
+        minima to the maximum.
     min_slope : float
         Least mean slope (DN/px) of each flank above the bias: the peak's height over the
         number of pixels from the maximum to the flank's end. Scale it down for sensors
@@ -125,11 +129,8 @@ def detect_peaks(
         Largest window considered around a maximum; longer runs of background are clipped
         to ``max_width // 2`` pixels each side. Set it to ~2.5 line spacings in pixels.
     smooth : bool
-        Smooth the columns with ``[1, 2, 1] / 4`` to find the extrema. Off (with
-        ``noise_factor`` 5.7, the same heights over the raw column's noise), two lines two
-        or three pixels apart are not merged into one peak between them, and a dim narrow
-        line is not flattened under the least height: tried as version 6 and not adopted
-        (BENCHMARKS.md "Real bodies", 2026-12-01 (42)).
+        Smooth the columns with ``[1, 2, 1] / 4`` to find the extrema (version 5 and
+        earlier, with ``noise_factor`` 3.5).
     trust : bool
         Drop the peaks whose location cannot be trusted (the next four parameters); their
         number is returned in ``PeakArrays.dropped``.
@@ -151,9 +152,10 @@ def detect_peaks(
         Raise ``min_height`` and ``min_trust_height`` to this many times the frame's pixel
         noise (:func:`~rasterserver_plugins.image_noise.noise_level`) where that is more:
         the heights are then floors for a quiet camera, and a noisy one does not fill the
-        dark background with peaks. 0 uses the heights as given. The smoothing lowers the
-        noise to 0.61 of the pixels': without it, 5.7 finds as few false peaks in pure
-        noise as 3.5 does with it.
+        dark background with peaks. 0 uses the heights as given. 5.7 on the raw column
+        is version 5's 3.5 on the smoothed one, whose noise the ``[1, 2, 1] / 4`` kernel
+        lowers to 0.61 of the pixels' (3.5 on the raw column left 45-88 false peaks in a
+        604 x 576 frame of pure noise; 5.7 leaves none, as 3.5 did on the smoothed one).
     flank_rule : FlankRule, optional
         Keep the peaks dropped for unequal minima or flanks only where trusted peaks of the
         same line flank them (:func:`~rasterserver_plugins.flanked_peaks.flanked`); by
@@ -205,7 +207,7 @@ def detect_peaks(
         base = np.minimum(tf[lo], tf[hi])
     else:
         base = np.zeros(m.size, dtype=np.float32)
-    # The raw maximum may sit one pixel off the smoothed one.
+    # The raw maximum may sit one pixel off the smoothed one (``smooth``).
     peak = np.maximum(np.maximum(tf[m - 1], tf[m]), tf[m + 1])
     level = base + np.float32(bias_fraction) * (peak - base)
     # Moments over the contiguous run of pixels above the bias around the maximum, walking
@@ -305,11 +307,18 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
     flank it in both adjacent columns and the line runs on beyond them
     (:mod:`~rasterserver_plugins.flanked_peaks`; ``flank_*``): the back's coverage gains a
     tenth of a point or more on the clinic scenes, at the line's own accuracy.
+    Version 6: the extrema are found on the raw columns, as the seed finds them
+    (``smooth`` False; ``noise_factor`` 5.7, was 3.5: the same heights over the raw
+    column's noise). Where the back turns away from the camera, two lines two or three
+    pixels apart are no longer one peak between them, and a dim narrow line is no longer
+    flattened under the least height: on the raster with the closest lines the back's
+    coverage gains about two tenths of a point (BENCHMARKS.md "Real bodies", 2026-12-01
+    (42)-(43)).
     """
 
     name: ClassVar[str] = "peaks.first-moment"
     stage: ClassVar[str] = "peaks"
-    version: ClassVar[str] = "5"
+    version: ClassVar[str] = "6"
     input_type = Image
     output_type = Peaks
 
@@ -332,7 +341,9 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
         max_width: int = Field(
             25, ge=3, description="Largest window around a maximum (px, ~2.5 line spacings)."
         )
-        smooth: bool = Field(True, description="Find extrema on [1, 2, 1]-smoothed columns.")
+        smooth: bool = Field(
+            False, description="Find extrema on [1, 2, 1]-smoothed columns (version 5)."
+        )
         trust: bool = Field(True, description="Drop peaks whose location cannot be trusted.")
         min_trust_height: float = Field(
             3.0, ge=0, description="Least height above the bias of a trusted peak (DN)."
@@ -350,7 +361,7 @@ class FirstMomentPeaks(Stage[Image, Peaks]):
             True, description="Keep lines sharper than a pixel (3-pixel centroid)."
         )
         noise_factor: float = Field(
-            3.5,
+            5.7,
             ge=0,
             description="Heights at least this many times the frame's pixel noise (0: off).",
         )

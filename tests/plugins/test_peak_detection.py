@@ -281,12 +281,12 @@ def test_line_entirely_inside_one_pixel_is_not_told_from_a_hot_pixel() -> None:
     assert detect_peaks(pixels).col.size == 0
 
 
-def test_version_5_defaults() -> None:
-    # results of version 4 in an archive are told from version 5's by the version
-    assert FirstMomentPeaks.version == "5"
+def test_version_6_defaults() -> None:
+    # results of version 5 in an archive are told from version 6's by the version
+    assert FirstMomentPeaks.version == "6"
     p = FirstMomentPeaks.Params()
-    assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 3.5)
-    assert p.smooth is True
+    assert (p.min_height, p.min_trust_height, p.min_slope, p.noise_factor) == (3, 3, 2, 5.7)
+    assert p.smooth is False
     rule = (p.flank_tolerance, p.flank_span, p.flank_area_ratio, p.flank_run_on)
     assert rule == (0.4, 1.5, 1.5, 1.0)
 
@@ -299,34 +299,34 @@ def _two_lines(centre: float, gap: float, sigma: float) -> np.ndarray:
     return np.repeat(column, 4, axis=1).astype(np.uint8)
 
 
-#: The extrema on the raw columns, the heights over 5.7 times the frame's noise: tried as
-#: version 6, not adopted (BENCHMARKS.md "Real bodies", 2026-12-01 (42)).
-RAW = {"smooth": False, "noise_factor": 5.7}
+#: Version 5: the extrema on ``[1, 2, 1] / 4`` smoothed columns, the heights over 3.5 times
+#: the frame's noise (version 6 finds them on the raw columns, over 5.7 times it).
+VERSION_5 = {"smooth": True, "noise_factor": 3.5}
 
 
 @pytest.mark.parametrize("sigma", [1.0, 2.0, 6.0])
-def test_raw_columns_find_no_more_noise_peaks_with_the_raised_factor(sigma: float) -> None:
+def test_raw_columns_find_no_noise_peaks_with_the_raised_factor(sigma: float) -> None:
     # the [1, 2, 1] / 4 smoothing lowers the noise to 0.61 of itself: 3.5 times it on the
     # smoothed column is 5.7 times it on the raw one
     rng = np.random.default_rng(7)
     pixels = np.clip(rng.normal(40.0, sigma, (604, 576)), 0, 255).astype(np.uint8)
-    assert _run(pixels, smooth=False).n_peaks > 40
-    assert _run(pixels, **RAW).n_peaks == 0
+    assert _run(pixels, noise_factor=3.5).n_peaks > 40
+    assert _run(pixels).n_peaks == 0
 
 
-def test_two_close_lines_are_one_peak_between_them_on_smoothed_columns() -> None:
-    # two lines 2.5 px apart where the back turns away: the smoothed column holds one
-    # maximum between them, a peak 1.25 px off both lines; on the raw column the one line
-    # that rises above its minima is crowded by the other (its bounding minima differ):
-    # dropped as untrustworthy, not misplaced
+def test_two_close_lines_are_not_one_peak_between_them() -> None:
+    # two lines 2.5 px apart where the back turns away: the smoothed column of version 5
+    # holds one maximum between them, a peak 1.25 px off both lines; on the raw column the
+    # one line that rises above its minima is crowded by the other (its bounding minima
+    # differ): dropped as untrustworthy, not misplaced
     pixels = _two_lines(20.3, 2.5, 0.7)
-    merged = _run(pixels)
+    merged = _run(pixels, **VERSION_5)
     assert merged.n_peaks == 4 and np.allclose(merged.row, 21.56, atol=0.01)
-    found = _run(pixels, **RAW)
+    found = _run(pixels)
     assert found.n_peaks == 0 and found.dropped == 4
 
 
-@pytest.mark.parametrize("params", [{}, RAW])
+@pytest.mark.parametrize("params", [{}, VERSION_5])
 def test_two_lines_three_pixels_apart_are_two_peaks(params: dict) -> None:
     found = _run(_two_lines(20.3, 3.0, 0.7), **params)
     assert found.n_peaks == 8
@@ -335,13 +335,13 @@ def test_two_lines_three_pixels_apart_are_two_peaks(params: dict) -> None:
 
 @pytest.mark.parametrize("height", [5.0, 6.0])
 def test_dim_narrow_line_is_found_on_the_raw_column(height: float) -> None:
-    # a line sharper than a pixel, a few DN high: the [1, 2, 1] smoothing flattens it under
-    # the least height
+    # a line sharper than a pixel, a few DN high: the [1, 2, 1] smoothing of version 5
+    # flattened it under the least height
     rows = np.arange(60, dtype=np.float64)[:, None]
     pixels = np.repeat(10.0 + height * np.exp(-0.5 * ((rows - 20.3) / 0.45) ** 2), 4, axis=1)
     pixels = pixels.astype(np.uint8)
-    assert _run(pixels).n_peaks == 0
-    found = _run(pixels, **RAW)
+    assert _run(pixels, **VERSION_5).n_peaks == 0
+    found = _run(pixels)
     assert found.n_peaks == 4 and np.abs(found.row - 20.3).max() < 0.2
 
 
@@ -361,9 +361,9 @@ def _back_crossings_found(frame: np.lib.npyio.NpzFile, peaks: Peaks) -> int:
 @pytest.mark.parametrize("name", ["scene-7408-mseq8b-35to65", "scene-44157-mseq8b-35to65"])
 def test_kept_clinic_frames_of_close_lines_find_more_of_the_back(name: str) -> None:
     # clinic frames through the tuning twin of the raster with the closest lines (kept in
-    # tests/data/scenes): the raw columns find a peak at 58-69 more of the back's crossings
+    # tests/data/scenes): version 6 finds a peak at 58-69 more of the back's crossings
     with np.load(SCENES / f"{name}.npz") as frame:
         image = frame["image"]
-        before = _back_crossings_found(frame, _run(image))
-        after = _back_crossings_found(frame, _run(image, **RAW))
+        before = _back_crossings_found(frame, _run(image, **VERSION_5))
+        after = _back_crossings_found(frame, _run(image))
     assert after >= before + 50
