@@ -42,9 +42,13 @@ from rasterserver.stage import Stage, StageContext, StageParams
 from .flanked_peaks import FlankRule, flanked
 from .image_noise import noise_level
 
-__all__ = ["FirstMomentPeaks", "PeakArrays", "detect_peaks"]
+__all__ = ["VERSION_5", "FirstMomentPeaks", "PeakArrays", "detect_peaks"]
 
 BiasMode = Literal["max-minimum", "min-minimum", "none"]
+
+#: The parameters under which version 6 gives version 5's peaks (the extrema on smoothed
+#: columns, the heights over 3.5 times the noise): the earlier version, for comparisons.
+VERSION_5: dict[str, object] = {"smooth": True, "noise_factor": 3.5}
 
 _SMOOTH = np.array([0.25, 0.5, 0.25], dtype=np.float32)
 _ONE = np.array([1.0], dtype=np.float32)

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from rasterserver_plugins.peak_detection import VERSION_5
+
 SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "real_bodies.py"
 
 
@@ -109,7 +111,7 @@ def test_a_cloths_wrong_peaks_are_not_on_the_back() -> None:
     v20 = {"one_sided_peaks": 0, "pair_shift": False, "shift_block": 0,
            "linked_one_sided": 0, "final_order": False}  # fmt: skip
     order_1 = {"gap_ratio": 1.6}
-    peaks_4 = {"flank_tolerance": 0.0, "smooth": True, "noise_factor": 3.5}  # in version 6
+    peaks_4 = {"flank_tolerance": 0.0, **VERSION_5}  # in version 6
     bench._init(None, {"numbers": v20, "peaks": peaks_4, "order": order_1})
     row = bench.score_frame(frame)
     bench._init(None, None)

@@ -7,10 +7,11 @@ import json
 from pathlib import Path
 
 from bench_scripts import run_script
+from rasterserver_plugins.peak_detection import VERSION_5
 
 SCENES = Path(__file__).resolve().parents[1] / "data" / "scenes"
 #: peaks version 5 in version 6, on which the scene's case was found
-PEAKS_5 = {"smooth": True, "noise_factor": 3.5}
+PEAKS_5 = VERSION_5
 #: numbering version 21 (``docs/numbering-versions.md``) on line order version 1
 V21 = json.dumps(
     {

@@ -12,6 +12,7 @@ import pytest
 from back_surfaces import GRAVITY, back, with_z
 from image_truth import station
 from rasterserver_plugins.back_shape import NO_VERTICAL, BackShapeAnalysis, analyse_back
+from rasterserver_plugins.peak_detection import VERSION_5
 
 from rasterserver.pipeline import run_chain
 from rasterserver.records_analysis import LANDMARKS, BackShape
@@ -21,7 +22,7 @@ from rasterserver.stage import StageContext, run_stage
 
 #: Peaks version 5 in version 6 (extrema on ``[1, 2, 1]``-smoothed columns): the clinic
 #: scenes below were found with them.
-PEAKS_5 = {"peaks": {"smooth": True, "noise_factor": 3.5}}
+PEAKS_5 = {"peaks": VERSION_5}
 
 
 def test_found_through_the_entry_point() -> None:

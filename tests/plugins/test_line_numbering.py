@@ -10,7 +10,7 @@ from image_truth import back, rendering_raster, truth_lines, truth_of_peaks, wal
 from rasterserver_plugins.line_numbering import CodeWindowNumbering
 from rasterserver_plugins.line_search import HierarchicalLineSearch
 from rasterserver_plugins.line_sequence import HierarchicalLineOrder
-from rasterserver_plugins.peak_detection import FirstMomentPeaks
+from rasterserver_plugins.peak_detection import VERSION_5, FirstMomentPeaks
 
 from rasterserver.errors import InputError
 from rasterserver.records import Image
@@ -22,7 +22,7 @@ from rasterserver.stage import StageContext, run_stage
 #: with them. Version 6 finds other peaks where lines crowd and at dim line ends, and the
 #: line ends those cases turn on move with them; their tests compare the numbering's
 #: versions on version 5's peaks and check the installed chain besides.
-PEAKS_5 = {"smooth": True, "noise_factor": 3.5}
+PEAKS_5 = VERSION_5
 #: The peaks of version 4 in version 6 (no flanked peaks kept, version 5's extrema): the
 #: frames of the scenes below were judged with them when their cases were found.
 PEAKS_4 = {"flank_tolerance": 0.0, **PEAKS_5}
@@ -1123,13 +1123,13 @@ V26_ENDS = {"meet_tolerance": 1.0, "end_jump": 2.8}
 def test_line_ends_where_two_surfaces_meet_are_refused_with_the_options() -> None:
     """Clinic scenes 66703 (``w9-45to55``, hands on the hips) and 65930 (``w8-1to2``, a
     waistband; frames kept in ``SCENES``, rendered on an Intel Xeon): the installed
-    numbering (version 25) on peaks version 5 numbers one peak wrongly in each, at a line's end where two
-    surfaces meet. In 66703 a trunk line starts with a peak on the arm that lies as well on
-    the course of the arm's line ending in the next column, numbered one less
-    (``meet_tolerance``); in 65930, on the back proper, a cloth line starts with the skin's
-    peak at 0.29 of the height of the line's next two peaks (``end_jump``). Each option
-    refuses its peak, and the back keeps its coverage to a thousandth. (Tried as version
-    26, the options caught nothing on fresh held-out frames and stay off.)"""
+    numbering (version 25) on peaks version 5 numbers one peak wrongly in each, at a line's
+    end where two surfaces meet. In 66703 a trunk line starts with a peak on the arm that
+    lies as well on the course of the arm's line ending in the next column, numbered one
+    less (``meet_tolerance``); in 65930, on the back proper, a cloth line starts with the
+    skin's peak at 0.29 of the height of the line's next two peaks (``end_jump``). Each
+    option refuses its peak, and the back keeps its coverage to a thousandth. (Tried as
+    version 26, the options caught nothing on fresh held-out frames and stay off.)"""
     bench = _real_bodies()
     for seed, step, objects in (
         (66703, "meet_tolerance", ["left-arm"]),
@@ -1151,11 +1151,11 @@ def test_line_ends_where_two_surfaces_meet_are_refused_with_the_options() -> Non
 def test_a_line_end_turned_onto_its_refused_peaks_course_is_refused_with_the_option() -> None:
     """Clinic scene 67624 (the default code, hands on the hips; frame kept in ``SCENES``,
     rendered on an AMD EPYC): the installed numbering (version 25) on peaks version 5
-    numbers the last two peaks of a trunk line wrongly, where the line runs onto the arm: they lie on the course
-    of the five refused arm peaks beyond them, off the trunk line's own course. With
-    ``course_beyond`` 0.4 both are refused, and the back keeps its coverage to a
-    thousandth. (Tried as version 27, the option caught nothing on fresh held-out frames
-    and stays off.)"""
+    numbers the last two peaks of a trunk line wrongly, where the line runs onto the arm:
+    they lie on the course of the five refused arm peaks beyond them, off the trunk line's
+    own course. With ``course_beyond`` 0.4 both are refused, and the back keeps its
+    coverage to a thousandth. (Tried as version 27, the option caught nothing on fresh
+    held-out frames and stays off.)"""
     before, after = _kept_scene_scores(
         67624, _on_peaks_5({}), _on_peaks_5({"numbers": {"course_beyond": 0.4}})
     )

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from image_truth import back, synthetic_lines, truth_of_peaks, wall
-from rasterserver_plugins.peak_detection import FirstMomentPeaks, detect_peaks
+from rasterserver_plugins.peak_detection import VERSION_5, FirstMomentPeaks, detect_peaks
 
 from rasterserver.records import Image
 from rasterserver.records_lines import Peaks
@@ -297,11 +297,6 @@ def _two_lines(centre: float, gap: float, sigma: float) -> np.ndarray:
         60.0 * np.exp(-0.5 * ((rows - c) / sigma) ** 2) for c in (centre, centre + gap)
     )
     return np.repeat(column, 4, axis=1).astype(np.uint8)
-
-
-#: Version 5: the extrema on ``[1, 2, 1] / 4`` smoothed columns, the heights over 3.5 times
-#: the frame's noise (version 6 finds them on the raw columns, over 5.7 times it).
-VERSION_5 = {"smooth": True, "noise_factor": 3.5}
 
 
 @pytest.mark.parametrize("sigma", [1.0, 2.0, 6.0])
