@@ -25,6 +25,7 @@ class CodeWindowParams(StageParams):
             "end_jump",
             "final_run",
             "meet_tolerance",
+            "outer_gap",
         }
     )
 
@@ -410,6 +411,15 @@ class CodeWindowParams(StageParams):
         "kink_ratio times the line's own bends) where the lines numbered either side do not "
         "go on beyond it (a link onto another surface's line; 0: none; 0.8 was tried as "
         "version 24 and not adopted).",
+    )
+    outer_gap: float = Field(
+        0.0,
+        ge=0,
+        description="Last, before the lone peaks, refuse a line's numbered end peaks (up to "
+        "three, from the outermost) that have no peak on one side in their column and lie "
+        "more than this many times farther from the next peak on the other side than the "
+        "line's next four numbered peaks do (the line runs onto another surface at a depth "
+        "step; 0: none).",
     )
     kink_ratio: float = Field(
         5.0,

@@ -26,6 +26,7 @@ from .meeting_ends import meeting_ends
 from .numbering_checks import column_order_conflicts, local_spacing, unordered_pairs
 from .numbering_params import CodeWindowParams
 from .one_sided_lines import one_sided_components, one_sided_lines
+from .outer_ends import outer_ends
 from .peak_checks import (
     beside_doubtful,
     column_islands,
@@ -399,7 +400,9 @@ def settle_last(
     line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
     column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
     ``one_sided_peaks``), the line ends bent off their course where their neighbours end
-    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the column neighbours whose numbers
+    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the outermost end peaks of their
+    column farther from the next line than the line is further in
+    (:func:`.outer_ends.outer_ends`, ``outer_gap``), the column neighbours whose numbers
     do not increase downwards (:func:`.numbering_checks.unordered_pairs`, ``final_order``),
     the runs of a line its refused peaks cut off, judged again (``final_run``),
     and last the peaks those steps left with no numbered column neighbour
@@ -425,7 +428,8 @@ def settle_last(
         ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
         ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
         ``block_gain_share``, ``block_one_shift``, ``block_clean``, ``block_ends``,
-        ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``, ``final_order``, ``final_run``,
+        ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``, ``outer_gap``, ``final_order``,
+        ``final_run``,
         ``column_check``, ``final_isolated``, ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
@@ -547,6 +551,13 @@ def settle_last(
         number = _unnumber(
             number, kinked, notes, "at a line's end that bends off the line's course where the "
             "lines numbered either side end too (a link onto another surface's line)",
+        )  # fmt: skip
+    if params.outer_gap > 0:
+        outer = outer_ends(col, row, line_id, number, gap_ratio=params.outer_gap)
+        number = _unnumber(
+            number, outer, notes, "at a line's end, the outermost of their column, lying "
+            "farther from the next line than the line does further in (the line runs onto "
+            "another surface at a depth step)",
         )  # fmt: skip
     if params.final_order:
         number = _unnumber(
