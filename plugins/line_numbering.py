@@ -514,11 +514,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     :func:`.numbering_refusals.least_pair_departure`); 18 runs another placement reads, lone
     peaks last; 19 :mod:`.column_reading`; 20 :mod:`.column_blocks`; 21 :mod:`.one_sided_lines`;
     22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``); 23
-    inherited components touched from one side only (``linked_one_sided``). Options, off:
-    :mod:`.kinked_ends` (``kink_bend``, tried as version 24 and not adopted); the line ends
-    where two numbered lines meet (:mod:`.meeting_ends`, ``meet_tolerance``), a step in
-    brightness (``end_jump``) and lone runs judged again last (``final_run``), tried as
-    version 26 and not adopted; a line's end peaks on the course of its refused peaks beyond
+    inherited components touched from one side only (``linked_one_sided``); 25 ``final_order``;
+    29 line ends on another surface (:mod:`.outer_ends`, :mod:`.meeting_ends`, one-sided
+    lines of six peaks). Options, off: :mod:`.kinked_ends` (``kink_bend``, tried as version
+    24 and not adopted); a step in brightness (``end_jump``) and lone runs judged again last
+    (``final_run``), tried with ``meet_tolerance`` as version 26 and not adopted; a line's
+    end peaks on the course of its refused peaks beyond
     (:mod:`.turned_courses`, ``course_beyond``), tried as version 27 and not adopted; the
     block check's gain as a share of the code's contrast, in blocks of one shift
     (``block_gain_share``, ``block_one_shift``), tried as version 28 and not adopted.
@@ -526,7 +527,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "25"
+    version: ClassVar[str] = "29"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

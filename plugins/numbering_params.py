@@ -15,7 +15,9 @@ __all__ = ["CodeWindowParams"]
 class CodeWindowParams(StageParams):
     """Parameters of :class:`.line_numbering.CodeWindowNumbering` (defaults: version 8)."""
 
-    #: the options tried as versions 26-28 (off): version 25's results keep their digest
+    #: the options tried as versions 26-28, off: left out of the digest at their defaults, so
+    #: that adding them kept version 25's (version 29 switched ``meet_tolerance`` on, and
+    #: adds ``outer_gap``, on: both are in its digest)
     digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
         {
             "block_gain_share",
@@ -24,8 +26,6 @@ class CodeWindowParams(StageParams):
             "course_departure",
             "end_jump",
             "final_run",
-            "meet_tolerance",
-            "outer_gap",
         }
     )
 
@@ -220,12 +220,12 @@ class CodeWindowParams(StageParams):
         "with 2, not adopted).",
     )
     meet_tolerance: float = Field(
-        0.0,
+        1.0,
         ge=0,
         description="Refuse a line's end peak lying within this many rows of the course "
         "of another numbered line, of another number, that ends in the next column beyond "
-        "it: the meeting of two surfaces' lines (0: keep it; an option, off: tried as version "
-        "26 with 1.0, not adopted).",
+        "it: the meeting of two surfaces' lines (0: keep it; versions 25-28: 0; tried alone "
+        "as version 26, not adopted; adopted with outer_gap in version 29).",
     )
     course_beyond: float = Field(
         0.0,
@@ -413,13 +413,13 @@ class CodeWindowParams(StageParams):
         "version 24 and not adopted).",
     )
     outer_gap: float = Field(
-        0.0,
+        1.2,
         ge=0,
         description="Last, before the lone peaks, refuse a line's numbered end peaks (up to "
         "three, from the outermost) that have no peak on one side in their column and lie "
         "more than this many times farther from the next peak on the other side than the "
         "line's next four numbered peaks do (the line runs onto another surface at a depth "
-        "step; 0: none).",
+        "step; 0: none; versions 25-28: 0).",
     )
     kink_ratio: float = Field(
         5.0,
@@ -428,11 +428,12 @@ class CodeWindowParams(StageParams):
         "five numbered peaks before the end the bend must exceed (kink_bend).",
     )
     one_sided_peaks: int = Field(
-        5,
+        6,
         ge=0,
         description="Last, before the lone peaks, refuse lines of at most this many numbered "
         "peaks none of which has numbered peaks directly above and below it (numbered by "
-        "one neighbour's contact across what may be a depth step; 0: none; version 20: 0).",
+        "one neighbour's contact across what may be a depth step; 0: none; version 20: 0; "
+        "versions 21-28: 5).",
     )
     bracket_run: int = Field(
         8,

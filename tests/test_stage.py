@@ -237,17 +237,21 @@ def test_an_option_added_switched_off_keeps_the_digest() -> None:
     assert "digest_omits_defaults" not in After.model_fields
 
 
-def test_the_numbering_options_tried_as_version_26_keep_version_25s_digest() -> None:
-    """Pinned: the digest of the line numbering's defaults as its version 25 results were
-    stored (before the options ``meet_tolerance``, ``end_jump`` and ``final_run`` were
-    added, off, and those tried as versions 27 and 28), so that no stored result is
-    reprocessed for them."""
+def test_the_numbering_options_tried_as_versions_26_to_28_keep_the_digest() -> None:
+    """Pinned: the digest of the line numbering's version 29 defaults. The options tried as
+    versions 26-28 (``end_jump``, ``final_run``, ``course_beyond``, ``block_gain_share``,
+    ``block_one_shift``), off, are left out of it at their defaults, as they were of
+    version 25's when they were added (version 25's parameters, with ``one_sided_peaks`` 5
+    and the two steps of version 29 off, give another digest); switched on, they change
+    it."""
     from rasterserver_plugins.numbering_params import CodeWindowParams
 
-    v25 = "38842508d99df1cce3e2409f53c2e19c318a4fb2b96e1ffe7cb9a8cd0072590b"
-    assert params_hash(CodeWindowParams()) == v25
-    assert params_hash(CodeWindowParams(meet_tolerance=1.0)) != v25
-    assert params_hash(CodeWindowParams(block_gain_share=0.4, block_one_shift=True)) != v25
+    v29 = "6c78705b433f7c42e9e5e6c354d107d22b37446bff27b41f4b35851a9f3a730e"
+    assert params_hash(CodeWindowParams()) == v29
+    v25 = CodeWindowParams(meet_tolerance=0.0, outer_gap=0.0, one_sided_peaks=5)
+    assert params_hash(v25) != v29
+    assert params_hash(CodeWindowParams(end_jump=2.8)) != v29
+    assert params_hash(CodeWindowParams(block_gain_share=0.4, block_one_shift=True)) != v29
 
 
 def test_params_hash_key_order_is_irrelevant() -> None:

@@ -109,7 +109,8 @@ def test_a_cloths_wrong_peaks_are_not_on_the_back() -> None:
     bench = _bench()
     frame = bench.Frame.load(SCRIPT.parents[1] / "tests" / "data" / "scenes" / "scene-7770.npz")
     v20 = {"one_sided_peaks": 0, "pair_shift": False, "shift_block": 0,
-           "linked_one_sided": 0, "final_order": False}  # fmt: skip
+           "linked_one_sided": 0, "final_order": False, "meet_tolerance": 0.0,
+           "outer_gap": 0.0}  # fmt: skip
     order_1 = {"gap_ratio": 1.6}
     peaks_4 = {"flank_tolerance": 0.0, **VERSION_5}  # in version 6
     bench._init(None, {"numbers": v20, "peaks": peaks_4, "order": order_1})

@@ -368,10 +368,11 @@ def test_a_lone_numbered_peak_between_its_lines_refused_peaks_is_refused_last() 
 
 
 def test_the_line_end_options_are_off_and_checked() -> None:
-    """The options tried as versions 26-28 are off by default; a brightness step of a factor of
-    1 or less would call every end a step and is rejected."""
+    """The options tried as versions 26-28 are off by default, but for ``meet_tolerance``,
+    one of version 29's steps; a brightness step of a factor of 1 or less would call every
+    end a step and is rejected."""
     params = CodeWindowParams()
-    assert (params.meet_tolerance, params.end_jump, params.final_run) == (0.0, 0.0, 0)
+    assert (params.meet_tolerance, params.end_jump, params.final_run) == (1.0, 0.0, 0)
     assert (params.course_beyond, params.course_departure) == (0.0, 1.0)
     assert (params.block_gain, params.block_gain_share) == (0.3, 0.0)
     with pytest.raises(ValueError, match="block_gain_share"):
