@@ -1047,18 +1047,19 @@ def test_numbers_out_of_order_down_a_column_are_refused() -> None:
     line 107 onto the start of a line numbered 105, below a cloth peak numbered 105 in the
     same column. Version 23 leaves that peak numbered wrongly; version 25 refuses both
     peaks of a column pair whose numbers do not increase downwards, and keeps the back.
-    Judged with line search version 2; with version 3's lines (turn and vertex cuts) even
+    Judged with line search version 2 (and version 25 against 23: version 29 refuses the
+    peak by its line-end steps too); with version 3's lines (turn and vertex cuts) even
     version 23 does not err there, and the installed chain errs nowhere either."""
     bench = _real_bodies()
     frame = _scene(bench, 77221, None, stored=True)
     bench._init(None, {"numbers": V23, "lines": LINES_2})
     before = bench.score_frame(frame)
-    bench._init(None, {"lines": LINES_2})
+    bench._init(None, {"numbers": V25, "lines": LINES_2})
     after = bench.score_frame(frame)
     assert before["wrong_peaks"] == 1 and before["wrong_objects"] == ["clothing"]
     assert after["wrong_peaks"] == 0
     assert after["back_covered"] >= before["back_covered"] - 0.001 * before["back_crossings"]
-    reason = bench.run_stages(frame, {"lines": LINES_2})[0].reason
+    reason = bench.run_stages(frame, {"numbers": V25, "lines": LINES_2})[0].reason
     assert "whose numbers do not increase down their column" in reason
     bench._init(None, None)
     assert bench.score_frame(frame)["wrong_peaks"] == 0
@@ -1075,18 +1076,20 @@ def test_line_ends_run_onto_another_surface_are_cut_by_the_line_search() -> None
     the line there. In 63677 the corner is cut, but the peak at its vertex stays with the
     trunk's line onto the arm; version 3's vertex cut leaves it in neither line. Each
     cut alone mends its scene; the back keeps all but 0.19 % (62875: 26 of its 13,955
-    crossings lost to the new cuts) and 0.04 % (63677). Judged on line order version 1."""
+    crossings lost to the new cuts) and 0.04 % (63677). Judged on line order version 1 and
+    numbering version 25 (version 29's line-end steps refuse 63677's end anyway)."""
     bench = _real_bodies()
     for seed, alone, objects in (
         (62875, {"vertex": False}, ["clothing"]),
         (63677, {"turn": None}, ["right-arm"]),
     ):
         frame = _scene(bench, seed, None, stored=True)
-        bench._init(None, _on_peaks_5({"lines": LINES_2, "order": ORDER_1}))
+        on_25 = {"order": ORDER_1, "numbers": V25}
+        bench._init(None, _on_peaks_5({"lines": LINES_2, **on_25}))
         before = bench.score_frame(frame)
-        bench._init(None, _on_peaks_5({"lines": alone, "order": ORDER_1}))
+        bench._init(None, _on_peaks_5({"lines": alone, **on_25}))
         one_cut = bench.score_frame(frame)
-        bench._init(None, _on_peaks_5({"order": ORDER_1}))
+        bench._init(None, _on_peaks_5(on_25))
         after = bench.score_frame(frame)
         assert before["wrong_peaks"] >= 1 and before["wrong_objects"] == objects
         assert one_cut["wrong_peaks"] == 0 and after["wrong_peaks"] == 0
