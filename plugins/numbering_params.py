@@ -22,6 +22,7 @@ class CodeWindowParams(StageParams):
         {
             "block_gain_share",
             "block_one_shift",
+            "bracket_line",
             "course_beyond",
             "course_departure",
             "end_jump",
@@ -440,6 +441,12 @@ class CodeWindowParams(StageParams):
         ge=0,
         description="Last, number runs of up to this many unnumbered peaks lying one line "
         "spacing apart between numbered peaks of their column (0: none).",
+    )
+    bracket_line: bool = Field(
+        False,
+        description="Leave a bracketed run unnumbered when one of its peaks lies on a line "
+        "whose numbered peaks carry another number (a hidden line and a spurious peak make "
+        "the count add up one line off; false: number it).",
     )
     bracket_tolerance: float = Field(
         0.2,

@@ -420,7 +420,7 @@ def settle_last(
     spacing : numpy.ndarray or None
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
-        ``bracket_run``, ``bracket_tolerance``, ``end_refused``, ``end_margin``,
+        ``bracket_run``, ``bracket_tolerance``, ``bracket_line``, ``end_refused``, ``end_margin``,
         ``end_dim``, ``end_jump``, ``meet_tolerance``, ``edge_run``, ``edge_reach``,
         ``edge_company``, ``surround_share``,
         ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
@@ -447,8 +447,9 @@ def settle_last(
     col, row, line_id, height = data.col, data.row, data.line_id, data.height
     if params.bracket_run > 0:
         number, note = fill_brackets(
-            col, row, number, spacing, params.bracket_run, params.bracket_tolerance
-        )
+            col, row, number, spacing, params.bracket_run, params.bracket_tolerance,
+            line_id if params.bracket_line else None,
+        )  # fmt: skip
         notes += [note] if note else []
     if params.block_least > 0:
         blocks = contradicted_blocks(

@@ -98,3 +98,47 @@ def test_fill_brackets_with_the_measured_spacing_says_how_many() -> None:
     out, note = fill_brackets(cols, rows, given, local_spacing(cols, rows, given), 8, 0.2)
     assert np.array_equal(out, number)
     assert note.startswith("10 unnumbered peak(s) numbered")
+
+
+def test_a_run_whose_peaks_lines_carry_other_numbers_is_left_unnumbered() -> None:
+    from rasterserver_plugins.bracketed_peaks import bracketed_numbers
+
+    # column 0: numbered 55, two unnumbered peaks one spacing apart, numbered 58: the count
+    # adds up (56, 57); column 1 holds the same lines numbered elsewhere along them
+    col = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    row = np.array([100.0, 110.0, 120.0, 130.0, 100.0, 110.0, 120.0, 130.0])
+    number = np.array([55, -1, -1, 58, 55, 56, 57, 58], np.int32)
+    spacing = np.full(8, 10.0)
+    agreeing = np.array([0, 1, 2, 3, 0, 1, 2, 3])
+    # without the lines, and with lines that carry the counted numbers: numbered
+    assert bracketed_numbers(col, row, number, spacing)[1:3].tolist() == [56, 57]
+    out = bracketed_numbers(col, row, number, spacing, line_id=agreeing)
+    assert out[1:3].tolist() == [56, 57]
+    # a hidden line and a spurious peak: the peaks' lines carry 57 and 58 further along
+    # (212733's arm); the whole run is left, not just the peak that disagrees
+    shifted = np.array([0, 2, 3, 3, 0, 1, 2, 3])
+    shifted_number = np.array([55, -1, -1, 58, 55, 56, 57, 58], np.int32)
+    shifted_number[5:7] = [-1, 57]  # line 1 unnumbered in column 1; line 2 there carries 57
+    out = bracketed_numbers(col, row, shifted_number, spacing, line_id=shifted)
+    assert out[1:3].tolist() == [-1, -1]
+    # lines with no numbered peak, or no line at all (-1): the count decides
+    alone = np.array([0, 5, -1, 3, 0, 6, 7, 3])
+    out = bracketed_numbers(col, row, np.array([55, -1, -1, 58, 55, -1, -1, 58], np.int32),
+                            spacing, line_id=alone)  # fmt: skip
+    assert out[1:3].tolist() == [56, 57]
+
+
+def test_one_disagreeing_peak_leaves_its_run_and_no_other() -> None:
+    from rasterserver_plugins.bracketed_peaks import bracketed_numbers
+
+    # two runs in two columns; only the second one's middle peak lies on a line numbered 30
+    col = np.array([0, 0, 0, 1, 1, 1, 2])
+    row = np.array([100.0, 110.0, 120.0, 100.0, 110.0, 120.0, 110.0])
+    number = np.array([10, -1, 12, 10, -1, 12, 30], np.int32)
+    line_id = np.array([0, 1, 2, 0, 3, 2, 3])
+    out = bracketed_numbers(col, row, number, np.full(7, 10.0), line_id=line_id)
+    assert out.tolist() == [10, 11, 12, 10, -1, 12, 30]
+    # empty lines array and no lines at all
+    none = np.full(7, -1)
+    out = bracketed_numbers(col, row, number, np.full(7, 10.0), line_id=none)
+    assert out.tolist() == [10, 11, 12, 10, 11, 12, 30]
