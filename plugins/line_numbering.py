@@ -516,7 +516,8 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     22 blocks placed a line off behind an albedo edge (``pair_shift``, ``shift_block``); 23
     inherited components touched from one side only (``linked_one_sided``); 25 ``final_order``;
     29 line ends on another surface (:mod:`.outer_ends`, :mod:`.meeting_ends`, one-sided
-    lines of six peaks). Options, off: :mod:`.kinked_ends` (``kink_bend``, tried as version
+    lines of six peaks); 30 bracketed runs whose peaks' lines carry other numbers
+    (``bracket_line``). Options, off: :mod:`.kinked_ends` (``kink_bend``, tried as version
     24 and not adopted); a step in brightness (``end_jump``) and lone runs judged again last
     (``final_run``), tried with ``meet_tolerance`` as version 26 and not adopted; a line's
     end peaks on the course of its refused peaks beyond
@@ -527,7 +528,7 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
 
     name: ClassVar[str] = "numbers.code-window"
     stage: ClassVar[str] = "numbers"
-    version: ClassVar[str] = "29"
+    version: ClassVar[str] = "30"
     input_type = OrderedLines
     output_type = NumberedLines
     requires: ClassVar[tuple[str, ...]] = ("raster",)

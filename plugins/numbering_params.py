@@ -17,12 +17,13 @@ class CodeWindowParams(StageParams):
 
     #: the options tried as versions 26-28, off: left out of the digest at their defaults, so
     #: that adding them kept version 25's (version 29 switched ``meet_tolerance`` on, and
-    #: adds ``outer_gap``, on: both are in its digest)
+    #: adds ``outer_gap``, on: both are in its digest; version 30 adds ``bracket_line``, on)
     digest_omits_defaults: ClassVar[frozenset[str]] = frozenset(
         {
             "block_gain_share",
             "block_one_shift",
-            "bracket_line",
+            "gap_departure",
+            "gap_peaks",
             "course_beyond",
             "course_departure",
             "end_jump",
@@ -422,6 +423,21 @@ class CodeWindowParams(StageParams):
         "line's next four numbered peaks do (the line runs onto another surface at a depth "
         "step; 0: none; versions 25-28: 0).",
     )
+    gap_peaks: int = Field(
+        0,
+        ge=0,
+        description="Last, with the one-sided lines, refuse lines of at most this many "
+        "numbered peaks whose numbered peaks lie (median) gap_departure or more line "
+        "spacings off a whole count from their numbered column neighbours (numbered across "
+        "a depth step the image cannot count; 0: none; an option, off: screened with 20, "
+        "not yet judged on held-out frames).",
+    )
+    gap_departure: float = Field(
+        0.4,
+        gt=0,
+        le=0.5,
+        description="Least median departure from a whole count of spacings (gap_peaks).",
+    )
     kink_ratio: float = Field(
         5.0,
         gt=0,
@@ -443,10 +459,10 @@ class CodeWindowParams(StageParams):
         "spacing apart between numbered peaks of their column (0: none).",
     )
     bracket_line: bool = Field(
-        False,
+        True,
         description="Leave a bracketed run unnumbered when one of its peaks lies on a line "
         "whose numbered peaks carry another number (a hidden line and a spurious peak make "
-        "the count add up one line off; false: number it).",
+        "the count add up one line off; false: number it, version 29).",
     )
     bracket_tolerance: float = Field(
         0.2,

@@ -14,6 +14,7 @@ import numpy as np
 from rasterserver.raster import Raster
 from rasterserver.records_lines import OrderedLines
 
+from .ambiguous_gaps import ambiguous_gap_lines
 from .bracketed_peaks import fill_brackets
 from .code_evidence import ComponentNumbering, area_ratio_of
 from .column_blocks import contradicted_blocks
@@ -399,8 +400,10 @@ def settle_last(
     peaks their column's code, read on through the unnumbered peaks beyond them, places a
     line off (:func:`.column_reading.misread_columns`, ``reading_run``), the short lines no
     column confirms from both sides (:func:`.one_sided_lines.one_sided_lines`,
-    ``one_sided_peaks``), the line ends bent off their course where their neighbours end
-    (:func:`.kinked_ends.kinked_ends`, ``kink_bend``), the outermost end peaks of their
+    ``one_sided_peaks``; with ``gap_peaks``, the short lines numbered across gaps no whole
+    count of spacings explains, :func:`.ambiguous_gaps.ambiguous_gap_lines`), the line
+    ends bent off their course where their neighbours end (:func:`.kinked_ends.kinked_ends`,
+    ``kink_bend``), the outermost end peaks of their
     column farther from the next line than the line is further in
     (:func:`.outer_ends.outer_ends`, ``outer_gap``), the column neighbours whose numbers
     do not increase downwards (:func:`.numbering_checks.unordered_pairs`, ``final_order``),
@@ -420,17 +423,17 @@ def settle_last(
     spacing : numpy.ndarray or None
         Per-peak local line spacing of the numbers before the peak checks.
     params : CodeWindowParams
-        ``bracket_run``, ``bracket_tolerance``, ``bracket_line``, ``end_refused``, ``end_margin``,
-        ``end_dim``, ``end_jump``, ``meet_tolerance``, ``edge_run``, ``edge_reach``,
-        ``edge_company``, ``surround_share``,
-        ``surround_reach``, ``surround_length``, ``surround_passes``, ``skip_ratio``,
-        ``skip_line_peaks``, ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``,
-        ``detached_gap_high``, ``detached_brightness``, ``reading_run``, ``reading_least``,
-        ``reading_margin``, ``reading_clean``, ``block_least``, ``block_gain``,
-        ``block_gain_share``, ``block_one_shift``, ``block_clean``, ``block_ends``,
-        ``one_sided_peaks``, ``kink_bend``, ``kink_ratio``, ``outer_gap``, ``final_order``,
-        ``final_run``,
-        ``column_check``, ``final_isolated``, ``linked_one_sided``.
+        ``bracket_run``, ``bracket_tolerance``, ``bracket_line``, ``end_refused``,
+        ``end_margin``, ``end_dim``, ``end_jump``, ``meet_tolerance``, ``edge_run``,
+        ``edge_reach``, ``edge_company``, ``surround_share``, ``surround_reach``,
+        ``surround_length``, ``surround_passes``, ``skip_ratio``, ``skip_line_peaks``,
+        ``skip_line_share``, ``detached_peaks``, ``detached_gap_low``, ``detached_gap_high``,
+        ``detached_brightness``, ``reading_run``, ``reading_least``, ``reading_margin``,
+        ``reading_clean``, ``block_least``, ``block_gain``, ``block_gain_share``,
+        ``block_one_shift``, ``block_clean``, ``block_ends``, ``one_sided_peaks``,
+        ``gap_peaks``, ``gap_departure``, ``kink_bend``, ``kink_ratio``, ``outer_gap``,
+        ``final_order``, ``final_run``, ``column_check``, ``final_isolated``,
+        ``linked_one_sided``.
     raster : Raster
         The diapositive's code.
     linked : numpy.ndarray, optional
@@ -544,6 +547,14 @@ def settle_last(
             number, one_sided, notes, f"on lines of at most {params.one_sided_peaks} numbered "
             "peaks with no numbered peak both above and below any of them (numbered by one "
             "neighbour's contact, across what may be a depth step)",
+        )  # fmt: skip
+    if params.gap_peaks > 0:
+        ambiguous = ambiguous_gap_lines(
+            col, row, line_id, number, max_peaks=params.gap_peaks, departure=params.gap_departure
+        )
+        number = _unnumber(
+            number, ambiguous, notes, f"on lines of at most {params.gap_peaks} numbered peaks "
+            "lying between two counts of line spacings from their column neighbours",
         )  # fmt: skip
     if params.kink_bend > 0:
         kinked = kinked_ends(

@@ -238,20 +238,25 @@ def test_an_option_added_switched_off_keeps_the_digest() -> None:
 
 
 def test_the_numbering_options_tried_as_versions_26_to_28_keep_the_digest() -> None:
-    """Pinned: the digest of the line numbering's version 29 defaults. The options tried as
+    """Pinned: the digest of the line numbering's version 30 defaults. The options tried as
     versions 26-28 (``end_jump``, ``final_run``, ``course_beyond``, ``block_gain_share``,
     ``block_one_shift``), off, are left out of it at their defaults, as they were of
     version 25's when they were added (version 25's parameters, with ``one_sided_peaks`` 5
-    and the two steps of version 29 off, give another digest); switched on, they change
-    it."""
+    and the two steps of version 29 off, give another digest, as do version 29's, with
+    ``bracket_line`` off); switched on, they change it."""
     from rasterserver_plugins.numbering_params import CodeWindowParams
 
-    v29 = "6c78705b433f7c42e9e5e6c354d107d22b37446bff27b41f4b35851a9f3a730e"
-    assert params_hash(CodeWindowParams()) == v29
+    v30 = "309efe99739c771e6351fe3db1257ffc382bf78c03b0ce1ff8b0f67ab5d0cc80"
+    assert params_hash(CodeWindowParams()) == v30
     v25 = CodeWindowParams(meet_tolerance=0.0, outer_gap=0.0, one_sided_peaks=5)
-    assert params_hash(v25) != v29
-    assert params_hash(CodeWindowParams(end_jump=2.8)) != v29
-    assert params_hash(CodeWindowParams(block_gain_share=0.4, block_one_shift=True)) != v29
+    assert params_hash(v25) != v30
+    assert params_hash(CodeWindowParams(bracket_line=False)) != v30
+    # the ambiguous-gap option (``gap_peaks``), off, added after version 30: switched on, it
+    # changes the digest
+    assert params_hash(CodeWindowParams(gap_peaks=20)) != v30
+    assert params_hash(CodeWindowParams(gap_departure=0.3)) != v30
+    assert params_hash(CodeWindowParams(end_jump=2.8)) != v30
+    assert params_hash(CodeWindowParams(block_gain_share=0.4, block_one_shift=True)) != v30
 
 
 def test_params_hash_key_order_is_irrelevant() -> None:
