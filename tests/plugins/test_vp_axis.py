@@ -12,6 +12,7 @@ from rasterserver_plugins.vp_axis import (
     MAX_IMBALANCE,
     MAX_OFFSET,
     axis_offset,
+    check_confidence,
     check_imbalance,
     check_vertebra_prominens,
 )
@@ -78,3 +79,15 @@ def test_vp_farther_beside_dm_than_a_trunk_imbalance_is_refused() -> None:
     missing = Landmark("DM", None, 0.0, "no dimples")
     assert check_imbalance(far, missing) is far  # without DM nothing to judge
     assert MAX_IMBALANCE == 50.0
+
+
+def test_a_vp_below_the_least_confidence_is_refused_with_its_confidence() -> None:
+    weak = Landmark("VP", np.array([-51.0, -135.0, -47.6]), 0.27)
+    strong = Landmark("VP", np.array([4.0, -210.0, 30.0]), 0.70)
+    assert check_confidence(weak) is weak  # off by default
+    refused = check_confidence(weak, min_confidence=0.5)
+    assert refused.point is None and refused.confidence == 0.0
+    assert "confidence 0.27, below 0.50" in refused.reason
+    assert check_confidence(strong, min_confidence=0.5) is strong
+    missing = Landmark("VP", None, 0.0, "no convex point")
+    assert check_confidence(missing, min_confidence=0.5) is missing
