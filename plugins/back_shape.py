@@ -106,7 +106,7 @@ def analyse_back(
     vp_top_drop: float | None = TOP_DROP,
     vp_max_imbalance: float | None = MAX_IMBALANCE,
     vp_region_below: float = REGION_BELOW,
-    vp_min_confidence: float = 0.0,
+    vp_min_confidence: float = 0.5,
     midline_support: float = MIN_SUPPORT,
     line_edge_room: float = EDGE_ROOM,
     vp_carried: np.ndarray | None = None,
@@ -141,7 +141,8 @@ def analyse_back(
     vp_region_below : float, optional
         How far (in trunk half-widths) VP's search region reaches below the neck line.
     vp_min_confidence : float, optional
-        Least confidence of VP kept (:func:`.vp_axis.check_confidence`); 0 keeps every VP.
+        Least confidence of VP kept (:func:`.vp_axis.check_confidence`; version 12); 0
+        keeps every VP.
     midline_support : float, optional
         Least share of either side of the rotation's window on measured surface for the
         midline to be measured at a level
@@ -342,17 +343,14 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
     #    the dimples' clothing-edge check counts grooves too; the symmetry line is refused
     #    where it runs along the measured trunk's edge (symmetry_line.EDGE_ROOM)
     # 11: the dimples' clothing-edge check counts the row at either dimple's height
-    version: ClassVar[str] = "11"
+    # 12: VP is refused below confidence 0.5 (a weak convex point on the upper back)
+    version: ClassVar[str] = "12"
     input_type = Surface
     output_type = BackShape
     requires: ClassVar[tuple[str, ...]] = ("calibration",)
 
     class Params(StageParams):
         """Parameters of :class:`BackShapeAnalysis`."""
-
-        #: an option added after version 11, off: left out of the digest at its default, so
-        #: that stored analyses stay current
-        digest_omits_defaults: ClassVar[frozenset[str]] = frozenset({"vp_min_confidence"})
 
         sigma: float = Field(
             5.0,
@@ -411,12 +409,12 @@ class BackShapeAnalysis(Stage[Surface, BackShape]):
             "neck widens into the shoulders), in trunk half-widths. 0.7 is version 8.",
         )
         vp_min_confidence: float = Field(
-            0.0,
+            0.5,
             ge=0.0,
             le=1.0,
             description="Refuse VP when its confidence (strength times distinctness) is "
-            "below this (a weak convex point on the upper back; 0 does not check: an option, "
-            "off, screened with 0.5, not yet judged on held-out bodies).",
+            "below this (a weak convex point on the upper back). 0 does not check "
+            "(version 11).",
         )
         midline_support: float = Field(
             MIN_SUPPORT,

@@ -171,7 +171,8 @@ def check_confidence(vp: Landmark, *, min_confidence: float = 0.0) -> Landmark:
     On the clinic bodies 60800-60999 (``benchmarks/clinic_analysis.py``) a weak convex point
     on the upper back, 88 mm from C7, was taken for VP with confidence 0.27; the other 355
     VPs found on those bodies and their backs alone, all within 5.1 mm, had 0.70 or more.
-    An option, off (0), until judged on fresh bodies.
+    Analysis version 12 refuses below 0.5 (judged on fresh bodies 61000-61199: one right
+    VP of 352 refused, nothing else changed; BENCHMARKS.md "Real bodies" (46)).
 
     Parameters
     ----------

@@ -376,28 +376,29 @@ def test_a_symmetry_line_along_the_trunks_edge_is_refused() -> None:
         assert np.linalg.norm(point - tr["landmarks"][name]) < 3.0
 
 
-def test_a_weak_convex_point_taken_for_vp_is_refused_with_the_option() -> None:
+def test_a_weak_convex_point_taken_for_vp_is_refused_by_version_12() -> None:
     # Clinic scene 60850 (benchmarks/clinic_analysis.py, kept frame; the w8-1to2 code, arms
     # away, a waistband): version 11 takes a weak convex point on the upper back for VP, 88 mm
     # from C7, with confidence 0.27 (the other 355 VPs of bodies 60800-60999 and their backs
-    # had 0.70 or more, within 5.1 mm). The option vp_min_confidence (off) refuses it.
+    # had 0.70 or more, within 5.1 mm). Version 12 refuses a VP below confidence 0.5.
     from rasterserver.simulator.back_truth import truth
     from rasterserver.simulator.body import clinic_station, make_body, random_body
 
     kept = np.load(Path(__file__).parents[1] / "data" / "scenes" / "body-60850.npz")
     st = clinic_station(60850, str(kept["code"]))
     context = StageContext(calibration=st, raster=st.raster_definition)
-    installed = run_chain(kept["image"], context=context, until="analysis")["analysis"]
-    true_vp = np.asarray(truth(make_body(random_body(60850)))["landmarks"]["VP"], dtype=float)
-    found = installed.landmark("VP")
-    assert found is not None and np.linalg.norm(found - true_vp) > 50.0
-    assert installed.landmark_confidence[0] < 0.3
-    shape = run_chain(
+    v11 = run_chain(
         kept["image"], context=context, until="analysis",
-        params={"analysis": {"vp_min_confidence": 0.5}},
+        params={"analysis": {"vp_min_confidence": 0.0}},
     )["analysis"]  # fmt: skip
+    true_vp = np.asarray(truth(make_body(random_body(60850)))["landmarks"]["VP"], dtype=float)
+    found = v11.landmark("VP")
+    assert found is not None and np.linalg.norm(found - true_vp) > 50.0
+    assert v11.landmark_confidence[0] < 0.3
+    shape = run_chain(kept["image"], context=context, until="analysis")["analysis"]
+    assert BackShapeAnalysis.Params().vp_min_confidence == 0.5
     assert shape.landmark("VP") is None
     assert "confidence 0.27" in json.loads(shape.reasons)["VP"]
     # the dimples are found as before (their search starts at the candidate's height)
     for name in ("DL", "DR"):
-        assert np.allclose(shape.landmark(name), installed.landmark(name))
+        assert np.allclose(shape.landmark(name), v11.landmark(name))

@@ -84,7 +84,7 @@ def test_vp_farther_beside_dm_than_a_trunk_imbalance_is_refused() -> None:
 def test_a_vp_below_the_least_confidence_is_refused_with_its_confidence() -> None:
     weak = Landmark("VP", np.array([-51.0, -135.0, -47.6]), 0.27)
     strong = Landmark("VP", np.array([4.0, -210.0, 30.0]), 0.70)
-    assert check_confidence(weak) is weak  # off by default
+    assert check_confidence(weak) is weak  # 0: no check
     refused = check_confidence(weak, min_confidence=0.5)
     assert refused.point is None and refused.confidence == 0.0
     assert "confidence 0.27, below 0.50" in refused.reason
