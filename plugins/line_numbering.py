@@ -517,13 +517,12 @@ class CodeWindowNumbering(Stage[OrderedLines, NumberedLines]):
     inherited components touched from one side only (``linked_one_sided``); 25 ``final_order``;
     29 line ends on another surface (:mod:`.outer_ends`, :mod:`.meeting_ends`, one-sided
     lines of six peaks); 30 bracketed runs whose peaks' lines carry other numbers
-    (``bracket_line``). Options, off: :mod:`.kinked_ends` (``kink_bend``, tried as version
-    24 and not adopted); a step in brightness (``end_jump``) and lone runs judged again last
-    (``final_run``), tried with ``meet_tolerance`` as version 26 and not adopted; a line's
-    end peaks on the course of its refused peaks beyond
-    (:mod:`.turned_courses`, ``course_beyond``), tried as version 27 and not adopted; the
-    block check's gain as a share of the code's contrast, in blocks of one shift
-    (``block_gain_share``, ``block_one_shift``), tried as version 28 and not adopted.
+    (``bracket_line``). Options, off (not adopted when tried): :mod:`.kinked_ends`
+    (``kink_bend``, 24); a step in brightness (``end_jump``) and lone runs judged again last
+    (``final_run``), with ``meet_tolerance`` as 26; a line's end peaks on the course of its
+    refused peaks beyond (:mod:`.turned_courses`, ``course_beyond``, 27); the block check's
+    gain as a share of the code's contrast, in blocks of one shift (``block_gain_share``,
+    ``block_one_shift``, 28); :mod:`.ambiguous_gaps` (``gap_peaks``, not yet judged).
     """
 
     name: ClassVar[str] = "numbers.code-window"
